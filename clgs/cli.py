@@ -1,0 +1,69 @@
+"""The ``clgs`` command line: a click group whose commands are imported only when run.
+
+Commands live in ``clgs.commands.*``; anatomy plugins add one group each (see ``clgs.plugins``).
+Nothing heavy (torch, pyopencl) is imported to print ``clgs --help``.
+"""
+from __future__ import annotations
+
+import importlib
+import importlib.util
+
+import click
+
+# name -> "module:attribute" of a click command, imported on first use
+COMMANDS = {
+    "info": "clgs.commands.info:info",
+    "bench": "clgs.commands.bench:bench",
+    "simulate": "clgs.commands.ct:simulate",
+    "reconstruct": "clgs.commands.ct:reconstruct",
+    "evaluate": "clgs.commands.ct:evaluate",
+    "anatomies": "clgs.commands.anatomies:anatomies",
+}
+
+
+def _load(target: str) -> click.Command:
+    module, attr = target.split(":")
+    return getattr(importlib.import_module(module), attr)
+
+
+class LazyGroup(click.Group):
+    """Lists built-in commands and one group per installed anatomy plugin, importing lazily."""
+
+    def _anatomy_names(self):
+        try:
+            from clgs import plugins
+        except ImportError:
+            return []
+        return plugins.anatomy_names()
+
+    def list_commands(self, ctx):
+        names = {n for n, t in COMMANDS.items() if importlib.util.find_spec(t.split(":")[0])}
+        names |= set(super().list_commands(ctx))
+        names |= set(self._anatomy_names())
+        return sorted(names)
+
+    def get_command(self, ctx, name):
+        if name in COMMANDS:
+            return _load(COMMANDS[name])
+        cmd = super().get_command(ctx, name)
+        if cmd is not None:
+            return cmd
+        if name in self._anatomy_names():
+            from clgs import plugins
+
+            return plugins.anatomy_group(name)
+        return None
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="clgs")
+def main():
+    """clgs: sparse-view X-ray 3D reconstruction with Gaussian splatting and shape priors.
+
+    Kernels run in OpenCL (PoCL on the CPU, or any OpenCL GPU). Each installed anatomy
+    plugin adds a command group (e.g. ``clgs femur demo``).
+    """
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()
