@@ -23,8 +23,13 @@ class Anatomy:
     population: () -> list of subject ids usable to build the model (held-out ones excluded).
     test_subjects: () -> list of held-out subject ids (never used to build the model).
     load_subject: (subject_id) -> clgs.template.Subject (surface mesh and CT-like volume).
-    build_model: (**settings) -> path of the built model file (the plugin's default population).
-    scene: default scan and reconstruction settings (keyword arguments of Geometry.default, etc.).
+    build_model: (out_path=None, force=False, **settings) -> path of the built model file (the plugin's
+        default population; settings are keyword arguments of clgs.model_builder.build_model).
+    subject_from_mesh: (path, seed=0) -> Subject (with a CT volume) from a surface file, or a tuple
+        whose first item is the Subject; when absent ``clgs <name> simulate --mesh`` fills the surface
+        with a uniform attenuation ``scene['density']``.
+    scene: default scan and reconstruction settings: TIGRE geometry names (mode, DSO, DSD, nDetector,
+        dDetector, offDetector), n_views, arc_deg, surface_level (bone iso-level, 1/mm), density.
     commands: extra click commands added to the anatomy's CLI group.
     package: distribution that provided it (filled in by the plugin manager).
     model_path: where the built model lives or will live (shown by ``clgs anatomies``).
@@ -44,3 +49,4 @@ class Anatomy:
     commands: list = field(default_factory=list)
     package: str = ""
     model_path: Optional[str] = None
+    subject_from_mesh: Optional[Callable] = None

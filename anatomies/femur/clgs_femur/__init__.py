@@ -1,0 +1,77 @@
+"""clgs anatomy plugin: the left femur, from the 26 real surfaces of LLP26.
+
+Data: ``data/femur_left_LLP26_subjectNN.npz`` (NN = 00..25, vertex correspondence), from the
+PyPI package ``musculoskeletal-models`` 0.2.4 (Auckland Bioengineering Institute), MPL-2.0: see
+``data/LLP26_README.md`` and ``data/LICENSE-MPL-2.0.txt``. Subjects 00-19 build the shape model
+and the density atlas; 20-25 are held out for testing and never enter the model.
+
+Template: the vertex-wise mean of subjects 00-19. The shipped ``femur_left_LLP26_mean.npz`` is
+the mean of all 26 (its vertices are a permutation of the 26-subject mean, within 1e-4 mm), so
+it includes the held-out subjects and is not used for the model (kept for reference only).
+
+Frame: LLP26's frame shifted by ``FRAME_OFFSET`` so that the CT grid is centred on the scanner's
+rotation axis (x, y in the axial plane, z along the leg; -y is anterior).
+
+CT grid: 80 (x) x 72 (y) x 160 (z) voxels of 3 mm: 240 x 216 x 480 mm, 0.92 M voxels. It holds
+the longest femur of the cohort (466 mm) and a thigh-like limb around it with air on the sides.
+3 mm keeps simulation, model building (20 registrations) and reconstruction comfortable on two
+CPU cores while the shaft (about 25-30 mm across) still spans 8-10 voxels.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from clgs.hookspecs import hookimpl
+
+__version__ = "0.1.0"
+
+DATA_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data")
+SUBJECTS = [f"{i:02d}" for i in range(26)]
+TEST_SUBJECTS = SUBJECTS[20:]
+FRAME_OFFSET = (105.0, 23.0, 1010.0)  # LLP26 mm (x, y, z) -> grid centre
+SHAPE = (160, 72, 80)  # (Z, Y, X)
+SPACING_MM = 3.0
+
+_population = None
+
+
+def params():
+    """Density parameters of the femur (see :mod:`clgs.phantom` for the values' sources).
+
+    Cortex 5.5 mm at mid-shaft thinning to 1.5 mm at the epiphyses (adult femoral diaphysis
+    4-7 mm); medullary canal over the central half of the length; cancellous bone in the head,
+    neck, trochanters and condyles; a thigh of muscle, 10 mm of subcutaneous fat and 2 mm skin."""
+    from clgs.phantom import DensityParams, SoftTissue
+
+    return DensityParams(cortex_mid_mm=5.5, cortex_end_mm=1.5, cortex_plateau=0.22, canal_plateau=0.25,
+                         canal_lining_mm=2.0, trabecular=0.027,
+                         soft_tissue=SoftTissue(min_semi_axes_mm=(65.0, 60.0), margin_mm=20.0, fat_mm=10.0,
+                                                skin_mm=2.0, smooth_mm=25.0))
+
+
+def population_model():
+    """The femur's :class:`clgs.phantom.SurfacePopulation` (created once)."""
+    global _population
+    if _population is None:
+        from clgs.geometry import Grid
+        from clgs.phantom import SurfacePopulation, scan_geometry_kwargs
+
+        n = np.asarray(SHAPE[::-1])
+        grid = Grid(SHAPE, tuple(-0.5 * (n - 1) * SPACING_MM), (SPACING_MM,) * 3)
+        scene = scan_geometry_kwargs(grid, DSO=1000.0, DSD=1500.0, pixel_mm=3.0)
+        scene.update(n_views=50, arc=float(np.pi))
+        _population = SurfacePopulation(
+            name="femur", summary="left femur (LLP26 real surfaces: 20 model subjects, 6 held out)",
+            version=__version__, data_dir=DATA_DIR, file_pattern="femur_left_LLP26_subject{id}.npz",
+            ids=SUBJECTS, test_ids=TEST_SUBJECTS, grid=grid, params=params(), frame_offset=FRAME_OFFSET,
+            scene=scene)
+    return _population
+
+
+@hookimpl
+def clgs_anatomies():
+    pop = population_model()
+    anatomy = pop.anatomy(commands=[pop.mesh_command()])
+    return [anatomy]

@@ -1,0 +1,402 @@
+/* Gaussian X-ray projector: forward (pixel-centric, tile owner) and backward (Gaussian-centric
+ * gather). Switches and conventions: project_setup.h and clgs/projector.py.
+ *
+ * Forward: one work-item owns a TW x TH tile (TW = 8 pixels = one real8 row) of one view and
+ * walks the tile's Gaussian list (built on the device by binning.cl, in index order), touching
+ * only the rows inside each Gaussian's box. Backward: one work-item per Gaussian walks its own
+ * box in every view, row by row in aligned 8-pixel segments, and gathers dL/dI into moment sums,
+ * then applies the chain rule once per view. Neither needs atomics; both are reproducible. */
+#include "project_setup.h"
+
+#ifndef TW
+#define TW 8
+#endif
+#ifndef TH
+#define TH 16
+#endif
+
+inline void load_gauss(int g, __global const real *means, __global const real *mats, real3 *p, real *S)
+{
+    *p = (real3)(means[3 * g], means[3 * g + 1], means[3 * g + 2]);
+    for (int k = 0; k < 6; k++) S[k] = mats[6 * g + k];
+}
+
+/* ------------------------------------------------------------------ per (Gaussian, view) set-up */
+__kernel void preprocess(const int N, const int U, const int V, const real scale,
+                         __global const real *means, __global const real *mats, __global const real *rho,
+                         __global const real *vparams, __global real *rec, __global int4 *box)
+{
+    const int g = get_global_id(0);
+    const int view = get_global_id(1);
+    if (g >= N) return;
+    real3 p;
+    real S[6];
+    load_gauss(g, means, mats, &p, S);
+    Splat sp;
+    const View Vw = load_view(vparams, view);
+    const size_t idx = (size_t)view * N + g;
+    if (!setup(p, S, Vw, scale, U, V, &sp)) {
+        box[idx] = (int4)(1, 0, 1, 0);
+        return;
+    }
+    box[idx] = sp.box;
+    __global real *r = rec + idx * REC;
+    r[0] = sp.uc; r[1] = sp.vc; r[2] = rho[g] * sp.amp0; r[3] = (real)sp.straddle;
+    r[4] = sp.k0; r[5] = sp.k1; r[6] = sp.k2;
+#if defined(EXACT) && defined(CONE)
+    r[7] = sp.a1; r[8] = sp.a2; r[9] = sp.a3; r[10] = sp.a4; r[11] = sp.a5;
+    r[12] = sp.d0; r[13] = sp.d1; r[14] = sp.d2; r[15] = sp.d3; r[16] = sp.d4; r[17] = sp.d5;
+#endif
+}
+
+/* ------------------------------------------------------------------ forward */
+__kernel void render(const int N, const int U, const int V, const int ntx, const int ntiles,
+                     __global const real *rec, __global const int4 *box, __global const int *starts,
+                     __global const int *list, __global const real *means, __global const real *mats,
+                     __global const real *rho, __global const real *vparams, const real scale,
+                     __global real *out)
+{
+    const int tx = get_global_id(0), ty = get_global_id(1), view = get_global_id(2);
+    if (tx >= ntx || ty * TH >= V) return;
+    const int tile = ty * ntx + tx;
+    const int u0 = tx * TW, v0 = ty * TH;
+    real8 acc[TH];
+    for (int r = 0; r < TH; r++) acc[r] = (real8)(RC(0.0));
+    const real8 uu = (real)u0 + (real8)(RC(0.0), RC(1.0), RC(2.0), RC(3.0), RC(4.0), RC(5.0), RC(6.0), RC(7.0));
+    const int beg = starts[view * ntiles + tile], end = starts[view * ntiles + tile + 1];
+    for (int k = beg; k < end; k++) {
+        const int g = list[k];
+        const size_t idx = (size_t)view * N + g;
+        const int4 b = box[idx];
+        const int r0 = max(b.z, v0) - v0, r1 = min(b.w, v0 + TH - 1) - v0;
+        __global const real *R = rec + idx * REC;
+        const real uc = R[0], vc = R[1], amp = R[2];
+        const real nk0 = RC(-0.5) * R[4], nk1 = -R[5], nk2 = RC(-0.5) * R[6];
+        const real8 du = uu - uc;
+#if defined(EXACT) && defined(CONE)
+        if (R[3] != RC(0.0)) {
+            real3 p;
+            real S[6];
+            load_gauss(g, means, mats, &p, S);
+            const View Vw = load_view(vparams, view);
+            real8 w[3], d[3], ia, beta, vnf;
+            for (int r = r0; r <= r1; r++)
+                acc[r] += rho[g] * straddle_eval(p, S, Vw, sqrt(RC(TWO_PI)) / scale, uu, (real)(v0 + r),
+                                                 w, d, &ia, &beta, &vnf);
+            continue;
+        }
+        const real a1 = R[7], a2 = R[8], a3 = R[9], a4 = R[10], a5 = R[11];
+        const real d0 = R[12], d1 = R[13], d2 = R[14], d3 = R[15], d4 = R[16], d5 = R[17];
+        for (int r = r0; r <= r1; r++) {
+            const real dv = (real)(v0 + r) - vc;
+            const real nB = nk1 * dv, nC = nk2 * dv * dv;
+            const real aB = RC(2.0) * (a1 + a4 * dv), aC = RC(1.0) + RC(2.0) * a2 * dv + a5 * dv * dv;
+            const real dB = RC(2.0) * (d1 + d4 * dv), dC = d0 + RC(2.0) * d2 * dv + d5 * dv * dv;
+            const real8 arg = ((nk0 * du + nB) * du + nC) ; /* -N'/2 */
+            const real8 A = (a3 * du + aB) * du + aC;
+            const real8 DD = (d3 * du + dB) * du + dC;
+            const real8 ia = RC(1.0) / A;
+            const real8 x = arg * ia; /* -q/2 */
+            const real8 val = amp * sqrt(DD * ia) * fast_exp8(x);
+            acc[r] += select((real8)(RC(0.0)), val, x >= RC(-0.5 * QCUT));
+        }
+#else
+        for (int r = r0; r <= r1; r++) {
+            const real dv = (real)(v0 + r) - vc;
+            const real nB = nk1 * dv, nC = nk2 * dv * dv;
+            const real8 x = (nk0 * du + nB) * du + nC; /* -q/2 */
+            acc[r] += select((real8)(RC(0.0)), amp * fast_exp8(x), x >= RC(-0.5 * QCUT));
+        }
+#endif
+    }
+    __global real *o = out + (size_t)view * V * U;
+    for (int r = 0; r < TH; r++) {
+        const int v = v0 + r;
+        if (v >= V) break;
+        if (u0 + TW <= U) {
+            vstore8(acc[r], 0, o + (size_t)v * U + u0);
+        } else {
+            real tmp[8];
+            vstore8(acc[r], 0, tmp);
+            for (int i = 0; i < U - u0; i++) o[(size_t)v * U + u0 + i] = tmp[i];
+        }
+    }
+}
+
+/* ------------------------------------------------------------------ backward */
+inline real hsum8(real8 x)
+{
+    const real4 a = x.lo + x.hi;
+    const real2 b = a.lo + a.hi;
+    return b.x + b.y;
+}
+
+/* dL/dI of one aligned 8-pixel segment of row v starting at column s, lanes outside [lo, hi] zero */
+inline real8 load_grad(__global const real *gimg, int U, int v, int s, int lo, int hi)
+{
+    __global const real *row = gimg + (size_t)v * U;
+    real8 g;
+    if (s + 8 <= U) {
+        g = vload8(0, row + s);
+    } else {
+        real tmp[8];
+        for (int i = 0; i < 8; i++) tmp[i] = (s + i < U) ? row[s + i] : RC(0.0);
+        g = vload8(0, tmp);
+    }
+    const real8 uu = (real)s + (real8)(RC(0.0), RC(1.0), RC(2.0), RC(3.0), RC(4.0), RC(5.0), RC(6.0), RC(7.0));
+    return select((real8)(RC(0.0)), g, (uu >= (real)lo) & (uu <= (real)hi));
+}
+
+inline void add_sym_outer(real *G, real c, real3 a, real3 b)
+{ /* G (packed matrix gradient, off-diagonals as the sum of both entries) += c sym(a b^T) * 2 / 2 */
+    G[0] += c * a.x * b.x;
+    G[1] += c * (a.x * b.y + a.y * b.x);
+    G[2] += c * (a.x * b.z + a.z * b.x);
+    G[3] += c * a.y * b.y;
+    G[4] += c * (a.y * b.z + a.z * b.y);
+    G[5] += c * a.z * b.z;
+}
+
+__kernel void backward(const int N, const int nviews, const int U, const int V, const real scale,
+                       __global const real *means, __global const real *mats, __global const real *rho,
+                       __global const real *vparams, __global const real *gimg,
+                       __global real *g_means, __global real *g_mats, __global real *g_rho)
+{
+    const int g = get_global_id(0);
+    if (g >= N) return;
+    real3 p;
+    real S[6];
+    load_gauss(g, means, mats, &p, S);
+    const real rh = rho[g];
+    real3 gp = (real3)(RC(0.0));
+    real gM[6] = {RC(0.0), RC(0.0), RC(0.0), RC(0.0), RC(0.0), RC(0.0)};
+    real grho = RC(0.0);
+    const real8 lane = (real8)(RC(0.0), RC(1.0), RC(2.0), RC(3.0), RC(4.0), RC(5.0), RC(6.0), RC(7.0));
+    const real8 zero = (real8)(RC(0.0));
+
+    for (int view = 0; view < nviews; view++) {
+        const View Vw = load_view(vparams, view);
+        Splat sp;
+        if (!setup(p, S, Vw, scale, U, V, &sp)) continue;
+        __global const real *gi = gimg + (size_t)view * V * U;
+        const int4 b = sp.box;
+        const int s0 = b.x & ~7;
+#if defined(EXACT) && defined(CONE)
+        if (sp.straddle) {
+            /* per-pixel closed form with the erfc factor; sums in world coordinates */
+            real8 Sw0 = zero, Sw1 = zero, Sw2 = zero, Sd0 = zero, Sd1 = zero, Sd2 = zero, S0 = zero;
+            real8 M0 = zero, M1 = zero, M2 = zero, M3 = zero, M4 = zero, M5 = zero;
+            for (int v = b.z; v <= b.w; v++) {
+                for (int s = s0; s <= b.y; s += 8) {
+                    const real8 gg = load_grad(gi, U, v, s, b.x, b.y);
+                    real8 w[3], d[3], ia, beta, vnf;
+                    const real8 val0 = straddle_eval(p, S, Vw, sp.amp0, (real)s + lane, (real)v, w, d, &ia, &beta, &vnf);
+                    const real8 gv0 = gg * val0;
+                    const real8 fp = RC(-0.5641895835477563) * fast_exp8(-beta * beta); /* dF/dbeta */
+                    const real8 gvn = gg * vnf * fp;
+                    const real8 isq = sqrt(RC(0.5) * ia);
+                    S0 += gv0;
+                    Sw0 += gv0 * w[0]; Sw1 += gv0 * w[1]; Sw2 += gv0 * w[2];
+                    const real8 cd = gvn * isq;
+                    Sd0 += cd * d[0]; Sd1 += cd * d[1]; Sd2 += cd * d[2];
+                    const real8 cw = RC(-0.5) * gv0;
+                    const real8 cdd = RC(-0.5) * (gv0 + gvn * beta) * ia;
+                    M0 += cw * w[0] * w[0] + cdd * d[0] * d[0];
+                    M1 += RC(2.0) * (cw * w[0] * w[1] + cdd * d[0] * d[1]);
+                    M2 += RC(2.0) * (cw * w[0] * w[2] + cdd * d[0] * d[2]);
+                    M3 += cw * w[1] * w[1] + cdd * d[1] * d[1];
+                    M4 += RC(2.0) * (cw * w[1] * w[2] + cdd * d[1] * d[2]);
+                    M5 += cw * w[2] * w[2] + cdd * d[2] * d[2];
+                }
+            }
+            const real3 Sw = (real3)(hsum8(Sw0), hsum8(Sw1), hsum8(Sw2));
+            const real3 Sd = (real3)(hsum8(Sd0), hsum8(Sd1), hsum8(Sd2));
+            gp += rh * (symv(S, Sw) - symv(S, Sd));
+            gM[0] += rh * hsum8(M0); gM[1] += rh * hsum8(M1); gM[2] += rh * hsum8(M2);
+            gM[3] += rh * hsum8(M3); gM[4] += rh * hsum8(M4); gM[5] += rh * hsum8(M5);
+            add_sym_outer(gM, rh, Sd, Vw.s - p);
+            grho += hsum8(S0);
+            continue;
+        }
+        {
+            /* exact cone, clear of the source: closest-point residual w = alpha e + beta G du */
+            const real3 gu = Vw.gul * Vw.eu, gv = Vw.gvl * Vw.ev;
+            const real3 e = Vw.s - p;
+            const real ik = RC(1.0) / sp.kap;
+            const real nk0 = RC(-0.5) * sp.k0, nk1 = -sp.k1, nk2 = RC(-0.5) * sp.k2;
+            real8 Sw0 = zero, Sw1 = zero, Sw2 = zero, S0 = zero;
+            real8 W0 = zero, W1 = zero, W2 = zero, W3 = zero, W4 = zero, W5 = zero;
+            real8 Q0 = zero, Qu = zero, Qv = zero, Quu = zero, Quv = zero, Qvv = zero;
+            for (int v = b.z; v <= b.w; v++) {
+                const real dv = (real)v - sp.vc;
+                const real nB = nk1 * dv, nC = nk2 * dv * dv;
+                const real aB = RC(2.0) * (sp.a1 + sp.a4 * dv), aC = RC(1.0) + RC(2.0) * sp.a2 * dv + sp.a5 * dv * dv;
+                const real dB = RC(2.0) * (sp.d1 + sp.d4 * dv), dC = sp.d0 + RC(2.0) * sp.d2 * dv + sp.d5 * dv * dv;
+                const real alB = RC(2.0) * sp.a4 * dv + sp.a1, alC = dv * (sp.a5 * dv + sp.a2);
+                const real beC = RC(1.0) + sp.a2 * dv;
+                const real3 gvc = dv * gv;
+                for (int s = s0; s <= b.y; s += 8) {
+                    const real8 gg = load_grad(gi, U, v, s, b.x, b.y);
+                    const real8 du = (real)s + lane - sp.uc;
+                    const real8 arg = (nk0 * du + nB) * du + nC;
+                    const real8 A = (sp.a3 * du + aB) * du + aC;
+                    const real8 DD = (sp.d3 * du + dB) * du + dC;
+                    const real8 ia = RC(1.0) / A;
+                    const real8 x = arg * ia;
+                    const real8 val0 = select(zero, sp.amp0 * sqrt(DD * ia) * fast_exp8(x), x >= RC(-0.5 * QCUT));
+                    const real8 gI = gg * val0;
+                    const real8 al = ((sp.a3 * du + alB) * du + alC) * ia;
+                    const real8 be = (sp.a1 * du + beC) * ia * ik;
+                    const real8 w0 = al * e.x + be * (du * gu.x + gvc.x);
+                    const real8 w1 = al * e.y + be * (du * gu.y + gvc.y);
+                    const real8 w2 = al * e.z + be * (du * gu.z + gvc.z);
+                    S0 += gI;
+                    const real8 gw0 = gI * w0, gw1 = gI * w1, gw2 = gI * w2;
+                    Sw0 += gw0; Sw1 += gw1; Sw2 += gw2;
+                    W0 += gw0 * w0; W1 += gw0 * w1; W2 += gw0 * w2;
+                    W3 += gw1 * w1; W4 += gw1 * w2; W5 += gw2 * w2;
+                    const real8 gIa = gI * ia;
+                    Q0 += gIa; Qu += gIa * du; Qv += gIa * dv;
+                    Quu += gIa * du * du; Quv += gIa * du * dv; Qvv += gIa * dv * dv;
+                }
+            }
+            const real3 Sw = (real3)(hsum8(Sw0), hsum8(Sw1), hsum8(Sw2));
+            gp += rh * symv(S, Sw);
+            /* sum g I d d^T / a with d = -kap e + G du, a = kap^2 c a' */
+            const real c = dot3(e, symv(S, e));
+            const real f = RC(1.0) / (sp.kap * sp.kap * c);
+            const real q0 = hsum8(Q0), qu = hsum8(Qu), qv = hsum8(Qv);
+            const real quu = hsum8(Quu), quv = hsum8(Quv), qvv = hsum8(Qvv);
+            const real3 m = qu * gu + qv * gv;
+            real G[6] = {hsum8(W0), RC(2.0) * hsum8(W1), RC(2.0) * hsum8(W2), hsum8(W3), RC(2.0) * hsum8(W4), hsum8(W5)};
+            add_sym_outer(G, f * sp.kap * sp.kap * q0, e, e);
+            add_sym_outer(G, RC(-2.0) * f * sp.kap, e, m);
+            add_sym_outer(G, f * quu, gu, gu);
+            add_sym_outer(G, RC(2.0) * f * quv, gu, gv);
+            add_sym_outer(G, f * qvv, gv, gv);
+            for (int k = 0; k < 6; k++) gM[k] += RC(-0.5) * rh * G[k];
+            grho += hsum8(S0);
+        }
+#else
+        /* conic splat (affine, or exact parallel): 6 moments of g E over the box */
+        const real nk0 = RC(-0.5) * sp.k0, nk1 = -sp.k1, nk2 = RC(-0.5) * sp.k2;
+        real8 S0 = zero, Su = zero, Sv = zero, Suu = zero, Suv = zero, Svv = zero;
+        for (int v = b.z; v <= b.w; v++) {
+            const real dv = (real)v - sp.vc;
+            const real nB = nk1 * dv, nC = nk2 * dv * dv;
+            for (int s = s0; s <= b.y; s += 8) {
+                const real8 gg = load_grad(gi, U, v, s, b.x, b.y);
+                const real8 du = (real)s + lane - sp.uc;
+                const real8 x = (nk0 * du + nB) * du + nC;
+                const real8 gE = select(zero, gg * fast_exp8(x), x >= RC(-0.5 * QCUT));
+                const real8 gEu = gE * du;
+                S0 += gE; Su += gEu; Suu += gEu * du;
+                Sv += gE * dv; Suv += gEu * dv; Svv += gE * (dv * dv);
+            }
+        }
+        const real s0_ = hsum8(S0), su = hsum8(Su), sv = hsum8(Sv);
+        const real suu = hsum8(Suu), suv = hsum8(Suv), svv = hsum8(Svv);
+        const real amp = rh * sp.amp0;
+        grho += sp.amp0 * s0_;
+#ifndef EXACT
+        /* affine: back through C = S2^-1, mu = sqrt(2 pi det S3 / det S2), S3 = T Sigma T^T, T(p) */
+        {
+            const real k0 = sp.k0, k1 = sp.k1, k2 = sp.k2;
+            const real gc00 = RC(-0.5) * amp * suu, gc01 = RC(-0.5) * amp * suv, gc11 = RC(-0.5) * amp * svv;
+            const real X00 = gc00 * k0 + gc01 * k1, X01 = gc00 * k1 + gc01 * k2;
+            const real X10 = gc01 * k0 + gc11 * k1, X11 = gc01 * k1 + gc11 * k2;
+            real G00 = -(k0 * X00 + k1 * X10), G01 = -(k0 * X01 + k1 * X11), G11 = -(k1 * X01 + k2 * X11);
+            const real Guc = amp * (k0 * su + k1 * sv), Gvc = amp * (k1 * su + k2 * sv);
+            /* recompute T and S3 */
+            const real3 pm = p - Vw.s;
+            const real tx = dot3(Vw.eu, pm), ty = dot3(Vw.ev, pm), tz = dot3(Vw.w, pm);
+            real3 T1, T2, T3;
+#ifdef CONE
+            const real iz = RC(1.0) / tz;
+            const real l = sqrt(tx * tx + ty * ty + tz * tz);
+            T1 = (Vw.fx * iz) * (Vw.eu - (tx * iz) * Vw.w);
+            T2 = (Vw.fy * iz) * (Vw.ev - (ty * iz) * Vw.w);
+            T3 = pm / l;
+#else
+            T1 = Vw.fx * Vw.eu; T2 = Vw.fy * Vw.ev; T3 = Vw.w;
+#endif
+            const real3 ST1 = symv(S, T1), ST2 = symv(S, T2), ST3 = symv(S, T3);
+            const real s00 = dot3(T1, ST1), s01 = dot3(T1, ST2), s02 = dot3(T1, ST3);
+            const real s11 = dot3(T2, ST2), s12 = dot3(T2, ST3), s22 = dot3(T3, ST3);
+            const real det2 = s00 * s11 - s01 * s01;
+            const real det3 = det2 * s22 - s00 * s12 * s12 - s11 * s02 * s02 + RC(2.0) * s01 * s02 * s12;
+            const real mu = sp.amp0 * scale;
+            const real hm = RC(0.5) * (rh / scale) * s0_ * mu;
+            const real id3 = hm / det3;
+            /* G3 = hm S3^-1 (adjugate / det) + top-left (G2 - hm C) */
+            real g3[6];
+            g3[0] = (s11 * s22 - s12 * s12) * id3 + G00 - hm * k0;
+            g3[1] = (s02 * s12 - s01 * s22) * id3 + G01 - hm * k1;
+            g3[2] = (s01 * s12 - s02 * s11) * id3;
+            g3[3] = (s00 * s22 - s02 * s02) * id3 + G11 - hm * k2;
+            g3[4] = (s01 * s02 - s00 * s12) * id3;
+            g3[5] = det2 * id3;
+            /* dL/dSigma = T^T G3 T */
+            const real3 U1 = g3[0] * T1 + g3[1] * T2 + g3[2] * T3;
+            const real3 U2 = g3[1] * T1 + g3[3] * T2 + g3[4] * T3;
+            const real3 U3 = g3[2] * T1 + g3[4] * T2 + g3[5] * T3;
+            add_sym_outer(gM, RC(1.0), T1, U1);
+            add_sym_outer(gM, RC(1.0), T2, U2);
+            add_sym_outer(gM, RC(1.0), T3, U3);
+#ifdef CONE
+            /* dL/dT = 2 G3 T Sigma, then T(t) and (uc, vc)(t) */
+            const real3 GT1 = RC(2.0) * (g3[0] * ST1 + g3[1] * ST2 + g3[2] * ST3);
+            const real3 GT2 = RC(2.0) * (g3[1] * ST1 + g3[3] * ST2 + g3[4] * ST3);
+            const real3 GT3 = RC(2.0) * (g3[2] * ST1 + g3[4] * ST2 + g3[5] * ST3);
+            const real fxz2 = Vw.fx * iz * iz, fyz2 = Vw.fy * iz * iz;
+            const real gtx = Guc * Vw.fx * iz - fxz2 * dot3(GT1, Vw.w);
+            const real gty = Gvc * Vw.fy * iz - fyz2 * dot3(GT2, Vw.w);
+            const real gtz = -Guc * fxz2 * tx - Gvc * fyz2 * ty
+                             - fxz2 * dot3(GT1, Vw.eu) + RC(2.0) * fxz2 * tx * iz * dot3(GT1, Vw.w)
+                             - fyz2 * dot3(GT2, Vw.ev) + RC(2.0) * fyz2 * ty * iz * dot3(GT2, Vw.w);
+            gp += gtx * Vw.eu + gty * Vw.ev + gtz * Vw.w + (GT3 - dot3(GT3, T3) * T3) / l;
+#else
+            gp += Guc * Vw.fx * Vw.eu + Gvc * Vw.fy * Vw.ev;
+#endif
+        }
+#else
+        /* exact parallel: w = du w_u + dv w_v, w_u = gu - (h_u / a) r; envelope theorem */
+        {
+            const real3 r = Vw.w;
+            const real3 gu = Vw.gul * Vw.eu, gv = Vw.gvl * Vw.ev;
+            const real3 Pr = symv(S, r);
+            const real a = dot3(r, Pr), ia = RC(1.0) / a;
+            const real3 wu = gu - (dot3(gu, Pr) * ia) * r, wv = gv - (dot3(gv, Pr) * ia) * r;
+            gp += symv(S, amp * (su * wu + sv * wv));
+            const real c = RC(-0.5) * amp;
+            add_sym_outer(gM, c * suu, wu, wu);
+            add_sym_outer(gM, RC(2.0) * c * suv, wu, wv);
+            add_sym_outer(gM, c * svv, wv, wv);
+            add_sym_outer(gM, c * s0_ * ia, r, r);
+        }
+#endif
+#endif
+    }
+#ifndef NO_GRAD_MEAN
+    g_means[3 * g] = gp.x; g_means[3 * g + 1] = gp.y; g_means[3 * g + 2] = gp.z;
+#endif
+#ifndef NO_GRAD_COV
+    for (int k = 0; k < 6; k++) g_mats[6 * g + k] = gM[k];
+#endif
+#ifndef NO_GRAD_DENSITY
+    g_rho[g] = grho;
+#endif
+}
+
+/* ------------------------------------------------------------------ exp throughput probe */
+__kernel void exp_probe(const int n, __global real *out)
+{
+    const int i = get_global_id(0);
+    real8 x = (real8)(RC(-0.001)) * (real)(i & 1023) - (real8)(RC(0.0), RC(0.1), RC(0.2), RC(0.3), RC(0.4), RC(0.5), RC(0.6), RC(0.7));
+    real8 acc = (real8)(RC(0.0));
+    for (int k = 0; k < n; k++) {
+        acc += fast_exp8(x);
+        x -= RC(0.0004);
+    }
+    out[i] = hsum8(acc);
+}

@@ -1,0 +1,256 @@
+/* Per-(Gaussian, view) set-up shared by the projector's forward and backward kernels.
+ *
+ * Compile-time switches (see clgs/projector.py for when each is built):
+ *   CONE    cone beam (rays from the source); otherwise parallel beam.
+ *   EXACT   closed-form line integral along each pixel's own ray; otherwise the local affine
+ *           (R2-Gaussian) splat. Input matrices: EXACT -> packed precision, affine -> packed
+ *           covariance, both as (xx, xy, xz, yy, yz, zz).
+ *
+ * View parameters (VP reals per view, host-computed from Geometry.view_vectors, scene units):
+ *   0-2  s: cone: the source; parallel: the detector centre
+ *   3-5  eu, 6-8 ev: unit detector axes (u columns, v rows)
+ *   9-11 w: unit normal from the source towards the detector (parallel: the ray direction)
+ *   12 fx, 13 fy, 14 cx, 15 cy: pixel coordinates of a point with camera coordinates
+ *        t = (eu.(x-s), ev.(x-s), w.(x-s)) are (fx tx/tz + cx, fy ty/tz + cy) (cone) or
+ *        (fx tx + cx, fy ty + cy) (parallel); cx, cy carry the detector offset
+ *   16 |gu|, 17 |gv|: pixel pitch; 18 D: source to detector plane distance (cone)
+ *
+ * Pixel (iu, iv) has coordinates (u, v) = (iu, iv); every Gaussian gets a centre (uc, vc) in
+ * those coordinates and per-pixel quantities are polynomials in du = u - uc, dv = v - vc, which
+ * keeps them free of cancellation for small Gaussians far from the source.
+ *
+ * A Gaussian contributes to the pixels whose ray passes within QCUT = 9 (3 sigma, Mahalanobis
+ * squared) of its centre: q <= 9 below. The box holds every such pixel (plus a rounding margin). */
+#ifndef CLGS_PROJECT_SETUP_H
+#define CLGS_PROJECT_SETUP_H
+#include "common.h"
+#include "fastexp.h"
+
+#define RC(x) ((real)(x))
+#define VP 20
+#define QCUT 9.0
+#define TWO_PI 6.283185307179586
+#ifndef NEAR_PLANE
+#define NEAR_PLANE 0.2 /* affine cone: cull centres closer than this to the source plane (scene units) */
+#endif
+/* exact cone: a Gaussian whose KS-sigma extent along the axis clears the source plane is
+ * integrated over the whole line (the t > 0 factor erfc(.)/2 differs from 1 by < 1e-8 there);
+ * one reaching it "straddles" and is integrated per pixel with the erfc factor. */
+#ifdef REAL_DOUBLE
+#define KS 10.0
+#else
+#define KS 6.0
+#endif
+
+#ifdef EXACT
+#ifdef CONE
+#define REC 20
+#else
+#define REC 8
+#endif
+#else
+#define REC 8
+#endif
+
+typedef struct {
+    real3 s, eu, ev, w;
+    real fx, fy, cx, cy, gul, gvl, D;
+} View;
+
+typedef struct {
+    real uc, vc, amp0;            /* centre (pixels), amplitude per unit density (mm) */
+    real k0, k1, k2;              /* q = k0 du^2 + 2 k1 du dv + k2 dv^2 (exact cone: numerator N') */
+    real a1, a2, a3, a4, a5;      /* exact cone: a' = 1 + 2(a1 du + a2 dv) + a3 du^2 + 2 a4 du dv + a5 dv^2 */
+    real d0, d1, d2, d3, d4, d5;  /* exact cone: dd' = d0 + 2(d1 du + d2 dv) + d3 du^2 + 2 d4 du dv + d5 dv^2 */
+    real kap;                     /* exact cone: source-to-pixel over source-to-centre ratio */
+    int4 box;                     /* inclusive (u0, u1, v0, v1), clipped to the detector */
+    int straddle;                 /* exact cone: evaluate per pixel with the erfc factor */
+} Splat;
+
+inline View load_view(__global const real *vp, int view)
+{
+    __global const real *q = vp + (size_t)view * VP;
+    View V;
+    V.s = (real3)(q[0], q[1], q[2]);
+    V.eu = (real3)(q[3], q[4], q[5]);
+    V.ev = (real3)(q[6], q[7], q[8]);
+    V.w = (real3)(q[9], q[10], q[11]);
+    V.fx = q[12]; V.fy = q[13]; V.cx = q[14]; V.cy = q[15];
+    V.gul = q[16]; V.gvl = q[17]; V.D = q[18];
+    return V;
+}
+
+inline real3 symv(const real *S, real3 v)
+{
+    return (real3)(S[0] * v.x + S[1] * v.y + S[2] * v.z,
+                   S[1] * v.x + S[3] * v.y + S[4] * v.z,
+                   S[2] * v.x + S[4] * v.y + S[5] * v.z);
+}
+
+inline real dot3(real3 a, real3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+
+/* Pixel range [ceil(c - r), floor(c + r)] clipped to [0, n-1]; NaN or off-detector -> empty. */
+inline int2 pixel_range(real c, real r, int n)
+{
+    const real m = RC(0.01) + RC(1e-4) * r;
+    real lo = c - r - m, hi = c + r + m;
+    if (!(lo <= (real)(n - 1)) || !(hi >= RC(0.0))) return (int2)(1, 0);
+    lo = fmax(lo, RC(-1.0));
+    hi = fmin(hi, (real)n);
+    return (int2)(max(0, (int)ceil(lo)), min(n - 1, (int)floor(hi)));
+}
+
+inline int set_box(Splat *sp, real cu, real cv, real ru, real rv, int U, int V)
+{
+    const int2 a = pixel_range(cu, ru, U), b = pixel_range(cv, rv, V);
+    sp->box = (int4)(a.x, a.y, b.x, b.y);
+    return a.x <= a.y && b.x <= b.y;
+}
+
+/* Fill *sp for Gaussian (p, S = packed covariance or precision) in view V. Returns 0 if culled. */
+inline int setup(real3 p, const real *S, View V, real scale, int U, int NV, Splat *sp)
+{
+    const real3 pm = p - V.s;
+    const real tx = dot3(V.eu, pm), ty = dot3(V.ev, pm), tz = dot3(V.w, pm);
+    sp->straddle = 0;
+    sp->kap = RC(1.0);
+#ifndef EXACT
+    /* ---- affine: ray-space covariance S3 = T Sigma T^T with T = J W (rows T1, T2, T3) ---- */
+    real3 T1, T2, T3;
+#ifdef CONE
+    const real sw2 = dot3(V.w, symv(S, V.w));
+    if (!(tz > RC(NEAR_PLANE)) || !(tz * tz > RC(9.0) * sw2)) return 0;
+    const real iz = RC(1.0) / tz;
+    const real l = sqrt(tx * tx + ty * ty + tz * tz);
+    T1 = (V.fx * iz) * (V.eu - (tx * iz) * V.w);
+    T2 = (V.fy * iz) * (V.ev - (ty * iz) * V.w);
+    T3 = pm / l;
+    sp->uc = V.fx * tx * iz + V.cx;
+    sp->vc = V.fy * ty * iz + V.cy;
+#else
+    T1 = V.fx * V.eu;
+    T2 = V.fy * V.ev;
+    T3 = V.w;
+    sp->uc = V.fx * tx + V.cx;
+    sp->vc = V.fy * ty + V.cy;
+#endif
+    const real3 ST1 = symv(S, T1), ST2 = symv(S, T2), ST3 = symv(S, T3);
+    const real s00 = dot3(T1, ST1), s01 = dot3(T1, ST2), s02 = dot3(T1, ST3);
+    const real s11 = dot3(T2, ST2), s12 = dot3(T2, ST3), s22 = dot3(T3, ST3);
+    const real det2 = s00 * s11 - s01 * s01;
+    const real det3 = det2 * s22 - s00 * s12 * s12 - s11 * s02 * s02 + RC(2.0) * s01 * s02 * s12;
+    if (!(det2 > RC(0.0)) || !(det3 > RC(0.0))) return 0;
+    const real id2 = RC(1.0) / det2;
+    sp->k0 = s11 * id2;
+    sp->k1 = -s01 * id2;
+    sp->k2 = s00 * id2;
+    sp->amp0 = sqrt(RC(TWO_PI) * det3 * id2) / scale;
+    if (!isfinite(sp->amp0) || !isfinite(sp->k0) || !isfinite(sp->k2)) return 0;
+    return set_box(sp, sp->uc, sp->vc, RC(3.0) * sqrt(s00), RC(3.0) * sqrt(s11), U, NV);
+#else
+    const real3 gu = V.gul * V.eu, gv = V.gvl * V.ev;
+    const real3 Pgu = symv(S, gu), Pgv = symv(S, gv);
+    const real H00 = dot3(gu, Pgu), H01 = dot3(gu, Pgv), H11 = dot3(gv, Pgv);
+#ifndef CONE
+    /* ---- exact, parallel: q is the 2D conic K = H - h h^T / a (Schur complement) ---- */
+    const real3 Pr = symv(S, V.w);
+    const real a = dot3(V.w, Pr);
+    if (!(a > RC(0.0))) return 0;
+    const real ia = RC(1.0) / a;
+    const real hu = dot3(gu, Pr), hv = dot3(gv, Pr);
+    sp->k0 = H00 - hu * hu * ia;
+    sp->k1 = H01 - hu * hv * ia;
+    sp->k2 = H11 - hv * hv * ia;
+    const real det = sp->k0 * sp->k2 - sp->k1 * sp->k1;
+    if (!(det > RC(0.0))) return 0;
+    sp->uc = V.fx * tx + V.cx;
+    sp->vc = V.fy * ty + V.cy;
+    sp->amp0 = sqrt(RC(TWO_PI) * ia) / scale;
+    if (!isfinite(sp->amp0)) return 0;
+    return set_box(sp, sp->uc, sp->vc, RC(3.0) * sqrt(sp->k2 / det), RC(3.0) * sqrt(sp->k0 / det), U, NV);
+#else
+    /* ---- exact, cone ---- */
+    sp->amp0 = sqrt(RC(TWO_PI)) / scale;
+    /* extent along the axis: w^T P^-1 w through the adjugate */
+    const real A00 = S[3] * S[5] - S[4] * S[4], A01 = S[2] * S[4] - S[1] * S[5], A02 = S[1] * S[4] - S[2] * S[3];
+    const real A11 = S[0] * S[5] - S[2] * S[2], A12 = S[1] * S[2] - S[0] * S[4], A22 = S[0] * S[3] - S[1] * S[1];
+    const real detP = S[0] * A00 + S[1] * A01 + S[2] * A02;
+    if (!(detP > RC(0.0))) return 0;
+    const real3 w = V.w;
+    const real sw2 = (A00 * w.x * w.x + A11 * w.y * w.y + A22 * w.z * w.z
+                      + RC(2.0) * (A01 * w.x * w.y + A02 * w.x * w.z + A12 * w.y * w.z)) / detP;
+    if (!isfinite(sw2)) return 0;
+    const int clear = tz * tz > RC(KS * KS) * sw2;
+    if (clear && tz < RC(0.0)) return 0; /* wholly behind the source */
+    if (clear) {
+        const real iz = RC(1.0) / tz;
+        const real kap = V.D * iz, ik = RC(1.0) / kap;
+        sp->kap = kap;
+        sp->uc = V.fx * tx * iz + V.cx;
+        sp->vc = V.fy * ty * iz + V.cy;
+        const real3 e = -pm;
+        const real3 Pe = symv(S, e);
+        const real c = dot3(e, Pe);
+        const real hu = dot3(gu, Pe), hv = dot3(gv, Pe);
+        const real ic = RC(1.0) / c, ikc = ic * ik, ikkc = ikc * ik;
+        sp->k0 = (H00 - hu * hu * ic) * ik * ik;
+        sp->k1 = (H01 - hu * hv * ic) * ik * ik;
+        sp->k2 = (H11 - hv * hv * ic) * ik * ik;
+        sp->a1 = -hu * ikc; sp->a2 = -hv * ikc;
+        sp->a3 = H00 * ikkc; sp->a4 = H01 * ikkc; sp->a5 = H11 * ikkc;
+        sp->d0 = dot3(e, e) * ic; sp->d1 = -dot3(gu, e) * ikc; sp->d2 = -dot3(gv, e) * ikc;
+        sp->d3 = dot3(gu, gu) * ikkc; sp->d4 = dot3(gu, gv) * ikkc; sp->d5 = dot3(gv, gv) * ikkc;
+        /* footprint: q <= 9  <=>  N' - 9 a' <= 0, the projected 3-sigma ellipsoid (an ellipse) */
+        const real M00 = sp->k0 - RC(9.0) * sp->a3, M01 = sp->k1 - RC(9.0) * sp->a4, M11 = sp->k2 - RC(9.0) * sp->a5;
+        const real m0 = RC(9.0) * sp->a1, m1 = RC(9.0) * sp->a2;
+        const real detM = M00 * M11 - M01 * M01;
+        if (detM > RC(0.0) && M00 > RC(0.0) && isfinite(detM) && isfinite(sp->k0) && isfinite(sp->a3)) {
+            const real idm = RC(1.0) / detM;
+            const real x0 = (M11 * m0 - M01 * m1) * idm, y0 = (M00 * m1 - M01 * m0) * idm;
+            const real R = RC(9.0) + m0 * x0 + m1 * y0;
+            if (!(R > RC(0.0))) return 0;
+            return set_box(sp, sp->uc + x0, sp->vc + y0, sqrt(R * M11 * idm), sqrt(R * M00 * idm), U, NV);
+        }
+    }
+    /* straddles the source plane (or a numerically degenerate ellipse): whole detector */
+    sp->straddle = 1;
+    sp->uc = RC(0.0);
+    sp->vc = RC(0.0);
+    sp->box = (int4)(0, U - 1, 0, NV - 1);
+    return 1;
+#endif
+#endif
+}
+
+/* Straddling Gaussian, exact cone: everything per pixel along the 8 rays of one row segment.
+ * Returns val0 (per unit density, with the t > 0 factor F), and what the backward needs. */
+inline real8 straddle_eval(real3 p, const real *S, View V, real amp0, real8 u, real v,
+                           real8 *w_out, real8 *d_out, real8 *ia_out, real8 *beta_out, real8 *vnf_out)
+{
+    const real3 gu = V.gul * V.eu, gv = V.gvl * V.ev;
+    const real3 D0 = V.D * V.w - V.cx * gu - V.cy * gv + v * gv;
+    const real3 e = V.s - p;
+    const real3 Pe = symv(S, e);
+    real8 d[3];
+    d[0] = D0.x + u * gu.x; d[1] = D0.y + u * gu.y; d[2] = D0.z + u * gu.z;
+    const real8 Pd0 = S[0] * d[0] + S[1] * d[1] + S[2] * d[2];
+    const real8 Pd1 = S[1] * d[0] + S[3] * d[1] + S[4] * d[2];
+    const real8 Pd2 = S[2] * d[0] + S[4] * d[1] + S[5] * d[2];
+    const real8 a = d[0] * Pd0 + d[1] * Pd1 + d[2] * Pd2;
+    const real8 b = Pe.x * d[0] + Pe.y * d[1] + Pe.z * d[2];
+    const real8 ia = RC(1.0) / a;
+    const real8 t = -b * ia;
+    const real8 w0 = e.x + t * d[0], w1 = e.y + t * d[1], w2 = e.z + t * d[2];
+    const real8 q = w0 * (Pe.x + t * Pd0) + w1 * (Pe.y + t * Pd1) + w2 * (Pe.z + t * Pd2);
+    const real8 dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+    const real8 beta = b * sqrt(RC(0.5) * ia);
+    const real8 F = RC(0.5) * erfc(beta);
+    const real8 vnf = amp0 * sqrt(dd * ia) * fast_exp8(RC(-0.5) * q);
+    const real8 vnf_m = select((real8)(RC(0.0)), vnf, q <= RC(QCUT));
+    w_out[0] = w0; w_out[1] = w1; w_out[2] = w2;
+    d_out[0] = d[0]; d_out[1] = d[1]; d_out[2] = d[2];
+    *ia_out = ia; *beta_out = beta; *vnf_out = vnf_m;
+    return vnf_m * F;
+}
+
+#endif

@@ -1,0 +1,439 @@
+/* Gaussian voxelizer: the field mu(x) = sum_i rho_i exp(-d^T P_i d / 2), d = x - p_i, on a regular
+ * grid (or any axis-aligned block of one) and at arbitrary points, and its gradients.
+ *
+ * Support: Gaussian i contributes at x only inside its axis-aligned box -e_i <= x - p_i <= e_i
+ * (e_i = 3 sigma along each axis), tested on the very numbers d = x - p that the reference
+ * computes, so kernel and reference agree on which Gaussians touch which sample.
+ *
+ * Gaussians are packed as GSTRIDE reals: p (3), rho, P (xx, xy, xz, yy, yz, zz), e (3), pad.
+ * Gradients come out as 10 reals per Gaussian: dp (3), dP (6, packed as P), drho.
+ *
+ * Everything is a gather (no float atomics): binning is a counting sort over chunks of Gaussians
+ * (a histogram per chunk, prefix sums, a fill in Gaussian order), so each cell's list holds its
+ * Gaussians in index order and every output is summed in the same order on every run.
+ *
+ * Options: REAL (float|double), BRICK_Y, BRICK_Z (brick rows; bricks are 8 voxels along x, one
+ * real8), WANT_MEAN, WANT_PREC, WANT_RHO (which gradients the backward kernels compute). */
+#include "common.h"
+#include "fastexp.h"
+
+#ifndef BRICK_Y
+#define BRICK_Y 8
+#endif
+#ifndef BRICK_Z
+#define BRICK_Z 8
+#endif
+#define BRICK_ROWS (BRICK_Y * BRICK_Z)
+#define GSTRIDE 16
+#define GRADSTRIDE 10
+/* cells are widened by this fraction on both sides when binning, plus a few roundings of the
+ * operands, so float rounding of the cell index can never drop a Gaussian from a cell whose
+ * samples it covers (the exact test follows) */
+#define BIN_MARGIN ((real)1e-3)
+#ifdef REAL_DOUBLE
+#define REAL_EPS DBL_EPSILON
+#else
+#define REAL_EPS FLT_EPSILON
+#endif
+
+#if defined(WANT_MEAN) || defined(WANT_PREC)
+#define NEED_FIRST 1
+#endif
+#if defined(WANT_PREC)
+#define NEED_SECOND 1
+#endif
+
+typedef struct {
+    real px, py, pz, rho, pxx, pxy, pxz, pyy, pyz, pzz, ex, ey, ez;
+} gauss_t;
+
+inline gauss_t load_gauss(global const real *gs, int i)
+{
+    global const real *g = gs + (size_t)i * GSTRIDE;
+    gauss_t r;
+    r.px = g[0]; r.py = g[1]; r.pz = g[2]; r.rho = g[3];
+    r.pxx = g[4]; r.pxy = g[5]; r.pxz = g[6]; r.pyy = g[7]; r.pyz = g[8]; r.pzz = g[9];
+    r.ex = g[10]; r.ey = g[11]; r.ez = g[12];
+    return r;
+}
+
+/* Index range [lo, hi] of cells (origin o, inverse size inv_s, n cells) met by the interval
+ * [p - e, p + e], widened by BIN_MARGIN; 0 when it misses them all (or is NaN). */
+inline int cell_range(real p, real e, real o, real inv_s, int n, int *lo, int *hi)
+{
+    real slack = BIN_MARGIN + (fabs(p) + e + fabs(o)) * inv_s * (4 * REAL_EPS);
+    real a = (p - e - o) * inv_s - slack;
+    real b = (p + e - o) * inv_s + slack;
+    if (!(b >= (real)0) || !(a < (real)n))
+        return 0;
+    a = fmax(a, (real)0);
+    b = fmin(b, (real)(n - 1));
+    *lo = (int)floor(a);
+    *hi = (int)floor(b);
+    return 1;
+}
+
+/* Index range of grid samples (coordinates c[0..n-1], first c0, spacing h) that may lie in
+ * [p - e, p + e]: one sample wider each side than the float estimate; callers test exactly. */
+inline int sample_range(real p, real e, real c0, real inv_h, int n, int *lo, int *hi)
+{
+    return cell_range(p, e, c0 - (real)0.5 / inv_h, inv_h, n, lo, hi)
+        ? (*lo = max(*lo - 1, 0), *hi = min(*hi + 1, n - 1), 1) : 0;
+}
+
+#define CELL_ARGS real ox, real oy, real oz, real isx, real isy, real isz, int ncx, int ncy, int ncz
+
+inline int gauss_cells(gauss_t g, CELL_ARGS, int *x0, int *x1, int *y0, int *y1, int *z0, int *z1)
+{
+    return cell_range(g.px, g.ex, ox, isx, ncx, x0, x1) && cell_range(g.py, g.ey, oy, isy, ncy, y0, y1)
+        && cell_range(g.pz, g.ez, oz, isz, ncz, z0, z1);
+}
+
+inline int home_cell(real p, real o, real inv_s, int n)
+{
+    return (int)floor(fmin(fmax((p - o) * inv_s, (real)0), (real)(n - 1)));
+}
+
+/* The cells of Gaussian i: all cells its box meets, or (home != 0) only the cell holding its
+ * centre clamped into the grid, which sorts the kept Gaussians by place (for cache locality). */
+inline int gauss_cells_mode(gauss_t g, int home, CELL_ARGS, int *x0, int *x1, int *y0, int *y1, int *z0, int *z1)
+{
+    if (!gauss_cells(g, ox, oy, oz, isx, isy, isz, ncx, ncy, ncz, x0, x1, y0, y1, z0, z1))
+        return 0;
+    if (home) {
+        *x0 = *x1 = home_cell(g.px, ox, isx, ncx);
+        *y0 = *y1 = home_cell(g.py, oy, isy, ncy);
+        *z0 = *z1 = home_cell(g.pz, oz, isz, ncz);
+    }
+    return 1;
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* Binning: counting sort of (cell, Gaussian) pairs. hist is (ncells, nchunks), zeroed by the host. */
+
+kernel void bin_count(global const real *gs, int n, int chunk, int nchunks, int home, CELL_ARGS, global int *hist)
+{
+    int c = get_global_id(0);
+    if (c >= nchunks)
+        return;
+    int i1 = min(n, (c + 1) * chunk);
+    for (int i = c * chunk; i < i1; i++) {
+        int x0, x1, y0, y1, z0, z1;
+        if (!gauss_cells_mode(load_gauss(gs, i), home, ox, oy, oz, isx, isy, isz, ncx, ncy, ncz, &x0, &x1, &y0, &y1, &z0, &z1))
+            continue;
+        for (int z = z0; z <= z1; z++)
+            for (int y = y0; y <= y1; y++)
+                for (int x = x0; x <= x1; x++)
+                    hist[(size_t)((z * ncy + y) * ncx + x) * nchunks + c] += 1;
+    }
+}
+
+/* per cell: chunk counts -> exclusive offsets within the cell (in place), and the cell's total */
+kernel void bin_cell_offsets(global int *hist, int nchunks, int ncells, global int *total)
+{
+    int cell = get_global_id(0);
+    if (cell >= ncells)
+        return;
+    global int *h = hist + (size_t)cell * nchunks;
+    int s = 0;
+    for (int c = 0; c < nchunks; c++) {
+        int t = h[c];
+        h[c] = s;
+        s += t;
+    }
+    total[cell] = s;
+}
+
+/* exclusive scan of the cell totals: start[ncells] is the length of the whole list */
+kernel void bin_scan(global const int *total, int ncells, global int *start)
+{
+    if (get_global_id(0) != 0)
+        return;
+    int s = 0;
+    for (int i = 0; i < ncells; i++) {
+        start[i] = s;
+        s += total[i];
+    }
+    start[ncells] = s;
+}
+
+kernel void bin_fill(global const real *gs, int n, int chunk, int nchunks, int home, CELL_ARGS, global int *hist,
+                     global const int *start, global int *list)
+{
+    int c = get_global_id(0);
+    if (c >= nchunks)
+        return;
+    int i1 = min(n, (c + 1) * chunk);
+    for (int i = c * chunk; i < i1; i++) {
+        int x0, x1, y0, y1, z0, z1;
+        if (!gauss_cells_mode(load_gauss(gs, i), home, ox, oy, oz, isx, isy, isz, ncx, ncy, ncz, &x0, &x1, &y0, &y1, &z0, &z1))
+            continue;
+        for (int z = z0; z <= z1; z++)
+            for (int y = y0; y <= y1; y++)
+                for (int x = x0; x <= x1; x++) {
+                    int cell = (z * ncy + y) * ncx + x;
+                    global int *h = hist + (size_t)cell * nchunks + c;
+                    list[start[cell] + *h] = i;
+                    *h += 1;
+                }
+    }
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* Grid forward: one work-item per brick (8 x BRICK_Y x BRICK_Z voxels), one real8 per x row.
+ * xs/ys/zs are the sample coordinates; xs is padded to a multiple of 8 (pads are never stored). */
+
+kernel void vox_grid(global const real *gs, global const int *start, global const int *list,
+                     global const real *xs, global const real *ys, global const real *zs,
+                     int nx, int ny, int nz, int nbx, int nby, int nbricks, global real *out)
+{
+    int b = get_global_id(0);
+    if (b >= nbricks)
+        return;
+    int bx = b % nbx, t = b / nbx, by = t % nby, bz = t / nby;
+    int x0 = bx * 8, y0 = by * BRICK_Y, z0 = bz * BRICK_Z;
+    int nyb = min(BRICK_Y, ny - y0), nzb = min(BRICK_Z, nz - z0);
+    real8 acc[BRICK_ROWS];
+    for (int r = 0; r < BRICK_ROWS; r++)
+        acc[r] = (real8)(0);
+    real cy[BRICK_Y], cz[BRICK_Z];
+    for (int r = 0; r < nyb; r++)
+        cy[r] = ys[y0 + r];
+    for (int r = 0; r < nzb; r++)
+        cz[r] = zs[z0 + r];
+    const real8 cx = vload8(0, xs + x0);
+
+    int k1 = start[b + 1];
+    for (int k = start[b]; k < k1; k++) {
+        gauss_t g = load_gauss(gs, list[k]);
+        real8 dx = cx - g.px;
+        real8 w = ((dx >= -g.ex) & (dx <= g.ex)) ? (real8)(g.rho) : (real8)(0);
+        real a = (real)-0.5 * g.pxx;
+        real8 adx = a * dx;
+        for (int zz = 0; zz < nzb; zz++) {
+            real dz = cz[zz] - g.pz;
+            if (dz < -g.ez || dz > g.ez)
+                continue;
+            real cz2 = (real)-0.5 * g.pzz * dz * dz;
+            real bxz = -g.pxz * dz;
+            real byz = -g.pyz * dz;
+            for (int yy = 0; yy < nyb; yy++) {
+                real dy = cy[yy] - g.py;
+                if (dy < -g.ey || dy > g.ey)
+                    continue;
+                real bb = bxz - g.pxy * dy;
+                real cc = ((real)-0.5 * g.pyy * dy + byz) * dy + cz2;
+                acc[zz * BRICK_Y + yy] += w * fast_exp8((adx + bb) * dx + cc);
+            }
+        }
+    }
+
+    for (int zz = 0; zz < nzb; zz++)
+        for (int yy = 0; yy < nyb; yy++) {
+            global real *o = out + ((size_t)(z0 + zz) * ny + (y0 + yy)) * nx + x0;
+            real8 v = acc[zz * BRICK_Y + yy];
+            if (x0 + 8 <= nx) {
+                vstore8(v, 0, o);
+            } else {
+                real tmp[8];
+                vstore8(v, 0, tmp);
+                for (int l = 0; l < nx - x0; l++)
+                    o[l] = tmp[l];
+            }
+        }
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* Backward: one work-item per Gaussian gathers dL/dmu over its own box. With w = exp(-q/2):
+ *   drho = sum g w,   dp = rho P sum g w d,   dP = -rho sum g w (dx^2/2, dx dy, dx dz, dy^2/2, dy dz, dz^2/2). */
+
+typedef struct {
+    real a, ax, ay, az, axx, axy, axz, ayy, ayz, azz;
+} moments_t;
+
+inline void write_grad(global real *grad, int i, gauss_t g, moments_t m)
+{
+    global real *o = grad + (size_t)i * GRADSTRIDE;
+#ifdef WANT_MEAN
+    o[0] = g.rho * (g.pxx * m.ax + g.pxy * m.ay + g.pxz * m.az);
+    o[1] = g.rho * (g.pxy * m.ax + g.pyy * m.ay + g.pyz * m.az);
+    o[2] = g.rho * (g.pxz * m.ax + g.pyz * m.ay + g.pzz * m.az);
+#else
+    o[0] = o[1] = o[2] = (real)0;
+#endif
+#ifdef WANT_PREC
+    o[3] = (real)-0.5 * g.rho * m.axx;
+    o[4] = -g.rho * m.axy;
+    o[5] = -g.rho * m.axz;
+    o[6] = (real)-0.5 * g.rho * m.ayy;
+    o[7] = -g.rho * m.ayz;
+    o[8] = (real)-0.5 * g.rho * m.azz;
+#else
+    o[3] = o[4] = o[5] = o[6] = o[7] = o[8] = (real)0;
+#endif
+#ifdef WANT_RHO
+    o[9] = m.a;
+#else
+    o[9] = (real)0;
+#endif
+}
+
+inline real hsum8(real8 v)
+{
+    real4 s = v.lo + v.hi;
+    real2 u = s.lo + s.hi;
+    return u.x + u.y;
+}
+
+/* order lists the n Gaussians whose box meets the grid, sorted by place (see gauss_cells_mode):
+ * neighbours in the queue then read neighbouring rows of gout, which keeps them in cache. */
+kernel void vox_grid_grad(global const real *gs, global const int *order, int n, global const real *xs,
+                          global const real *ys, global const real *zs, int nx, int ny, int nz,
+                          global const real *gout, global real *grad)
+{
+    int k = get_global_id(0);
+    if (k >= n)
+        return;
+    int i = order[k];
+    gauss_t g = load_gauss(gs, i);
+    moments_t m = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+    int x0, x1, y0, y1, z0, z1;
+    /* sample ranges from the first coordinate and the spacing, then exact tests on the samples */
+    real hx = nx > 1 ? xs[1] - xs[0] : (real)1, hy = ny > 1 ? ys[1] - ys[0] : (real)1,
+         hz = nz > 1 ? zs[1] - zs[0] : (real)1;
+    if (sample_range(g.px, g.ex, xs[0], (real)1 / hx, nx, &x0, &x1)
+        && sample_range(g.py, g.ey, ys[0], (real)1 / hy, ny, &y0, &y1)
+        && sample_range(g.pz, g.ez, zs[0], (real)1 / hz, nz, &z0, &z1)) {
+        real a = (real)-0.5 * g.pxx;
+        for (int z = z0; z <= z1; z++) {
+            real dz = zs[z] - g.pz;
+            if (dz < -g.ez || dz > g.ez)
+                continue;
+            real cz2 = (real)-0.5 * g.pzz * dz * dz;
+            real bxz = -g.pxz * dz;
+            real byz = -g.pyz * dz;
+            for (int y = y0; y <= y1; y++) {
+                real dy = ys[y] - g.py;
+                if (dy < -g.ey || dy > g.ey)
+                    continue;
+                real bb = bxz - g.pxy * dy;
+                real cc = ((real)-0.5 * g.pyy * dy + byz) * dy + cz2;
+                global const real *grow = gout + ((size_t)z * ny + y) * nx;
+                real8 s0 = (real8)(0), s1 = (real8)(0), s2 = (real8)(0);
+                for (int x = x0; x <= x1; x += 8) {
+                    real8 dx = vload8(0, xs + x) - g.px;
+                    real8 gv;
+                    if (x + 8 <= nx) {
+                        gv = vload8(0, grow + x);
+                    } else {
+                        real tmp[8];
+                        for (int l = 0; l < 8; l++)
+                            tmp[l] = x + l < nx ? grow[x + l] : (real)0;
+                        gv = vload8(0, tmp);
+                    }
+                    real8 e = fast_exp8((a * dx + bb) * dx + cc);
+                    real8 ge = ((dx >= -g.ex) & (dx <= g.ex)) ? gv * e : (real8)(0);
+                    s0 += ge;
+#ifdef NEED_FIRST
+                    s1 += ge * dx;
+#endif
+#ifdef NEED_SECOND
+                    s2 += ge * dx * dx;
+#endif
+                }
+                real r0 = hsum8(s0);
+                m.a += r0;
+#ifdef NEED_FIRST
+                real r1 = hsum8(s1);
+                m.ax += r1;
+                m.ay += dy * r0;
+                m.az += dz * r0;
+#endif
+#ifdef NEED_SECOND
+                m.axx += hsum8(s2);
+                m.axy += dy * r1;
+                m.axz += dz * r1;
+                m.ayy += dy * dy * r0;
+                m.ayz += dy * dz * r0;
+                m.azz += dz * dz * r0;
+#endif
+            }
+        }
+    }
+    write_grad(grad, i, g, m);
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* Points: the host sorts the points by cell and pads each cell to a multiple of 8 (pads repeat a
+ * point of their cell: their outputs are dropped and their incoming gradient is zero);
+ * chunk_cell gives the cell of each group of 8. */
+
+kernel void vox_points(global const real *gs, global const int *start, global const int *list,
+                       global const real *X, global const real *Y, global const real *Z,
+                       global const int *chunk_cell, int nchunks, global real *out)
+{
+    int c = get_global_id(0);
+    if (c >= nchunks)
+        return;
+    int cell = chunk_cell[c];
+    const real8 x = vload8(c, X), y = vload8(c, Y), z = vload8(c, Z);
+    real8 acc = (real8)(0);
+    int k1 = start[cell + 1];
+    for (int k = start[cell]; k < k1; k++) {
+        gauss_t g = load_gauss(gs, list[k]);
+        real8 dx = x - g.px, dy = y - g.py, dz = z - g.pz;
+        real8 in = ((dx >= -g.ex) & (dx <= g.ex) & (dy >= -g.ey) & (dy <= g.ey) & (dz >= -g.ez) & (dz <= g.ez))
+                   ? (real8)(g.rho) : (real8)(0);
+        real8 q = dx * ((real)-0.5 * g.pxx * dx - g.pxy * dy - g.pxz * dz)
+                + dy * ((real)-0.5 * g.pyy * dy - g.pyz * dz) + (real)-0.5 * g.pzz * dz * dz;
+        acc += in * fast_exp8(q);
+    }
+    vstore8(acc, c, out);
+}
+
+kernel void vox_points_grad(global const real *gs, int n, CELL_ARGS, global const int *cell_pstart,
+                            global const real *X, global const real *Y, global const real *Z,
+                            global const real *G, global real *grad)
+{
+    int i = get_global_id(0);
+    if (i >= n)
+        return;
+    gauss_t g = load_gauss(gs, i);
+    moments_t m = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+    int x0, x1, y0, y1, z0, z1;
+    if (gauss_cells(g, ox, oy, oz, isx, isy, isz, ncx, ncy, ncz, &x0, &x1, &y0, &y1, &z0, &z1)) {
+        real8 s0 = (real8)(0), sx = s0, sy = s0, sz = s0, sxx = s0, sxy = s0, sxz = s0, syy = s0, syz = s0, szz = s0;
+        for (int cz = z0; cz <= z1; cz++)
+            for (int cy = y0; cy <= y1; cy++) {
+                int row = (cz * ncy + cy) * ncx;
+                int p1 = cell_pstart[row + x1 + 1];
+                for (int p = cell_pstart[row + x0]; p < p1; p += 8) {
+                    real8 dx = vload8(0, X + p) - g.px, dy = vload8(0, Y + p) - g.py, dz = vload8(0, Z + p) - g.pz;
+                    real8 q = dx * ((real)-0.5 * g.pxx * dx - g.pxy * dy - g.pxz * dz)
+                            + dy * ((real)-0.5 * g.pyy * dy - g.pyz * dz) + (real)-0.5 * g.pzz * dz * dz;
+                    real8 e = fast_exp8(q);
+                    real8 ge = ((dx >= -g.ex) & (dx <= g.ex) & (dy >= -g.ey) & (dy <= g.ey) & (dz >= -g.ez)
+                                & (dz <= g.ez)) ? vload8(0, G + p) * e : (real8)(0);
+                    s0 += ge;
+#ifdef NEED_FIRST
+                    sx += ge * dx;
+                    sy += ge * dy;
+                    sz += ge * dz;
+#endif
+#ifdef NEED_SECOND
+                    sxx += ge * dx * dx;
+                    sxy += ge * dx * dy;
+                    sxz += ge * dx * dz;
+                    syy += ge * dy * dy;
+                    syz += ge * dy * dz;
+                    szz += ge * dz * dz;
+#endif
+                }
+            }
+        m.a = hsum8(s0);
+        m.ax = hsum8(sx); m.ay = hsum8(sy); m.az = hsum8(sz);
+        m.axx = hsum8(sxx); m.axy = hsum8(sxy); m.axz = hsum8(sxz);
+        m.ayy = hsum8(syy); m.ayz = hsum8(syz); m.azz = hsum8(szz);
+    }
+    write_grad(grad, i, g, m);
+}

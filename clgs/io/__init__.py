@@ -1,0 +1,11 @@
+"""Reading and writing scans, volumes and meshes.
+
+* :mod:`clgs.io.atomic`: every file and folder clgs writes goes through here (temp + rename), so
+  an interrupted run never leaves a half-written output behind.
+* :mod:`clgs.io.scan`: the clgs scan folder (``scan.json`` + ``projections.npy`` + optional truth);
+  ``Scan.load`` also reads R2-Gaussian dataset folders (:mod:`clgs.io.r2gaussian`).
+* :mod:`clgs.io.volume`: volumes as ``.npy`` or NIfTI with a correct affine.
+* :mod:`clgs.io.mesh`: surface meshes (STL, PLY, OBJ, npz).
+
+Submodules are imported on demand; this package stays light.
+"""

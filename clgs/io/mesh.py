@@ -1,0 +1,99 @@
+"""Surface meshes on disk: STL, PLY, OBJ (through trimesh) or npz (``vertices``, ``faces``).
+
+Coordinates are world mm (x, y, z). Writes are atomic. STL stores each triangle's corners
+separately, so on read coincident vertices are merged back into a shared-vertex mesh.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from clgs.io import atomic
+
+__all__ = ["Mesh", "MeshError", "save_mesh", "load_mesh", "MESH_SUFFIXES"]
+
+MESH_SUFFIXES = (".stl", ".ply", ".obj", ".npz")
+
+
+class MeshError(ValueError):
+    """A mesh file that cannot be read or written as asked."""
+
+
+class Mesh(NamedTuple):
+    """``vertices`` (N, 3) float64 mm (x, y, z); ``faces`` (M, 3) int64 vertex indices."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+
+
+def _check(vertices, faces) -> Mesh:
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise MeshError(f"vertices must be (N, 3), got {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3 or (f.size and not np.issubdtype(f.dtype, np.integer)):
+        raise MeshError(f"faces must be (M, 3) integer vertex indices, got {f.shape} {f.dtype}")
+    f = f.astype(np.int64)
+    if f.size and (f.min() < 0 or f.max() >= len(v)):
+        raise MeshError(f"faces index vertices out of range [0, {len(v)})")
+    if not np.all(np.isfinite(v)):
+        raise MeshError("vertices contain NaN or Inf")
+    return Mesh(v, f)
+
+
+def _suffix(path: Path) -> str:
+    suf = path.suffix.lower()
+    if suf not in MESH_SUFFIXES:
+        raise MeshError(f"{path}: unknown mesh format; use one of {', '.join(MESH_SUFFIXES)}")
+    return suf
+
+
+def save_mesh(path, vertices, faces=None, overwrite: bool = True) -> Path:
+    """Write a triangle mesh atomically; ``save_mesh(path, mesh)`` also accepts a :class:`Mesh`."""
+    if faces is None:
+        vertices, faces = vertices
+    path = Path(path)
+    suf = _suffix(path)
+    mesh = _check(vertices, faces)
+    if len(mesh.faces) == 0:
+        raise MeshError("the mesh has no faces; nothing to write")
+    if suf == ".npz":
+        return atomic.save_npz(path, overwrite=overwrite, vertices=mesh.vertices, faces=mesh.faces)
+    import trimesh
+
+    tm = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, process=False)
+    data = tm.export(file_type=suf[1:])
+    if isinstance(data, str):
+        data = data.encode("utf-8")
+    return atomic.write_bytes(path, data, overwrite=overwrite)
+
+
+def load_mesh(path) -> Mesh:
+    """Read a triangle mesh as :class:`Mesh` (vertices mm, faces int64)."""
+    path = Path(path)
+    suf = _suffix(path)
+    if not path.is_file():
+        raise MeshError(f"{path}: no such file")
+    if suf == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                if "vertices" not in z or "faces" not in z:
+                    raise MeshError(f"{path}: an npz mesh needs arrays 'vertices' and 'faces', has {list(z.keys())}")
+                return _check(z["vertices"], z["faces"])
+        except MeshError:
+            raise
+        except Exception as exc:  # noqa: BLE001
+            raise MeshError(f"{path}: not a readable npz mesh ({exc})") from exc
+    import trimesh
+
+    try:
+        tm = trimesh.load(str(path), file_type=suf[1:], force="mesh", process=False)
+    except Exception as exc:  # noqa: BLE001
+        raise MeshError(f"{path}: not a readable {suf[1:].upper()} mesh ({exc})") from exc
+    if not isinstance(tm, trimesh.Trimesh) or len(tm.faces) == 0:
+        raise MeshError(f"{path}: contains no triangles")
+    if suf == ".stl":
+        tm.merge_vertices()
+    return _check(tm.vertices, tm.faces)

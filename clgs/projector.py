@@ -1,0 +1,386 @@
+"""Gaussian X-ray projector: line integrals of a sum of 3D Gaussians, as a torch autograd op.
+
+``project(means, scales, quats, densities, geometry, views, mode)`` returns the projections
+(len(views), V, U) in mm-based units: the scene-unit line integral divided by
+``geometry.scale``, so a Gaussian's density has the units of voxel values (1/mm).
+
+Two ways to integrate (``mode``):
+
+* ``"affine"`` (R2-Gaussian): each Gaussian is mapped to ray space with the local affine
+  Jacobian of the cone-beam projection at its centre and splatted as a 2D Gaussian, scaled by the
+  integration-bias factor ``mu = sqrt(2 pi det S3 / det S2)``. Exact for parallel beam. In cone
+  beam, Gaussians whose centre is closer than ``NEAR_PLANE`` (0.2 scene units) to the source
+  plane, or whose 3-sigma extent along the axis reaches it, are culled (R2-Gaussian culls by a
+  near plane too); they never produce NaN or Inf.
+* ``"exact"``: the closed-form integral of the Gaussian along every pixel's own ray,
+  ``rho sqrt(2 pi / a) exp(-q / 2)`` with ``q`` the squared Mahalanobis distance from the centre
+  to the ray, computed in a cancellation-free, pixel-centred form. In cone beam rays start at
+  the source: a Gaussian whose 6-sigma extent (10 in double builds) along the axis reaches the
+  source plane is integrated over ``t > 0`` with the factor ``erfc(b / sqrt(2 a)) / 2``, over the
+  whole detector; one wholly behind the source is culled.
+
+Both modes keep a Gaussian's contribution to the pixels whose ray passes within 3 sigma of its
+centre (q <= 9). The footprint box is the exact bounding box of that region: 3 sigma of the
+projected covariance (affine, exact parallel), the bounding box of the perspective image of
+the 3-sigma ellipsoid (exact cone), each with a rounding margin of 0.01 pixel + 1e-4 of its
+radius; pixels in the box with q > 9 are masked, so the box only decides the work, never the
+result.
+
+Compiled variants (``-D`` options of ``cl/gaussian_project.cl``; one program per set, compiled
+on first use in a process and cached by ``clgs.runtime``):
+
+=================  ==========================================================================
+``CONE``           cone beam (``geometry.mode == "cone"``); absent: parallel beam
+``EXACT``          ``mode="exact"`` (kernels take packed precision); absent: affine (packed
+                   covariance)
+``REAL=double``    float64 inputs (tests, gradcheck); default float
+``NO_GRAD_MEAN``,  backward only: set when means / the covariance-or-precision / densities do
+``NO_GRAD_COV``,   not require grad, so the kernel leaves those sums out (the forward program
+``NO_GRAD_DENSITY`` is built once per beam, mode and precision)
+``TW=8, TH=16``    tile size of the forward (fixed; also used by ``cl/binning.cl``)
+=================  ==========================================================================
+
+``cl/binning.cl`` (per-tile lists, counting sort, no atomics) is built once per tile size.
+
+Conventions: the detector's u and v axes are perpendicular to each other and to the central
+ray (as every ``clgs.geometry.Geometry`` is). Forward and backward are gathers: every output is
+written by one work-item, so same input gives the same bits.
+"""
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+import torch
+
+from .gaussian_math import covariance, precision
+
+MODES = ("affine", "exact")
+TW, TH = 8, 16
+VP = 20
+_HIST_BUDGET = 1 << 24  # ints in the binning histogram (views x chunks x tiles)
+
+
+class ProjectorError(ValueError):
+    """Inputs the projector cannot handle, with what to do about them."""
+
+
+def view_params(geometry, views, dtype=np.float32) -> np.ndarray:
+    """(len(views), 20) per-view parameters in scene units, layout in ``cl/project_setup.h``."""
+    vec = geometry.view_vectors(scene=True, views=views)
+    nv, nu = geometry.nDetector
+    out = np.zeros((len(vec), VP), np.float64)
+    for i, row in enumerate(vec):
+        first, det, gu, gv = row[0:3], row[3:6], row[6:9], row[9:12]
+        gul, gvl = np.linalg.norm(gu), np.linalg.norm(gv)
+        eu, ev = gu / gul, gv / gvl
+        if geometry.mode == "cone":
+            s = first
+            rel = det - s
+            w = rel - (rel @ eu) * eu - (rel @ ev) * ev
+            D = np.linalg.norm(w)
+            w = w / D
+            fx, fy = D / gul, D / gvl
+            cx = (nu - 1) / 2.0 - (rel @ eu) / gul
+            cy = (nv - 1) / 2.0 - (rel @ ev) / gvl
+        else:
+            s, w, D = det, first / np.linalg.norm(first), 0.0
+            fx, fy, cx, cy = 1.0 / gul, 1.0 / gvl, (nu - 1) / 2.0, (nv - 1) / 2.0
+        out[i, :19] = [*s, *eu, *ev, *w, fx, fy, cx, cy, gul, gvl, D]
+    return out.astype(dtype)
+
+
+def _real_name(dtype) -> str:
+    if dtype == np.float32:
+        return "float"
+    if dtype == np.float64:
+        return "double"
+    raise ProjectorError(f"projector inputs must be float32 or float64, got {dtype}")
+
+
+def _round_up(n: int, m: int) -> int:
+    return (n + m - 1) // m * m
+
+
+class GaussianProjector:
+    """Owns the compiled programs (per beam, mode, precision, gradients) and the work buffers.
+
+    Buffers grow when a larger scene comes along and are reused across calls. On a CPU device
+    inputs and outputs are NumPy memory wrapped with ``USE_HOST_PTR`` (no copies); on a GPU they
+    are copied through pooled device buffers. One projector serialises its own calls.
+    """
+
+    LOCAL_G = 64  # work-group size of the per-Gaussian kernels (global sizes are padded to it)
+    LOCAL_TILE = (2, 2, 1)
+
+    def __init__(self):
+        from . import runtime
+
+        self._runtime = runtime
+        self.ctx = runtime.get_context()
+        self.queue = runtime.get_queue()
+        self.cpu = runtime.is_cpu_device()
+        self._pool: dict = {}
+        self._lock = threading.Lock()
+
+    # ----------------------------------------------------------------------------- plumbing
+    def program(self, beam: str, mode: str, real: str, grads=(True, True, True)):
+        defines = {"REAL": real, "CONE": beam == "cone", "EXACT": mode == "exact", "TW": TW, "TH": TH}
+        defines["NO_GRAD_MEAN"] = not grads[0]
+        defines["NO_GRAD_COV"] = not grads[1]
+        defines["NO_GRAD_DENSITY"] = not grads[2]
+        return self._runtime.get_program("gaussian_project.cl", defines, self.ctx)
+
+    def _binning(self):
+        return self._runtime.get_program("binning.cl", {"TW": TW, "TH": TH}, self.ctx)
+
+    def _pooled(self, name: str, nbytes: int):
+        import pyopencl as cl
+
+        nbytes = max(int(nbytes), 16)
+        buf = self._pool.get(name)
+        if buf is None or buf.size < nbytes:
+            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, size=_round_up(nbytes + nbytes // 4, 4096))
+            self._pool[name] = buf
+        return buf
+
+    def _in(self, name: str, arr: np.ndarray):
+        """Read-only buffer holding ``arr`` (wrapped on a CPU device, copied otherwise)."""
+        import pyopencl as cl
+
+        if arr.size == 0:
+            return self._pooled(name, 16)
+        if self.cpu:
+            return cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
+        buf = self._pooled(name, arr.nbytes)
+        cl.enqueue_copy(self.queue, buf, arr, is_blocking=False)
+        return buf
+
+    def _out(self, name: str, arr: np.ndarray):
+        import pyopencl as cl
+
+        if self.cpu and arr.size:
+            return cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
+        return self._pooled(name, arr.nbytes)
+
+    def _fetch(self, buf, arr: np.ndarray):
+        """Make ``arr`` hold the buffer's content (blocking)."""
+        import pyopencl as cl
+
+        if arr.size == 0:
+            return
+        if self.cpu:
+            mapped, _ = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ, 0, arr.shape, arr.dtype,
+                                              is_blocking=True)
+            if mapped.__array_interface__["data"][0] != arr.__array_interface__["data"][0]:
+                arr[...] = mapped  # the driver kept its own copy
+            mapped.base.release()
+        else:
+            cl.enqueue_copy(self.queue, arr, buf, is_blocking=True)
+
+    @staticmethod
+    def _check(means, mats, densities):
+        n = means.shape[0]
+        if means.shape != (n, 3) or mats.shape != (n, 6) or densities.shape != (n,):
+            raise ProjectorError(
+                f"expected means (N,3), matrices (N,6), densities (N,); got {means.shape}, {mats.shape}, "
+                f"{densities.shape}")
+        if n >= 2**31 // 8:
+            raise ProjectorError(f"{n} Gaussians is more than this projector indexes; split the scene")
+
+    def _setup(self, means, mats, densities, geometry, views, mode):
+        if mode not in MODES:
+            raise ProjectorError(f"mode must be one of {MODES}, got {mode!r}")
+        self._check(means, mats, densities)
+        real = _real_name(means.dtype)
+        dt = means.dtype
+        views = np.asarray(views, np.int64).reshape(-1)
+        if views.size == 0:
+            raise ProjectorError("no views asked for: pass at least one view index")
+        if views.min() < 0 or views.max() >= geometry.n_views:
+            raise ProjectorError(f"view indices must lie in [0, {geometry.n_views - 1}], got {views.tolist()}")
+        vp = view_params(geometry, views, dt)
+        return real, dt, views, vp
+
+    # ----------------------------------------------------------------------------- forward
+    def forward(self, means: np.ndarray, mats: np.ndarray, densities: np.ndarray, geometry, views,
+                mode: str = "affine") -> np.ndarray:
+        """Projections (len(views), V, U) from NumPy means (N,3), packed covariance (affine) or
+        precision (exact) (N,6) and densities (N,), all float32 or all float64."""
+        import pyopencl as cl
+
+        with self._lock:
+            real, dt, views, vp = self._setup(means, mats, densities, geometry, views, mode)
+            V, U = geometry.nDetector
+            nv, N = len(views), means.shape[0]
+            out = np.empty((nv, V, U), dt)
+            if N == 0:
+                out[...] = 0
+                return out
+            prog = self.program(geometry.mode, mode, real)
+            binp = self._binning()
+            q = self.queue
+            i32, rl = np.int32, dt.type
+            rec_len = 20 if (mode == "exact" and geometry.mode == "cone") else 8
+            b_means = self._in("means", means)
+            b_mats = self._in("mats", mats)
+            b_rho = self._in("rho", densities)
+            b_vp = self._in("vp", vp)
+            b_rec = self._pooled(f"rec{dt.itemsize}", nv * N * rec_len * dt.itemsize)
+            b_box = self._pooled("box", nv * N * 16)
+            LG = self.LOCAL_G
+            prog.kernel("preprocess")(q, (_round_up(N, LG), nv), (LG, 1), i32(N), i32(U), i32(V),
+                                      rl(geometry.scale), b_means, b_mats, b_rho, b_vp, b_rec, b_box)
+            ntx, nty = -(-U // TW), -(-V // TH)
+            ntiles = ntx * nty
+            nchunks = max(1, min(-(-N // 128), 256, _HIST_BUDGET // (nv * ntiles)))
+            chunk = -(-N // nchunks)
+            nchunks = -(-N // chunk)
+            b_hist = self._pooled("hist", nv * nchunks * ntiles * 4)
+            b_tot = self._pooled("totals", nv * ntiles * 4)
+            b_starts = self._pooled("starts", (nv * ntiles + 1) * 4)
+            binp.kernel("bin_hist")(q, (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks), i32(ntx),
+                                    i32(ntiles), b_box, b_hist)
+            binp.kernel("bin_totals")(q, (_round_up(ntiles, LG), nv), (LG, 1), i32(nchunks), i32(ntiles),
+                                      b_hist, b_tot)
+            binp.kernel("bin_scan")(q, (1,), (1,), i32(nv * ntiles), b_tot, b_starts)
+            total = np.zeros(1, np.int32)
+            cl.enqueue_copy(q, total, b_starts, src_offset=nv * ntiles * 4, is_blocking=True)
+            total = int(total[0])
+            if total < 0:
+                raise ProjectorError("more Gaussian-tile pairs than 2^31: use fewer views per call")
+            b_list = self._pooled("list", max(total, 1) * 4)
+            binp.kernel("bin_fill")(q, (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks), i32(ntx),
+                                    i32(ntiles), b_box, b_hist, b_starts, b_list)
+            b_out = self._out("out", out)
+            lt = self.LOCAL_TILE
+            prog.kernel("render")(q, (_round_up(ntx, lt[0]), _round_up(nty, lt[1]), nv), lt, i32(N), i32(U),
+                                  i32(V), i32(ntx), i32(ntiles), b_rec, b_box, b_starts, b_list, b_means,
+                                  b_mats, b_rho, b_vp, rl(geometry.scale), b_out)
+            self._fetch(b_out, out)
+            self.last_pairs = total
+            return out
+
+    # ----------------------------------------------------------------------------- backward
+    def backward(self, means, mats, densities, geometry, views, mode, grad_out: np.ndarray,
+                 needs=(True, True, True)):
+        """Gradients (means (N,3), matrices (N,6), densities (N,)) of sum(grad_out * forward);
+        entries not in ``needs`` are returned as None."""
+        with self._lock:
+            real, dt, views, vp = self._setup(means, mats, densities, geometry, views, mode)
+            V, U = geometry.nDetector
+            nv, N = len(views), means.shape[0]
+            if grad_out.shape != (nv, V, U):
+                raise ProjectorError(f"gradient shape {grad_out.shape} does not match projections {(nv, V, U)}")
+            grad_out = np.ascontiguousarray(grad_out, dt)
+            outs = [np.zeros((N, 3), dt), np.zeros((N, 6), dt), np.zeros((N,), dt)]
+            if N == 0 or not any(needs):
+                return tuple(o if k else None for o, k in zip(outs, needs))
+            prog = self.program(geometry.mode, mode, real, tuple(bool(k) for k in needs))
+            q = self.queue
+            b = [self._out(f"grad{k}", o) for k, o in enumerate(outs)]
+            LG = self.LOCAL_G
+            prog.kernel("backward")(q, (_round_up(N, LG),), (LG,), np.int32(N), np.int32(nv), np.int32(U),
+                                    np.int32(V), dt.type(geometry.scale), self._in("means", means),
+                                    self._in("mats", mats), self._in("rho", densities), self._in("vp", vp),
+                                    self._in("gimg", grad_out), *b)
+            res = []
+            for k, (buf, o) in enumerate(zip(b, outs)):
+                if needs[k]:
+                    self._fetch(buf, o)
+                    res.append(o)
+                else:
+                    res.append(None)
+            q.finish()
+            return tuple(res)
+
+
+_default: GaussianProjector | None = None
+_default_lock = threading.Lock()
+
+
+def default_projector() -> GaussianProjector:
+    """The process-wide projector (programs and buffers shared by every ``project`` call)."""
+    global _default
+    with _default_lock:
+        if _default is None:
+            _default = GaussianProjector()
+        return _default
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().contiguous().numpy()
+
+
+class _Project(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, mats, densities, geometry, views, mode, projector):
+        out = projector.forward(_np(means), _np(mats), _np(densities), geometry, views, mode)
+        ctx.save_for_backward(means, mats, densities)
+        ctx.args = (geometry, views, mode, projector)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, grad):
+        means, mats, densities = ctx.saved_tensors
+        geometry, views, mode, projector = ctx.args
+        needs = ctx.needs_input_grad[:3]
+        g = projector.backward(_np(means), _np(mats), _np(densities), geometry, views, mode,
+                               _np(grad.to(means.dtype)), needs)
+        return tuple(torch.from_numpy(x) if x is not None else None for x in g) + (None, None, None, None)
+
+
+def _as_views(geometry, views):
+    if views is None:
+        return list(range(geometry.n_views))
+    if isinstance(views, (int, np.integer)):
+        return [int(views)]
+    return [int(v) for v in views]
+
+
+def project_packed(means, mats, densities, geometry, views=None, mode: str = "affine",
+                   projector: GaussianProjector | None = None) -> torch.Tensor:
+    """Like :func:`project` with the packed covariance (affine) or precision (exact) given
+    directly, (N, 6) as (xx, xy, xz, yy, yz, zz). Differentiable wrt all three tensors."""
+    if mode not in MODES:
+        raise ProjectorError(f"mode must be one of {MODES}, got {mode!r}")
+    for name, t in (("means", means), ("mats", mats), ("densities", densities)):
+        if not isinstance(t, torch.Tensor):
+            raise ProjectorError(f"{name} must be a torch tensor, got {type(t).__name__}")
+        if t.device.type != "cpu":
+            raise ProjectorError(f"{name} is on {t.device}; the projector takes CPU tensors (move with .cpu())")
+        if t.dtype != means.dtype:
+            raise ProjectorError(f"all inputs must share one dtype: means is {means.dtype}, {name} is {t.dtype}")
+    if means.dtype not in (torch.float32, torch.float64):
+        raise ProjectorError(f"inputs must be float32 or float64, got {means.dtype}")
+    return _Project.apply(means, mats, densities, geometry, _as_views(geometry, views), mode,
+                          projector or default_projector())
+
+
+def project(means, scales, quats, densities, geometry, views=None, mode: str = "affine",
+            projector: GaussianProjector | None = None) -> torch.Tensor:
+    """Projections (len(views), V, U) of Gaussians, differentiable wrt all four inputs.
+
+    means (N,3) scene coordinates; scales (N,3) activated standard deviations (scene units);
+    quats (N,4) raw (w,x,y,z), normalised here; densities (N,) activated. ``views``: view
+    indices into ``geometry.angles`` (None: all; an int: one). float32 or float64 by input dtype.
+    """
+    n = means.shape[0] if means.dim() == 2 else -1
+    if means.dim() != 2 or means.shape[1] != 3:
+        raise ProjectorError(f"means must be (N, 3), got {tuple(means.shape)}")
+    if tuple(scales.shape) != (n, 3) or tuple(quats.shape) != (n, 4) or tuple(densities.shape) != (n,):
+        raise ProjectorError(
+            f"for N={n} Gaussians expected scales (N,3), quats (N,4), densities (N,); got "
+            f"{tuple(scales.shape)}, {tuple(quats.shape)}, {tuple(densities.shape)}")
+    if n:
+        with torch.no_grad():
+            for name, t in (("means", means), ("scales", scales), ("quats", quats), ("densities", densities)):
+                if not bool(torch.isfinite(t).all()):
+                    raise ProjectorError(f"{name} contains NaN or Inf")
+            if not bool((scales > 0).all()):
+                raise ProjectorError("scales must be positive (activated standard deviations)")
+            if not bool((torch.linalg.vector_norm(quats, dim=-1) > 0).all()):
+                raise ProjectorError("a quaternion is zero: rotations need a non-zero quaternion")
+    mats = covariance(scales, quats) if mode == "affine" else precision(scales, quats)
+    return project_packed(means, mats, densities, geometry, views, mode, projector)

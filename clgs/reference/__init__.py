@@ -1,0 +1,1 @@
+"""Plain torch references of the kernels, for tests and benchmarks."""

@@ -1,0 +1,339 @@
+"""A generic optimisation loop for Gaussian models of X-ray projections.
+
+The loop knows nothing about a particular method. It takes
+
+* ``sets``: named Gaussian sets. Each has ``name``, ``tensors()`` -> (means, scales, quats,
+  densities) differentiable to its leaves, ``parameters()`` -> [(name, tensor, Schedule)],
+  ``state_dict()`` / ``load_state_dict()`` and ``__len__``. The rendered scene is all sets together.
+* ``losses``: :class:`LossTerm` (name, weight, fn(ctx) -> scalar). A term with weight 0 is never
+  called, so it costs nothing (no projection, no voxelised patch).
+* ``hooks``: objects with any of ``after_backward(trainer, ctx)`` (gradients are there, the
+  step has not happened), ``on_iteration(trainer)`` (after the step; densification lives here),
+  ``state_dict()`` / ``load_state_dict()`` (checkpointed with the run).
+
+One iteration: set each parameter's learning rate from its schedule, take the next view of a
+reshuffled stack, evaluate the loss terms on a lazily-built :class:`Context`, backward, Adam
+(eps 1e-15) on the parameters whose learning rate is not 0, count the iteration, run hooks.
+Every ``log_every`` iterations the optional ``evaluate(trainer) -> dict`` adds a row to the log.
+Every ``checkpoint_every`` iterations, on Ctrl-C and at the end, a checkpoint is written.
+
+Ctrl-C: the first SIGINT (main thread) asks the loop to stop at the end of the current
+iteration; the loop then writes a checkpoint and returns with ``interrupted = True``. A second
+SIGINT, or a KeyboardInterrupt raised elsewhere (e.g. by a hook), stops at once; a checkpoint is
+still written, and it is exact when the interruption came between iterations (hooks run there).
+
+Determinism: views come from a NumPy Generator, everything random in the step (TV patches,
+split positions) from the trainer's torch Generator; both are checkpointed, so a resumed run
+continues bit for bit.
+"""
+from __future__ import annotations
+
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+from clgs import checkpoint as ckpt
+from clgs.training_log import Progress, TrainingLog
+
+
+@dataclass
+class LossTerm:
+    """``weight x fn(ctx)`` in the total loss; ``weight == 0`` skips the term entirely."""
+
+    name: str
+    weight: float
+    fn: Callable
+
+
+class Backend:
+    """Where projection and voxelisation run: ``"cl"`` (the OpenCL kernels) or ``"torch"`` (plain
+    torch: the references' patch projector and windowed voxeliser, same maths, autograd for the
+    gradients; for tests and the speed comparison)."""
+
+    def __init__(self, name: str = "cl", mode: str = "affine"):
+        if name not in ("cl", "torch"):
+            raise ValueError(f"backend must be 'cl' or 'torch', got {name!r}")
+        if mode not in ("affine", "exact"):
+            raise ValueError(f"projector mode must be 'affine' or 'exact', got {mode!r}")
+        self.name, self.mode = name, mode
+        if name == "cl":
+            from clgs.projector import project
+            from clgs.voxelizer import voxelize
+
+            self._project, self._voxelize = project, voxelize
+        else:
+            from clgs.reference import voxelization
+
+            self._voxelize = getattr(voxelization, "voxelize_windowed", voxelization.voxelize)
+            self._project = self._torch_project
+
+    def _torch_project(self, means, scales, quats, densities, geometry, views, mode):
+        from clgs import gaussian_math
+        from clgs.reference.projection import project_patches
+
+        mats = (gaussian_math.covariance if mode == "affine" else gaussian_math.precision)(scales, quats)
+        return torch.stack([project_patches(means, mats, densities, geometry, int(v), mode=mode) for v in views])
+
+    def project(self, means, scales, quats, densities, geometry, views):
+        return self._project(means, scales, quats, densities, geometry, list(views), mode=self.mode)
+
+    def voxelize(self, means, scales, quats, densities, grid):
+        return self._voxelize(means, scales, quats, densities, grid)
+
+
+class Context:
+    """What loss terms see during one iteration; costly pieces are built on first use."""
+
+    def __init__(self, trainer: "Trainer", view: int):
+        self.trainer = trainer
+        self.view = view
+        self.iteration = trainer.iteration
+        self.generator = trainer.generator
+        self.geometry = trainer.geometry
+        self._tensors = None
+        self._render = None
+
+    @property
+    def target(self) -> torch.Tensor:
+        """The measured projection of this view (V, U), training units."""
+        return self.trainer.projections[self.view]
+
+    @property
+    def tensors(self):
+        """(means, scales, quats, densities) of all sets, concatenated."""
+        if self._tensors is None:
+            self._tensors = self.trainer.scene_tensors()
+        return self._tensors
+
+    @property
+    def render(self) -> torch.Tensor:
+        """The model's projection of this view (V, U), training units."""
+        if self._render is None:
+            t = self.trainer
+            self._render = t.backend.project(*self.tensors, t.geometry, [self.view])[0] * t.render_scale
+        return self._render
+
+    def voxelize(self, grid, tensors=None) -> torch.Tensor:
+        """The field of all sets (or of ``tensors``) on ``grid``, training units."""
+        return self.trainer.backend.voxelize(*(tensors or self.tensors), grid)
+
+
+class Trainer:
+    """Adam over named Gaussian sets, one view per iteration; see the module doc."""
+
+    def __init__(self, sets, geometry, projections, losses, *, iterations: int, backend="cl",
+                 render_scale: float = 1.0, seed: int = 0, hooks=(), evaluate=None, log_every: int = 500,
+                 checkpoint_every: int = 0, checkpoint_path=None, progress: bool = False,
+                 views=None, config: dict | None = None):
+        self.sets = list(sets)
+        names = [s.name for s in self.sets]
+        if len(set(names)) != len(names):
+            raise ValueError(f"Gaussian sets need distinct names, got {names}")
+        self.geometry = geometry
+        self.projections = torch.as_tensor(np.asarray(projections, dtype=np.float32))
+        if self.projections.shape != (geometry.n_views, *geometry.nDetector):
+            raise ValueError(f"projections have shape {tuple(self.projections.shape)}, the geometry "
+                             f"expects {(geometry.n_views, *geometry.nDetector)}")
+        self.losses = list(losses)
+        self.iterations = int(iterations)
+        self.backend = backend if isinstance(backend, Backend) else Backend(backend)
+        self.render_scale = float(render_scale)
+        self.hooks = list(hooks)
+        self.evaluate = evaluate
+        self.log_every = int(log_every)
+        self.checkpoint_every = int(checkpoint_every)
+        self.checkpoint_path = checkpoint_path
+        self.progress_enabled = progress
+        self.views = list(range(geometry.n_views)) if views is None else [int(v) for v in views]
+        self.config = dict(config or {})
+        self.seed = int(seed)
+        self.generator = torch.Generator().manual_seed(self.seed)
+        self.rng = np.random.default_rng(self.seed)
+        self.iteration = 0
+        self.view_stack: list = []
+        self.log = TrainingLog()
+        self.seconds = 0.0  # training time so far (all sessions)
+        self.wall_offset = 0.0
+        self.interrupted = False
+        self._sums: dict = {}
+        self._count = 0
+        self._stop = False
+        self._build_optimizer()
+
+    # ------------------------------------------------------------------ model
+    def _build_optimizer(self) -> None:
+        groups = []
+        self._schedules = []
+        for s in self.sets:
+            for name, tensor, schedule in s.parameters():
+                groups.append({"params": [tensor], "lr": schedule(0), "name": f"{s.name}.{name}"})
+                self._schedules.append(schedule)
+        self.optimizer = torch.optim.Adam(groups, eps=1e-15)
+
+    def scene_tensors(self):
+        parts = [s.tensors() for s in self.sets]
+        if len(parts) == 1:
+            return parts[0]
+        return tuple(torch.cat([p[i] for p in parts], 0) for i in range(4))
+
+    @property
+    def n_gaussians(self) -> int:
+        return sum(len(s) for s in self.sets)
+
+    # ------------------------------------------------------------------ one step
+    def next_view(self) -> int:
+        if not self.view_stack:
+            self.view_stack = [self.views[i] for i in self.rng.permutation(len(self.views))]
+        return self.view_stack.pop()
+
+    def step(self) -> dict:
+        """One iteration; returns the loss terms' values (floats)."""
+        it = self.iteration
+        for group, schedule in zip(self.optimizer.param_groups, self._schedules):
+            group["lr"] = schedule(it)
+        ctx = Context(self, self.next_view())
+        total, values = None, {}
+        for term in self.losses:
+            if term.weight == 0:
+                continue
+            v = term.fn(ctx)
+            values[term.name] = v.detach()
+            total = term.weight * v if total is None else total + term.weight * v
+        self.optimizer.zero_grad(set_to_none=True)
+        if total is not None:
+            if not torch.isfinite(total):
+                raise FloatingPointError(
+                    f"the loss became {float(total)} at iteration {it} (view {ctx.view}); lower the learning "
+                    "rates or check the projections for NaN/Inf")
+            total.backward()
+        for h in self.hooks:
+            if hasattr(h, "after_backward"):
+                h.after_backward(self, ctx)
+        for group in self.optimizer.param_groups:
+            if group["lr"] == 0:
+                for p in group["params"]:
+                    p.grad = None  # frozen: Adam's moments must not move either
+        self.optimizer.step()
+        self.iteration += 1
+        for h in self.hooks:
+            if hasattr(h, "on_iteration"):
+                h.on_iteration(self)
+        out = {k: float(v) for k, v in values.items()}
+        out["loss"] = float(total.detach()) if total is not None else 0.0
+        return out
+
+    # ------------------------------------------------------------------ the loop
+    def fit(self) -> "Trainer":
+        """Run to ``iterations`` (continuing from a resumed state); see the module doc for Ctrl-C."""
+        self._stop = False
+        self.interrupted = False
+        t_wall = time.perf_counter() - self.wall_offset
+        old_handler = None
+        if threading.current_thread() is threading.main_thread():
+            old_handler = signal.signal(signal.SIGINT, self._on_sigint)
+        progress = Progress(self.iterations, self.iteration, self.progress_enabled)
+        self._progress = progress
+        try:
+            if self.iteration == 0 and self.log_every > 0 and not self.log.rows:
+                self._log_row(t_wall, {})
+            while self.iteration < self.iterations and not self._stop:
+                t0 = time.perf_counter()
+                values = self.step()
+                self.seconds += time.perf_counter() - t0
+                for k, v in values.items():
+                    self._sums[k] = self._sums.get(k, 0.0) + v
+                self._count += 1
+                progress.update(1, {**values, "n_gaussians": self.n_gaussians,
+                                    **{k: self.log.last(k) for k in ("proj_psnr", "psnr3d", "ssim3d")}})
+                if self.log_every > 0 and self.iteration % self.log_every == 0:
+                    self._log_row(t_wall, values)
+                if self.checkpoint_every > 0 and self.iteration % self.checkpoint_every == 0:
+                    self.save_checkpoint(t_wall)
+        except KeyboardInterrupt:
+            self._stop = True
+        finally:
+            if old_handler is not None:
+                signal.signal(signal.SIGINT, old_handler)
+            progress.close()
+        if self._stop:
+            self.interrupted = True
+        if self.log_every > 0 and self._count > 0 and (not self.log.rows or self.log.rows[-1]["iteration"] != self.iteration):
+            self._log_row(t_wall, {})
+        self.save_checkpoint(t_wall)
+        return self
+
+    def _on_sigint(self, signum, frame):
+        if self._stop:
+            raise KeyboardInterrupt
+        self._stop = True
+        msg = "interrupt: stopping after this iteration and saving a checkpoint (Ctrl-C again to abort at once)"
+        if getattr(self, "_progress", None) is not None and self._progress.bar is not None:
+            self._progress.write(msg)
+
+    def _log_row(self, t_wall: float, values: dict) -> None:
+        row = {"iteration": self.iteration, "seconds": round(self.seconds, 4),
+               "wall": round(time.perf_counter() - t_wall, 4), "n_gaussians": self.n_gaussians}
+        if self._count:
+            row.update({k: v / self._count for k, v in self._sums.items()})
+        if self.evaluate is not None:
+            with torch.no_grad():
+                row.update(self.evaluate(self))
+        self.log.add(row)
+        self._sums, self._count = {}, 0
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self, t_wall: float | None = None) -> dict:
+        wall = (time.perf_counter() - t_wall) if t_wall is not None else self.wall_offset
+        return {
+            "iteration": self.iteration,
+            "iterations": self.iterations,
+            "sets": {s.name: s.state_dict() for s in self.sets},
+            "optimizer": self.optimizer.state_dict(),
+            "hooks": [h.state_dict() if hasattr(h, "state_dict") else {} for h in self.hooks],
+            "torch_rng": self.generator.get_state(),
+            "numpy_rng": ckpt.dumps(self.rng.bit_generator.state),
+            "view_stack": list(self.view_stack),
+            "log": ckpt.dumps(self.log.rows),
+            "sums": ckpt.dumps(self._sums),
+            "count": self._count,
+            "seconds": self.seconds,
+            "wall": wall,
+            "seed": self.seed,
+            "config": ckpt.dumps(self.config),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        names = sorted(s.name for s in self.sets)
+        if sorted(state["sets"]) != names:
+            raise ckpt.CheckpointError(f"checkpoint holds sets {sorted(state['sets'])}, this run has {names}")
+        for s in self.sets:
+            s.load_state_dict(state["sets"][s.name])
+        self._build_optimizer()
+        self.optimizer.load_state_dict(state["optimizer"])
+        for h, hs in zip(self.hooks, state["hooks"]):
+            if hasattr(h, "load_state_dict"):
+                h.load_state_dict(hs)
+        self.generator.set_state(state["torch_rng"])
+        self.rng.bit_generator.state = ckpt.loads(state["numpy_rng"])
+        self.view_stack = [int(v) for v in state["view_stack"]]
+        self.log = TrainingLog(ckpt.loads(state["log"]))
+        self._sums = ckpt.loads(state["sums"])
+        self._count = int(state["count"])
+        self.iteration = int(state["iteration"])
+        self.seconds = float(state["seconds"])
+        self.wall_offset = float(state["wall"])
+
+    def save_checkpoint(self, t_wall: float | None = None):
+        if self.checkpoint_path is None:
+            return None
+        return ckpt.save(self.checkpoint_path, self.state_dict(t_wall))
+
+    def resume(self, path=None) -> "Trainer":
+        """Load the checkpoint at ``path`` (default: ``checkpoint_path``)."""
+        self.load_state_dict(ckpt.load(path or self.checkpoint_path))
+        return self

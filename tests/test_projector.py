@@ -1,0 +1,314 @@
+"""Gaussian projector: forward against plain torch/NumPy references, gradients by finite
+differences (float64 builds), precision agreement, determinism and extreme inputs."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from clgs.gaussian_math import covariance, precision, unpack_sym
+from clgs.geometry import Geometry
+from clgs.projector import GaussianProjector, ProjectorError, project, project_packed
+from clgs.reference.projection import exact_quadrature, project_dense
+
+BEAMS = ("cone", "parallel")
+MODES = ("affine", "exact")
+
+
+def geom(beam, n_det=40, n_views=4, off=(3.0, -5.0)):
+    g = Geometry.default(n_views=n_views, mode=beam, n_detector=n_det, n_voxel=32)
+    return Geometry.from_dict({**g.to_dict(), "offDetector": list(off)})
+
+
+def scene(n, dtype=torch.float64, lo=0.02, hi=0.08, spread=1.2, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    m = (torch.rand(n, 3, generator=gen, dtype=dtype) - 0.5) * spread
+    s = lo + (hi - lo) * torch.rand(n, 3, generator=gen, dtype=dtype)
+    q = torch.randn(n, 4, generator=gen, dtype=dtype)
+    d = 0.2 + torch.rand(n, generator=gen, dtype=dtype)
+    return m, s, q, d
+
+
+def mats_for(mode, s, q):
+    return covariance(s, q) if mode == "affine" else precision(s, q)
+
+
+# ----------------------------------------------------------------------------- forward
+@pytest.mark.parametrize("beam", BEAMS)
+@pytest.mark.parametrize("mode", MODES)
+def test_forward_matches_dense_reference(beam, mode):
+    g = geom(beam)
+    m, s, q, d = scene(40)
+    mats = mats_for(mode, s, q)
+    ref, near = project_dense(m, mats, d, g, [0, 1, 3], mode)
+    assert float(ref.max()) > 1.0  # the scene is seen
+    out32 = project_packed(m.float(), mats.float(), d.float(), g, [0, 1, 3], mode)
+    out64 = project_packed(m, mats, d, g, [0, 1, 3], mode)
+    assert out32.dtype == torch.float32 and out64.dtype == torch.float64
+    keep = ~near
+    # 1e-5 relative, with an absolute floor of 2e-6 of the peak for the 3-sigma tails (float32
+    # pixel coordinates of a centre ~100 px off-axis carry ~1e-5 px rounding, which is 1e-5 in
+    # exp(-q/2) where q is near 9)
+    peak = float(ref.abs().max())
+    err32 = ((out32.double() - ref).abs() / (ref.abs() + 0.2 * peak))[keep].max()
+    assert err32 < 1e-5, f"float32 relative error {float(err32):.2e}"
+    assert float((out64 - ref)[keep].abs().max()) < 1e-10 * float(ref.abs().max())
+    assert int(near.sum()) < 0.01 * near.numel()
+
+
+@pytest.mark.parametrize("beam", BEAMS)
+def test_exact_matches_quadrature(beam):
+    """Closed form against trapezoid integration along every ray (no cut in the quadrature:
+    compared where all Gaussians are well inside or well outside their 3-sigma cut)."""
+    g = geom(beam, n_det=24, n_views=1)
+    m, s, q, d = scene(3, lo=0.06, hi=0.15, spread=0.8, seed=3)
+    if beam == "cone":  # one Gaussian straddling the source: rays only count for t > 0
+        src = torch.as_tensor(g.view_vectors()[0, :3])
+        m[0] = src + torch.tensor([-0.05, 0.02, 0.0], dtype=torch.float64)
+        s[0] = torch.tensor([0.4, 0.3, 0.35], dtype=torch.float64)
+    P = precision(s, q)
+    out = project_packed(m, P, d, g, [0], "exact")[0].numpy()
+    quad = exact_quadrature(m.numpy(), P, d.numpy(), g, 0, n_steps=40001)
+    # per-pixel Mahalanobis distance of each ray to each centre, to skip the cut's edge
+    o, r = g.rays(0)
+    Pm = unpack_sym(P).numpy()
+    qs = []
+    for i in range(3):
+        e = o - m[i].numpy()
+        a = np.einsum("vui,ij,vuj->vu", r, Pm[i], r)
+        b = np.einsum("vui,ij,vuj->vu", r, Pm[i], e)
+        w = e - (b / a)[..., None] * r
+        qs.append(np.einsum("vui,ij,vuj->vu", w, Pm[i], w))
+    qs = np.stack(qs)
+    inside = (qs < 8.0).all(0)
+    assert inside.sum() > 20
+    np.testing.assert_allclose(out[inside], quad[inside], rtol=2e-6, atol=1e-9 * quad.max())
+    outside = (qs > 9.5).all(0)
+    assert np.all(out[outside] == 0.0)
+
+
+def test_affine_vs_exact_error_is_small_for_small_gaussians_and_bounded_for_large():
+    """The affine (R2-Gaussian) splat approximates the exact integral: measured max error over
+    the peak is about 1.5e-4 for sigma = 0.25% of the volume, about 1% for sigma = 15% (where
+    perspective changes across the Gaussian and the footprints' 3-sigma edges differ)."""
+    g = geom("cone", n_det=64, n_views=4, off=(0, 0))
+    errs = {}
+    for sc in (0.005, 0.3):
+        m, s, q, d = scene(20, lo=0.5 * sc, hi=1.5 * sc, seed=7)
+        a = project(m, s, q, d, g, None, "affine")
+        e = project(m, s, q, d, g, None, "exact")
+        errs[sc] = float((a - e).abs().max() / e.abs().max())
+        total = float((a.sum() - e.sum()).abs() / e.sum())
+        if sc < 0.01:
+            assert errs[sc] < 1e-3 and total < 1e-4, (errs[sc], total)
+        else:
+            assert 1e-4 < errs[sc] < 0.05 and total < 0.02, (errs[sc], total)
+    # parallel beam: the affine splat is exact
+    gp = geom("parallel", n_det=32, n_views=2)
+    m, s, q, d = scene(20, lo=0.1, hi=0.3, seed=8)
+    a = project(m, s, q, d, gp, None, "affine")
+    e = project(m, s, q, d, gp, None, "exact")
+    assert float((a - e).abs().max()) < 1e-10 * float(e.abs().max())
+
+
+# ----------------------------------------------------------------------------- gradients
+@pytest.mark.parametrize("beam", BEAMS)
+@pytest.mark.parametrize("mode", MODES)
+def test_gradcheck(beam, mode):
+    g = geom(beam, n_det=12, n_views=3)
+    m, s, q, d = scene(3, lo=0.12, hi=0.25, spread=0.7, seed=11)
+    args = [t.clone().requires_grad_() for t in (m, s, q, d)]
+    f = lambda *a: project(*a, g, [0, 2], mode)  # noqa: E731
+    assert torch.autograd.gradcheck(f, args, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_gradcheck_exact_straddling_source():
+    g = geom("cone", n_det=12, n_views=1, off=(0, 0))
+    src = torch.as_tensor(g.view_vectors()[0, :3])
+    m = src + torch.tensor([[0.1, 0.05, 0.0], [-0.3, 0.1, 0.1], [0.4, -0.2, 0.05]], dtype=torch.float64)
+    s = torch.tensor([[0.3, 0.2, 0.25], [0.2, 0.2, 0.2], [0.4, 0.3, 0.3]], dtype=torch.float64)
+    q = torch.randn(3, 4, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    d = torch.tensor([0.5, 1.0, 0.7], dtype=torch.float64)
+    args = [t.clone().requires_grad_() for t in (m, s, q, d)]
+    f = lambda *a: project(*a, g, [0], "exact")  # noqa: E731
+    assert torch.autograd.gradcheck(f, args, eps=1e-6, atol=1e-6, rtol=1e-4)
+    out = f(*args)
+    ref, _ = project_dense(m, precision(s, q), d, g, [0], "exact")
+    assert float(ref.max()) > 1.0
+    assert float((out - ref).abs().max()) < 1e-10 * float(ref.max())
+
+
+@pytest.mark.parametrize("beam", BEAMS)
+@pytest.mark.parametrize("mode", MODES)
+def test_partial_gradients_match_full(beam, mode):
+    """The NO_GRAD_* builds give the same numbers for what they do compute."""
+    g = geom(beam, n_det=16, n_views=2)
+    m, s, q, d = scene(6, seed=5)
+    mats = mats_for(mode, s, q)
+    proj = GaussianProjector()
+    gout = np.random.default_rng(0).random((2, 16, 16))
+    full = proj.backward(m.numpy(), mats.numpy(), d.numpy(), g, [0, 1], mode, gout)
+    for needs in ((True, False, False), (False, True, False), (False, False, True)):
+        part = proj.backward(m.numpy(), mats.numpy(), d.numpy(), g, [0, 1], mode, gout, needs)
+        for k in range(3):
+            if needs[k]:
+                np.testing.assert_array_equal(part[k], full[k])
+            else:
+                assert part[k] is None
+
+
+@pytest.mark.parametrize("beam", BEAMS)
+@pytest.mark.parametrize("mode", MODES)
+def test_float32_agrees_with_float64(beam, mode):
+    g = geom(beam, n_det=32, n_views=2)
+    m, s, q, d = scene(30, seed=9)
+    a64 = [t.clone().requires_grad_() for t in (m, s, q, d)]
+    a32 = [t.float().clone().requires_grad_() for t in (m, s, q, d)]
+    w = torch.rand(2, 32, 32, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    o64 = project(*a64, g, [0, 1], mode)
+    o32 = project(*a32, g, [0, 1], mode)
+    assert float((o32.double() - o64).abs().max()) < 1e-5 * float(o64.abs().max())
+    (o64 * w).sum().backward()
+    (o32 * w.float()).sum().backward()
+    for x32, x64 in zip(a32, a64):
+        scale = float(x64.grad.abs().max())
+        assert float((x32.grad.double() - x64.grad).abs().max()) < 2e-3 * scale
+
+
+# ----------------------------------------------------------------------------- determinism
+@pytest.mark.parametrize("mode", MODES)
+def test_bitwise_reproducible_with_crowded_tiles(mode):
+    g = geom("cone", n_det=64, n_views=2)
+    m, s, q, d = scene(3000, dtype=torch.float32, lo=0.01, hi=0.05, spread=0.3, seed=4)
+    args = [t.clone().requires_grad_() for t in (m, s, q, d)]
+    proj = GaussianProjector()
+    outs, grads = [], []
+    for _ in range(2):
+        for t in args:
+            t.grad = None
+        o = project(*args, g, [0, 1], mode, projector=proj)
+        (o * o).sum().backward()
+        outs.append(o.detach().clone())
+        grads.append([t.grad.clone() for t in args])
+    assert proj.last_pairs > 3000 * 2  # many Gaussians per tile, several tiles each
+    assert torch.equal(outs[0], outs[1])
+    for a, b in zip(*grads):
+        assert torch.equal(a, b)
+    # a fresh projector (fresh buffers) gives the same bits too
+    assert torch.equal(project(*[t.detach() for t in args], g, [0, 1], mode), outs[0])
+
+
+# ----------------------------------------------------------------------------- extremes
+def _finite_fwd_bwd(m, s, q, d, g, mode, views=None):
+    args = [t.clone().requires_grad_() for t in (m, s, q, d)]
+    o = project(*args, g, views, mode)
+    assert torch.isfinite(o).all()
+    o.sum().backward()
+    for t in args:
+        assert torch.isfinite(t.grad).all()
+    return o
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("dtype", (torch.float32, torch.float64))
+def test_extreme_scales_thinness_and_densities(mode, dtype):
+    g = geom("cone", n_det=48, n_views=2)
+    gen = torch.Generator().manual_seed(3)
+    n = 60
+    m = ((torch.rand(n, 3, generator=gen) - 0.5) * 1.5).to(dtype)
+    size = torch.logspace(math.log10(2e-4), math.log10(2.0), n).to(dtype)  # 1e-4 to 1 of the volume
+    s = size[:, None].repeat(1, 3)
+    s[0::3, 0] *= 1e-3  # pancakes
+    s[1::3, 1:] *= 1e-3  # needles
+    q = torch.randn(n, 4, generator=gen).to(dtype)
+    d = torch.logspace(-8, 4, n).to(dtype)[torch.randperm(n, generator=gen)]
+    o = _finite_fwd_bwd(m, s, q, d, g, mode)
+    assert float(o.max()) > 0
+
+
+@pytest.mark.parametrize("dtype", (torch.float32, torch.float64))
+def test_on_and_behind_source_plane(dtype):
+    """Cone beam: exact mode integrates Gaussians at/behind the source (t > 0 only), affine
+    culls them; neither gives NaN/Inf."""
+    g = geom("cone", n_det=24, n_views=1, off=(0, 0))
+    src = torch.as_tensor(g.view_vectors()[0, :3], dtype=dtype)
+    axis = -src / torch.linalg.vector_norm(src)
+    offsets = [0.0, -0.05, -0.5, 0.02, 0.3]  # along the axis: on, behind, far behind, in front
+    m = torch.stack([src + o * axis + torch.tensor([0, 0.01 * i, 0], dtype=dtype) for i, o in enumerate(offsets)])
+    s = torch.tensor([[0.1, 0.1, 0.1], [0.05, 0.2, 0.1], [0.05, 0.05, 0.05], [1e-4, 1e-4, 1e-4], [0.2, 0.2, 0.2]],
+                     dtype=dtype)
+    q = torch.tensor([[1.0, 0, 0, 0]] * 5, dtype=dtype)
+    d = torch.ones(5, dtype=dtype)
+    e = _finite_fwd_bwd(m, s, q, d, g, "exact")
+    a = _finite_fwd_bwd(m, s, q, d, g, "affine")
+    ref, near = project_dense(m.double(), precision(s, q).double(), d.double(), g, [0], "exact")
+    tol = 1e-5 if dtype == torch.float32 else 1e-10
+    assert float(ref.max()) > 1.0
+    assert float((e.double() - ref)[~near].abs().max()) < tol * float(ref.max())
+    assert float(a.abs().max()) < float(e.max())  # the near ones are culled in affine mode
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_grazing_ray_on_edge_on_pancake(mode):
+    """A pancake whose thin axis is perpendicular to the rays (seen edge-on) and one seen face-on."""
+    for beam in BEAMS:
+        g = geom(beam, n_det=64, n_views=1, off=(0, 0))
+        # view 0: rays along -x; pancake thin along y (edge-on) and thin along x (face-on)
+        m = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.2, 0.1]], dtype=torch.float32)
+        s = torch.tensor([[0.3, 3e-4, 0.3], [3e-4, 0.2, 0.2]], dtype=torch.float32)
+        q = torch.tensor([[1.0, 0, 0, 0], [1.0, 0, 0, 0]], dtype=torch.float32)
+        d = torch.tensor([1.0, 1.0], dtype=torch.float32)
+        o = _finite_fwd_bwd(m, s, q, d, g, mode, [0])
+        ref, near = project_dense(m.double(), (covariance if mode == "affine" else precision)(s.double(), q.double()),
+                                  d.double(), g, [0], mode)
+        assert float(o.max()) > 0
+        # edge-on: the line integral along the pancake's plane is long (about 2 sqrt(2 pi) 0.3 / scale)
+        assert float(ref.max()) > 0.5 * math.sqrt(2 * math.pi) * 0.3 / g.scale
+        rel = float((o.double() - ref)[~near].abs().max() / ref.max())
+        assert rel < 2e-3, rel  # a 1e-3-thin sheet in float32: bounded by the input's rounding
+
+
+@pytest.mark.parametrize("n_det", (1, 2048))
+def test_tiny_and_huge_detectors(n_det):
+    g = Geometry.default(n_views=2, mode="cone", n_detector=n_det, n_voxel=32)
+    m, s, q, d = scene(5, dtype=torch.float32, lo=0.05, hi=0.2, spread=0.3)
+    for mode in MODES:
+        o = _finite_fwd_bwd(m, s, q, d, g, mode, [1])
+        assert o.shape == (1, n_det, n_det)
+        assert float(o.max()) > 0
+        if n_det == 2048:
+            ref, near = project_dense(m.double()[:2], mats_for(mode, s, q).double()[:2], d.double()[:2],
+                                      Geometry.default(n_views=2, mode="cone", n_detector=n_det, n_voxel=32),
+                                      [1], mode, chunk=1 << 23)
+            part = project(m[:2], s[:2], q[:2], d[:2], g, [1], mode)
+            assert float((part.double() - ref)[~near].abs().max()) < 1e-5 * float(ref.max())
+
+
+def test_no_gaussians_and_zero_densities():
+    g = geom("cone", n_det=16, n_views=2)
+    for mode in MODES:
+        e = torch.zeros(0, 3, requires_grad=True)
+        o = project(e, torch.ones(0, 3), torch.ones(0, 4), torch.zeros(0), g, None, mode)
+        assert o.shape == (2, 16, 16) and float(o.abs().max()) == 0.0
+        m, s, q, d = scene(10, dtype=torch.float32)
+        o = _finite_fwd_bwd(m, s, q, torch.zeros(10), g, mode)
+        assert float(o.abs().max()) == 0.0
+
+
+def test_clear_errors():
+    g = geom("cone", n_det=8, n_views=2)
+    m, s, q, d = scene(4, dtype=torch.float32)
+    with pytest.raises(ProjectorError, match="mode"):
+        project(m, s, q, d, g, None, "bogus")
+    with pytest.raises(ProjectorError, match="scales"):
+        project(m, s[:3], q, d, g)
+    with pytest.raises(ProjectorError, match="NaN"):
+        project(m * float("nan"), s, q, d, g)
+    with pytest.raises(ProjectorError, match="positive"):
+        project(m, -s, q, d, g)
+    with pytest.raises(ProjectorError, match="dtype"):
+        project(m, s.double(), q, d, g)
+    with pytest.raises(ProjectorError, match="view"):
+        project(m, s, q, d, g, [5])
+    with pytest.raises(ProjectorError, match="zero"):
+        project(m, s, torch.zeros_like(q), d, g)

@@ -1,0 +1,202 @@
+"""The training loop on a tiny scene: convergence, bit-for-bit resume, Ctrl-C, densification cap,
+zero-weight terms, and the r2gs method end to end (OpenCL backend unless stated)."""
+import os
+import signal
+
+import numpy as np
+import pytest
+import torch
+
+from clgs import checkpoint as ckpt
+from clgs.geometry import Geometry
+from clgs.io.scan import Scan
+from clgs.r2gs import R2GSConfig, build_trainer, reconstruct_r2gs, value_scale_from
+from clgs.trainer import LossTerm
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """6 anisotropic Gaussians (attenuation ~0.01-0.02 /mm) in a 64 mm cube, 8 cone-beam views."""
+    from clgs.projector import project
+    from clgs.voxelizer import voxelize
+
+    geo = Geometry.default(n_views=8, n_voxel=16, n_detector=24, volume_mm=64.0)
+    rng = np.random.default_rng(0)
+    n = 6
+    m = torch.tensor(rng.uniform(-0.4, 0.4, (n, 3)), dtype=torch.float32)
+    s = torch.tensor(rng.uniform(0.1, 0.25, (n, 3)), dtype=torch.float32)
+    q = torch.tensor(rng.normal(size=(n, 4)), dtype=torch.float32)
+    d = torch.tensor(rng.uniform(0.01, 0.02, n), dtype=torch.float32)
+    with torch.no_grad():
+        proj = project(m, s, q, d, geo, list(range(geo.n_views))).numpy()
+        truth = voxelize(m, s, q, d, geo.volume_grid()).numpy()
+    return Scan(geo, proj, truth)
+
+
+SMALL = dict(n_gaussians=150, densify_start=10, densify_interval=10, densify_until=30, log_every=10,
+             checkpoint_every=0, max_gaussians=600)
+
+
+def _cfg(iterations, **kw):
+    return R2GSConfig(**{**SMALL, "iterations": iterations, **kw})
+
+
+def _trainer(scene, iterations, out=None, backend="cl", **kw):
+    return build_trainer(scene, _cfg(iterations, backend=backend, init="random", value_scale=60.0, **kw), out)
+
+
+def _same_state(a, b):
+    for sa, sb in zip(a.sets, b.sets):
+        for k in sa.params:
+            assert torch.equal(sa.params[k], sb.params[k]), k
+    oa, ob = a.optimizer.state_dict(), b.optimizer.state_dict()
+    for i in oa["state"]:
+        for k in ("exp_avg", "exp_avg_sq", "step"):
+            assert torch.equal(oa["state"][i][k], ob["state"][i][k]), (i, k)
+    assert torch.equal(a.generator.get_state(), b.generator.get_state())
+    assert a.view_stack == b.view_stack and a.iteration == b.iteration
+    strip = lambda rows: [{k: v for k, v in r.items() if k not in ("seconds", "wall")} for r in rows]  # noqa: E731
+    assert strip(a.log.rows) == strip(b.log.rows)
+
+
+def test_tiny_scene_converges(scene):
+    """From a random start the projection L1 falls by more than an order of magnitude."""
+    t = _trainer(scene, 300, lambda_tv=0.05, densify_until=200, densify_interval=50, densify_start=50)
+    l1 = [t.step()["l1"] for _ in range(300)]
+    assert np.isfinite(l1).all()
+    assert np.mean(l1[-20:]) < np.mean(l1[:5]) / 10, (np.mean(l1[:5]), np.mean(l1[-20:]))
+    assert t.n_gaussians > 150  # densification happened
+
+
+@pytest.mark.parametrize("backend", ["cl", "torch"])
+def test_resume_is_bit_for_bit(scene, tmp_path, backend):
+    """30 iterations straight == 17 + checkpoint + a fresh process-like resume to 30 (densifying at
+    10, 20, 30 and TV patches drawn from the generator on the way)."""
+    whole = _trainer(scene, 30, backend=backend).fit()
+    first = _trainer(scene, 30, tmp_path, backend=backend)  # the lr schedules span 30 iterations
+    first.iterations = 17  # stop early, as an interrupted run would
+    first.fit()
+    assert (tmp_path / "checkpoint.pt").is_file()
+    state = ckpt.load(tmp_path / "checkpoint.pt")
+    assert state["iteration"] == 17
+    resumed = _trainer(scene, 30, tmp_path, backend=backend)
+    resumed.load_state_dict(state)
+    resumed.fit()
+    _same_state(whole, resumed)
+    assert not torch.equal(first.sets[0].params["means"][:5], resumed.sets[0].params["means"][:5])
+
+
+def test_ctrl_c_from_a_hook_saves_a_checkpoint_that_resumes_exactly(scene, tmp_path):
+    class Interrupt:
+        def on_iteration(self, trainer):
+            if trainer.iteration == 7:
+                raise KeyboardInterrupt
+
+    t = _trainer(scene, 20, tmp_path)
+    t.hooks.append(Interrupt())
+    t.fit()
+    assert t.interrupted and t.iteration == 7
+    state = ckpt.load(tmp_path / "checkpoint.pt")
+    assert state["iteration"] == 7
+    assert state["log"] and ckpt.loads(state["log"])[-1]["iteration"] == 7  # the log so far travels too
+    resumed = _trainer(scene, 20, tmp_path)
+    resumed.load_state_dict(state)
+    resumed.fit()
+    _same_state(_trainer(scene, 20).fit(), resumed)
+
+
+def test_sigint_stops_at_the_end_of_the_iteration(scene, tmp_path):
+    class Press:
+        def after_backward(self, trainer, ctx):  # mid-iteration, as a real Ctrl-C would land
+            if trainer.iteration == 4:
+                os.kill(os.getpid(), signal.SIGINT)
+
+    t = _trainer(scene, 20, tmp_path)
+    t.hooks.append(Press())
+    before = signal.getsignal(signal.SIGINT)
+    t.fit()
+    assert signal.getsignal(signal.SIGINT) is before
+    assert t.interrupted and t.iteration == 5  # the interrupted iteration completed
+    assert ckpt.load(tmp_path / "checkpoint.pt")["iteration"] == 5
+
+
+def test_densification_respects_the_cap(scene):
+    t = _trainer(scene, 60, max_gaussians=200, densify_interval=5, densify_start=5, densify_until=60)
+    counts = []
+    t.hooks.append(type("Count", (), {"on_iteration": lambda self, tr: counts.append(tr.n_gaussians)})())
+    t.fit()
+    assert max(counts) == 200 and all(c <= 200 for c in counts)
+
+
+def test_zero_weight_terms_are_never_computed(scene):
+    def boom(ctx):
+        raise AssertionError("a zero-weight term was evaluated")
+
+    t = _trainer(scene, 5, lambda_tv=0.0)
+    calls = []
+    vox = t.backend.voxelize
+    t.backend.voxelize = lambda *a, **k: calls.append(1) or vox(*a, **k)
+    t.losses.append(LossTerm("boom", 0.0, boom))
+    t.evaluate = None
+    t.fit()
+    assert calls == []  # TV weight 0: no patch voxelised
+    assert "tv" not in t.log.rows[-1] and "boom" not in t.log.rows[-1]
+    t2 = _trainer(scene, 3, lambda_tv=0.05)
+    t2.evaluate = None
+    calls2 = []
+    vox2 = t2.backend.voxelize
+    t2.backend.voxelize = lambda *a, **k: calls2.append(a[-1].shape) or vox2(*a, **k)
+    t2.fit()
+    assert calls2 == [(16, 16, 16)] * 3  # a 32^3 patch, clipped to this 16^3 volume, per iteration
+
+
+def test_frozen_parameters_do_not_move(scene):
+    from clgs.gaussians import Schedule
+
+    t = _trainer(scene, 5)
+    s = t.sets[0]
+    s.schedules["means"] = Schedule(1e-2, start=3, frozen_before_start=True)
+    t._build_optimizer()
+    m0 = s.params["means"].detach().clone()
+    for _ in range(3):
+        t.step()
+    assert torch.equal(s.params["means"], m0)
+    assert s.params["means"] not in t.optimizer.state or not t.optimizer.state[s.params["means"]]
+    t.step()
+    assert not torch.equal(s.params["means"], m0)
+
+
+def test_normalisation_maps_the_fdk_percentile_to_one():
+    vol = np.zeros((10, 10, 10), np.float32)
+    vol[:5] = 0.02
+    vol[0, 0, 0] = 5.0  # a hot voxel is ignored by the 99.9th percentile
+    assert value_scale_from(vol) == pytest.approx(1 / 0.02, rel=0.01)
+    with pytest.raises(ValueError, match="percentile"):
+        value_scale_from(np.zeros((4, 4, 4)))
+
+
+def test_reconstruct_r2gs_writes_outputs_and_resumes(scene, tmp_path):
+    out = tmp_path / "run"
+    res = reconstruct_r2gs(scene, out, 20, progress=False, fdk=scene.truth, **{**SMALL, "n_gaussians": 100})
+    assert res.value_scale == pytest.approx(value_scale_from(scene.truth))
+    for f in ("volume.nii.gz", "gaussians.npz", "log.csv", "log.png", "checkpoint.pt", "config.json", "summary.txt"):
+        assert (out / f).is_file(), f
+    g = np.load(out / "gaussians.npz", allow_pickle=False)
+    assert g["means"].shape[0] == res.trainer.n_gaussians
+    assert np.allclose(g["densities"] * g["value_scale"], res.trainer.sets[0].to_numpy()["densities"], rtol=1e-5)
+    # output in the scan's units: same order of magnitude as the truth
+    assert 0.3 < res.volume.max() / scene.truth.max() < 3
+    from clgs.io.volume import load_volume
+    assert np.allclose(load_volume(out / "volume.nii.gz").volume, res.volume, rtol=1e-6, atol=1e-9)
+    from clgs.training_log import TrainingLog
+    log = TrainingLog.read_csv(out / "log.csv")
+    assert [r["iteration"] for r in log.rows] == [0, 10, 20]
+    assert {"psnr3d", "ssim3d", "proj_psnr", "l1", "dssim", "tv", "n_gaussians", "seconds"} <= set(log.columns)
+    assert log.rows[-1]["proj_psnr"] > log.rows[0]["proj_psnr"]
+    more = reconstruct_r2gs(scene, out, 30, resume=True, progress=False, fdk=scene.truth)
+    assert more.trainer.iteration == 30
+    assert [r["iteration"] for r in more.log.rows] == [0, 10, 20, 30]
+    with pytest.raises(ValueError, match="drop"):
+        reconstruct_r2gs(scene, out, 40, resume=True, progress=False, lambda_tv=0.1)
+    with pytest.raises(ckpt.CheckpointError, match="no checkpoint"):
+        reconstruct_r2gs(scene, tmp_path / "nothing", 10, resume=True)
