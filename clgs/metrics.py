@@ -3,8 +3,10 @@
 Normalisation (3-D metrics): both volumes are mapped with the *truth's* range,
 ``v' = (v - min(truth)) / (max(truth) - min(truth))``, so the truth spans exactly [0, 1] and the
 prediction is not clipped (over- and undershoot count as error). R2-Gaussian's datasets are
-already normalised to [0, 1] with a zero background, so on them this equals their raw-value
-``metric_vol`` with ``pixel_max = 1`` (``r2_gaussian/utils/image_utils.py``).
+normalised to [0, 1] (``data_generator/synthetic_dataset/process_raw_data.py``), so on them this
+equals their raw-value ``metric_vol`` with ``pixel_max = 1`` (``r2_gaussian/utils/image_utils.py``)
+up to resampling leaving the maximum a little under 1; ``data_range=1`` reproduces their raw-value
+figures exactly (values divided by ``data_range``, no shift).
 
 * ``psnr3d = 10 log10(1 / MSE)`` over all voxels (inf for identical volumes).
 * ``ssim3d``: for each axis (z, y, x) the 2-D SSIM of every slice along it, averaged over the
@@ -56,8 +58,13 @@ def _pair(pred, truth, ndim=3):
     return p, t
 
 
-def _normalised(pred, truth):
+def _normalised(pred, truth, data_range=None):
     p, t = _pair(pred, truth)
+    if data_range is not None:
+        r = float(data_range)
+        if not (math.isfinite(r) and r > 0):
+            raise MetricError(f"data_range must be a positive number, got {data_range!r}")
+        return p / r, t / r
     lo, hi = float(t.min()), float(t.max())
     if not hi > lo:
         raise MetricError(f"the truth is constant ({lo}); metrics normalised by its range are undefined")
@@ -78,9 +85,12 @@ def _psnr_from_mse(mse: float, peak: float = 1.0) -> float:
     return math.inf if mse <= 0 else float(10.0 * math.log10(peak * peak / mse))
 
 
-def psnr3d(pred, truth, mask=None) -> float:
-    """3-D PSNR (dB) after normalising both by the truth's range; inf when identical."""
-    p, t = _normalised(pred, truth)
+def psnr3d(pred, truth, mask=None, data_range=None) -> float:
+    """3-D PSNR (dB) after normalising both by the truth's range; inf when identical.
+
+    ``data_range``: divide by this number instead (no shift); ``data_range=1`` reproduces
+    R2-Gaussian's raw-value ``metric_vol`` on any volume."""
+    p, t = _normalised(pred, truth, data_range)
     d2 = (p - t) ** 2
     if mask is not None:
         d2 = d2[_mask(mask, t.shape)]
@@ -140,16 +150,17 @@ def _slabs(n_slices: int, slice_size: int, budget: int = 4_000_000):
     return [(s, min(s + step, n_slices)) for s in range(0, n_slices, step)]
 
 
-def ssim3d(pred, truth, mask=None, return_axes: bool = False, implementation: str = "r2gaussian"):
+def ssim3d(pred, truth, mask=None, return_axes: bool = False, implementation: str = "r2gaussian",
+           data_range=None):
     """3-D SSIM: mean over the 3 axes of the mean 2-D SSIM of the slices (see the module doc).
 
     ``return_axes=True`` returns ``(ssim, [ssim_z, ssim_y, ssim_x])``. With a ``mask`` the SSIM
     maps are averaged over the mask's voxels instead of over slices. Slices are processed in
-    slabs, so memory stays bounded for large volumes.
+    slabs, so memory stays bounded for large volumes. ``data_range`` as in :func:`psnr3d`.
     """
     if implementation not in ("r2gaussian", "skimage"):
         raise MetricError(f"implementation must be 'r2gaussian' or 'skimage', got {implementation!r}")
-    p, t = _normalised(pred, truth)
+    p, t = _normalised(pred, truth, data_range)
     m = None if mask is None else _mask(mask, t.shape)
     axes = []
     for axis in range(3):

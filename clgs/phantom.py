@@ -567,13 +567,15 @@ def limb_distance(label, grid, soft: SoftTissue) -> np.ndarray:
     return d.astype(np.float32)
 
 
-def density_volume(label, sdf, grid, params: DensityParams = DensityParams(), seed: int = 0, axis=None):
+def density_volume(label, sdf, grid, params: DensityParams = DensityParams(), seed: int = 0, axis=None,
+                   return_fractions: bool = False):
     """CT-like attenuation volume (float32 1/mm, (Z, Y, X)) and dominant-tissue map (int8, codes
     AIR..CORTICAL) of a bone given its label and signed distance on ``grid``.
 
     ``axis``: optional (centre, unit direction, half-length) of the long axis along which the
     cortex thickness and the canal vary (default: principal axis of the label). Deterministic:
-    the same inputs and ``seed`` give the same bits."""
+    the same inputs and ``seed`` give the same bits. With ``return_fractions`` also the
+    fraction of every voxel held by each tissue, (7, Z, Y, X) float32 in code order."""
     grid = _as_grid(grid)
     label = np.asarray(label, bool)
     sdf = np.asarray(sdf, np.float32)
@@ -618,6 +620,8 @@ def density_volume(label, sdf, grid, params: DensityParams = DensityParams(), se
     fractions = np.stack([(1 - f_limb) * outside, (f_limb - f_fat) * outside, (f_fat - f_muscle) * outside,
                           f_muscle * outside, w_canal, w_trab, w_cort])
     tissue = np.argmax(fractions, axis=0).astype(np.int8)
+    if return_fractions:
+        return vol.astype(np.float32), tissue, fractions.astype(np.float32)
     return vol.astype(np.float32), tissue
 
 

@@ -373,6 +373,9 @@ def project(means, scales, quats, densities, geometry, views=None, mode: str = "
         raise ProjectorError(
             f"for N={n} Gaussians expected scales (N,3), quats (N,4), densities (N,); got "
             f"{tuple(scales.shape)}, {tuple(quats.shape)}, {tuple(densities.shape)}")
+    for name, t in (("scales", scales), ("quats", quats), ("densities", densities)):
+        if t.dtype != means.dtype:
+            raise ProjectorError(f"all inputs must share one dtype: means is {means.dtype}, {name} is {t.dtype}")
     if n:
         with torch.no_grad():
             for name, t in (("means", means), ("scales", scales), ("quats", quats), ("densities", densities)):

@@ -262,9 +262,11 @@ class Trainer:
             progress.close()
         if self._stop:
             self.interrupted = True
+        # checkpoint first: the closing row below is off the logging schedule, and a resumed run
+        # must log exactly what an uninterrupted one does
+        self.save_checkpoint(t_wall)
         if self.log_every > 0 and self._count > 0 and (not self.log.rows or self.log.rows[-1]["iteration"] != self.iteration):
             self._log_row(t_wall, {})
-        self.save_checkpoint(t_wall)
         return self
 
     def _on_sigint(self, signum, frame):

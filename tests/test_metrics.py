@@ -63,6 +63,9 @@ def test_psnr_known_mse_and_normalisation():
     assert metrics.psnr3d(pred + 3.0 - 3.0, truth + 5.0 - 5.0) == pytest.approx(20.0)
     # shifting both by a constant does not change it (min of the truth is subtracted)
     assert metrics.psnr3d(pred + 7, truth + 7) == pytest.approx(20.0, abs=1e-9)
+    # raw values (R2-Gaussian's pixel_max = 1): error 0.2 -> 10 log10(1 / 0.04)
+    assert metrics.psnr3d(pred, truth, data_range=1.0) == pytest.approx(10 * math.log10(1 / 0.04))
+    assert metrics.ssim3d(pred, truth, data_range=2.0) == pytest.approx(metrics.ssim3d(pred, truth), abs=1e-12)
     # masked: error 0.4 (0.2 of the range) inside the mask only -> 10 log10(1/0.04)
     p2 = truth.copy()
     mask = truth > 0

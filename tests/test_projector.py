@@ -58,18 +58,18 @@ def test_forward_matches_dense_reference(beam, mode):
 
 @pytest.mark.parametrize("beam", BEAMS)
 def test_exact_matches_quadrature(beam):
-    """Closed form against trapezoid integration along every ray (no cut in the quadrature:
-    compared where all Gaussians are well inside or well outside their 3-sigma cut)."""
+    """Closed form against trapezoid integration along every ray, Gaussian by Gaussian, with
+    the 3-sigma cut applied from an independent float64 distance (pixels within 0.3 of the cut
+    skipped)."""
     g = geom(beam, n_det=24, n_views=1)
-    m, s, q, d = scene(3, lo=0.06, hi=0.15, spread=0.8, seed=3)
+    m, s, q, d = scene(3, lo=0.1, hi=0.25, spread=0.8, seed=3)
     if beam == "cone":  # one Gaussian straddling the source: rays only count for t > 0
         src = torch.as_tensor(g.view_vectors()[0, :3])
         m[0] = src + torch.tensor([-0.05, 0.02, 0.0], dtype=torch.float64)
         s[0] = torch.tensor([0.4, 0.3, 0.35], dtype=torch.float64)
     P = precision(s, q)
     out = project_packed(m, P, d, g, [0], "exact")[0].numpy()
-    quad = exact_quadrature(m.numpy(), P, d.numpy(), g, 0, n_steps=40001)
-    # per-pixel Mahalanobis distance of each ray to each centre, to skip the cut's edge
+    quad = exact_quadrature(m.numpy(), P, d.numpy(), g, 0)
     o, r = g.rays(0)
     Pm = unpack_sym(P).numpy()
     qs = []
@@ -80,11 +80,10 @@ def test_exact_matches_quadrature(beam):
         w = e - (b / a)[..., None] * r
         qs.append(np.einsum("vui,ij,vuj->vu", w, Pm[i], w))
     qs = np.stack(qs)
-    inside = (qs < 8.0).all(0)
-    assert inside.sum() > 20
-    np.testing.assert_allclose(out[inside], quad[inside], rtol=2e-6, atol=1e-9 * quad.max())
-    outside = (qs > 9.5).all(0)
-    assert np.all(out[outside] == 0.0)
+    clear = (np.abs(qs - 9.0) > 0.3).all(0)
+    expect = (quad * (qs <= 9.0)).sum(0)
+    assert (expect[clear] > 0).sum() > 50
+    np.testing.assert_allclose(out[clear], expect[clear], rtol=1e-6, atol=1e-9 * expect.max())
 
 
 def test_affine_vs_exact_error_is_small_for_small_gaussians_and_bounded_for_large():
@@ -100,7 +99,7 @@ def test_affine_vs_exact_error_is_small_for_small_gaussians_and_bounded_for_larg
         errs[sc] = float((a - e).abs().max() / e.abs().max())
         total = float((a.sum() - e.sum()).abs() / e.sum())
         if sc < 0.01:
-            assert errs[sc] < 1e-3 and total < 1e-4, (errs[sc], total)
+            assert errs[sc] < 1e-3 and total < 5e-4, (errs[sc], total)
         else:
             assert 1e-4 < errs[sc] < 0.05 and total < 0.02, (errs[sc], total)
     # parallel beam: the affine splat is exact
@@ -252,7 +251,7 @@ def test_on_and_behind_source_plane(dtype):
 def test_grazing_ray_on_edge_on_pancake(mode):
     """A pancake whose thin axis is perpendicular to the rays (seen edge-on) and one seen face-on."""
     for beam in BEAMS:
-        g = geom(beam, n_det=64, n_views=1, off=(0, 0))
+        g = geom(beam, n_det=65, n_views=1, off=(0, 0))  # odd: the central ray hits pixel 32
         # view 0: rays along -x; pancake thin along y (edge-on) and thin along x (face-on)
         m = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.2, 0.1]], dtype=torch.float32)
         s = torch.tensor([[0.3, 3e-4, 0.3], [3e-4, 0.2, 0.2]], dtype=torch.float32)

@@ -166,7 +166,7 @@ class CTProjector:
         if hit is None:
             rec = self._views_all if idx is None else self._views_all[idx]
             arr = np.ascontiguousarray(rec, dtype=dtype)
-            if len(self._view_cache) > 64:
+            if len(self._view_cache) > 4096:
                 self._view_cache.clear()
             hit = self._view_cache[key] = (arr, self._to_device("views%d" % len(self._view_cache), arr, fresh=True))
         return hit

@@ -1,0 +1,192 @@
+"""``clgs bench kernels``: the Gaussian projector (and the voxelizer) against the same math in
+torch, in one run.
+
+Scene: N Gaussians (10k, 50k), centres uniform in [-0.7, 0.7]^3, standard deviations
+log-uniform in 1-4 x 0.0077 scene units (3-sigma radius 2-8 pixels on the 256^2 detector of
+``Geometry.default``, 1-4 on 128^2), random rotations, densities uniform in [0, 0.1]; float32.
+For each detector (128^2, 256^2), beam (cone, parallel) and mode (affine, exact):
+
+* ``fwd ms`` / ``bwd ms``: medians over ``--repeat`` single-view calls (a different view each
+  time) of ``GaussianProjector.forward`` (set-up, on-device binning, render, read-back) and
+  ``.backward`` (all three gradients), after a warm-up (compilation excluded).
+* ``Geval/s``: useful Gaussian-pixel evaluations per second, useful = pixels whose ray passes
+  within 3 sigma of a Gaussian (counted in torch from the affine 2D covariances, the same
+  count used for both modes; the two footprints differ by well under 1%).
+* ``x torch``: speed-up of forward + backward over ``clgs.reference.projection.project_patches``
+  (each Gaussian on a square patch, ``index_add_``, autograd backward) timed in the same run on
+  torch's CPU threads; with more than ``--torch-n`` Gaussians torch runs on the first
+  ``--torch-n`` and its time is scaled by N / torch-n (its cost is linear in N).
+* ``exp ceil``: the fraction of the device's own exp throughput (probe kernel: ``fast_exp8`` in
+  a dependent loop, measured in the same run) reached by the useful evaluation rate.
+* For exact rows: ``err vs exact`` is max |affine - exact| / max exact of the same view, and
+  ``exact/affine`` the ratio of their fwd+bwd times.
+
+The machine may be shared: compare ratios within a run, not across runs.
+"""
+from __future__ import annotations
+
+import time
+
+import click
+
+
+def _median(xs):
+    xs = sorted(xs)
+    return xs[len(xs) // 2]
+
+
+def _scene(n, seed=0):
+    import numpy as np
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    means = (torch.rand(n, 3, generator=g) - 0.5) * 1.4
+    scales = 0.0077 * torch.exp(torch.rand(n, 3, generator=g) * float(np.log(4.0)))
+    quats = torch.randn(n, 4, generator=g)
+    rho = 0.1 * torch.rand(n, generator=g)
+    return means, scales, quats, rho
+
+
+def _useful(means, cov, geometry, view):
+    """Pixels with q <= 9 summed over Gaussians (affine 2D covariance, in patches)."""
+    import math
+
+    import torch
+
+    from ..reference.projection import _affine_params
+
+    nv, nu = geometry.nDetector
+    total = 0
+    with torch.no_grad():
+        for s in range(0, means.shape[0], 5000):
+            c, S2, _, vis = _affine_params(means[s:s + 5000].double(), cov[s:s + 5000].double(), geometry, view)
+            det = S2[:, 0, 0] * S2[:, 1, 1] - S2[:, 0, 1] ** 2
+            k0, k1, k2 = S2[:, 1, 1] / det, -S2[:, 0, 1] / det, S2[:, 0, 0] / det
+            R = int(math.ceil(float((3 * torch.sqrt(torch.maximum(S2[:, 0, 0], S2[:, 1, 1]))).max()))) + 1
+            off = torch.arange(-R, R + 1, dtype=torch.float64)
+            base = torch.round(c)
+            pu = base[:, 0, None, None] + off[None, None, :]
+            pv = base[:, 1, None, None] + off[None, :, None]
+            du, dv = pu - c[:, 0, None, None], pv - c[:, 1, None, None]
+            q = k0[:, None, None] * du * du + 2 * k1[:, None, None] * du * dv + k2[:, None, None] * dv * dv
+            ok = (q <= 9) & (pu >= 0) & (pu <= nu - 1) & (pv >= 0) & (pv <= nv - 1) & vis[:, None, None]
+            total += int(ok.sum())
+    return total
+
+
+def _exp_ceiling(projector, repeat):
+    import numpy as np
+    import pyopencl as cl
+
+    prog = projector.program("cone", "affine", "float")
+    n, G = 4000, 8192
+    buf = cl.Buffer(projector.ctx, cl.mem_flags.READ_WRITE, size=G * 4)
+    k = prog.kernel("exp_probe")
+    k(projector.queue, (G,), (64,), np.int32(n), buf)
+    projector.queue.finish()
+    ts = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        k(projector.queue, (G,), (64,), np.int32(n), buf)
+        projector.queue.finish()
+        ts.append(time.perf_counter() - t)
+    return G * n * 8 / _median(ts)
+
+
+def _time_kernels(projector, m, mats, rho, geometry, mode, repeat):
+    import numpy as np
+
+    mn, mt, rn = m.numpy(), mats.numpy(), rho.numpy()
+    out = projector.forward(mn, mt, rn, geometry, [0], mode)
+    gout = np.random.default_rng(0).random(out.shape, dtype=np.float32)
+    projector.backward(mn, mt, rn, geometry, [0], mode, gout)
+    tf, tb = [], []
+    for r in range(repeat):
+        view = r % geometry.n_views
+        t = time.perf_counter()
+        projector.forward(mn, mt, rn, geometry, [view], mode)
+        tf.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        projector.backward(mn, mt, rn, geometry, [view], mode, gout)
+        tb.append(time.perf_counter() - t)
+    return _median(tf) * 1e3, _median(tb) * 1e3, out[0]
+
+
+def _time_torch(m, mats, rho, geometry, mode, repeat):
+    import torch
+
+    from ..reference.projection import project_patches
+
+    m = m.clone().requires_grad_()
+    mats = mats.clone().requires_grad_()
+    rho = rho.clone().requires_grad_()
+    tf, tt = [], []
+    for r in range(max(1, repeat)):
+        t = time.perf_counter()
+        img = project_patches(m, mats, rho, geometry, r % geometry.n_views, mode)
+        tf.append(time.perf_counter() - t)
+        img.backward(torch.ones_like(img))
+        tt.append(time.perf_counter() - t)
+    return _median(tf) * 1e3, _median(tt) * 1e3
+
+
+@click.command()
+@click.option("--quick", is_flag=True, help="10k Gaussians only, fewer repeats")
+@click.option("--repeat", default=7, show_default=True, help="timed repeats per case (median)")
+@click.option("--torch-n", default=5000, show_default=True, help="largest N timed in torch (scaled above)")
+def main(quick, repeat, torch_n):
+    """Gaussian projector: ms, evaluations/s, fraction of the exp ceiling, speed-up over torch."""
+    import torch
+
+    from ..gaussian_math import covariance, precision
+    from ..geometry import Geometry
+    from ..projector import GaussianProjector
+
+    torch.manual_seed(0)
+    if quick:
+        repeat = min(repeat, 3)
+        torch_n = min(torch_n, 2000)
+    proj = GaussianProjector()
+    ceiling = _exp_ceiling(proj, max(3, repeat))
+    click.echo(f"device exp ceiling (fast_exp8 probe): {ceiling / 1e9:.2f} G exp/s")
+    header = (f"{'N':>6} {'det':>5} {'beam':>8} {'mode':>6} | {'fwd ms':>7} {'bwd ms':>7} | "
+              f"{'fwd Geval/s':>11} {'bwd Geval/s':>11} {'exp ceil':>8} | {'torch ms':>9} {'x torch':>7} | "
+              f"{'err vs exact':>12} {'exact/affine':>12}")
+    click.echo(header)
+    click.echo("-" * len(header))
+    sizes = [10_000] if quick else [10_000, 50_000]
+    for n in sizes:
+        m, s, q, rho = _scene(n)
+        cov, prec = covariance(s, q).detach(), precision(s, q).detach()
+        for det in (128, 256):
+            for beam in ("cone", "parallel"):
+                g = Geometry.default(n_views=16, mode=beam, n_detector=det, n_voxel=128)
+                useful = _useful(m, cov, g, 0)
+                res = {}
+                for mode in ("affine", "exact"):
+                    mats = cov if mode == "affine" else prec
+                    fwd, bwd, img = _time_kernels(proj, m, mats, rho, g, mode, repeat)
+                    k = min(n, torch_n)
+                    t_f, t_fb = _time_torch(m[:k], mats[:k], rho[:k], g, mode, max(1, repeat // 3))
+                    t_fb *= n / k
+                    res[mode] = (fwd, bwd, img)
+                    line = (f"{n:>6} {det:>4}^2 {beam:>8} {mode:>6} | {fwd:7.2f} {bwd:7.2f} | "
+                            f"{useful / fwd / 1e6:11.2f} {useful / bwd / 1e6:11.2f} "
+                            f"{useful / (0.5 * (fwd + bwd)) * 1e3 / ceiling:8.0%} | "
+                            f"{t_fb:9.1f} {t_fb / (fwd + bwd):7.1f} |")
+                    if mode == "exact":
+                        a, e = res["affine"][2], img
+                        err = float(abs(a - e).max() / max(abs(e).max(), 1e-30))
+                        ratio = (fwd + bwd) / (res["affine"][0] + res["affine"][1])
+                        line += f" {err:12.2e} {ratio:12.2f}"
+                    click.echo(line)
+    scaled = " (torch on the first %d Gaussians, time scaled by N/%d)" % (torch_n, torch_n)
+    click.echo(f"useful evaluations: pixels within 3 sigma, summed over Gaussians; torch = fwd + autograd bwd{scaled}")
+    try:
+        from . import voxelizer_rows
+    except ImportError:
+        return
+    click.echo("")
+    click.echo("voxelizer:")
+    for row in voxelizer_rows.rows(quick):
+        click.echo("  " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()))
