@@ -7,7 +7,7 @@
  * (i-1, j)-(i+1, j), whose points lie within one voxel of the centre: the candidate detector
  * columns are those within H columns of the centre's projection (H, per view, bounds the
  * detector footprint of one voxel at the nearest depth; host-computed), and the candidate rows
- * those within the projection of z in (k0 - 1, k0 + 8) (with a margin for the depth change across
+ * those within the projection of z in (k0 - 1, k0 + ZB) (with a margin for the depth change across
  * the segments). For each candidate column the ray set-up is the forward kernel's own
  * (ct_column, tabulated once per view and column by ct_columns), so weights agree with the
  * forward to rounding; the exact weights are zero for candidates that do not touch.
@@ -15,9 +15,11 @@
  * The host has already multiplied each pixel by its ray's length scale |D| in mm (the forward
  * kernel applies the same factor per ray), so the inner loop has no square root.
  *
- * One work-item: a column (i, j) and eight consecutive z voxels as a float8 (rows v of one
- * column u meet those eight voxels with weights that differ only through z).
- * Global size (nZp / 8, nY, nX). Output layout: out[(i * nY + j) * nZp + k], z fastest.
+ * One work-item: a column (i, j) and ZB = 32 consecutive z voxels, so that the per-view and
+ * per-column set-up is shared by many voxels; they are four float8 accumulators. Each row v of a
+ * candidate column meets the column at height z and adds to the one or two blocks of eight that
+ * hold the voxels around z (hat weights on the block's eight lanes).
+ * Global size (nZp / ZB, nY, nX). Output layout: out[(i * nY + j) * nZp + k], z fastest.
  *
  * View record entries 12-15 (host): H (columns), delta (relative depth change across a voxel),
  * 1 / (z step per row), cone: cross(b0, bu) / parallel: 1 / cross(au, b0).
@@ -38,16 +40,28 @@ __kernel void ct_columns(__global const real *views, __global real *table, int n
     row[6] = 0; row[7] = 0;
 }
 
+#define ZB 32  /* z voxels per work-item: four float8 blocks */
+
+/* hat weights max(0, 1 - |z - k|) of the eight voxels k = 0..7 of a block */
+inline real8 ct_hat(real z, real8 k8)
+{
+    real8 d = (real8)z - k8;
+    d = d < (real8)0 ? -d : d;
+    d = (real8)1 - d;
+    return d > (real8)0 ? d : (real8)0;
+}
+#define HAT(z) ct_hat(z, k8)
+
 __kernel void ct_backward(__global const real *proj, __global const real *views, __global const real *table,
                           __global real *out, int n_views, int nX, int nY, int nZ, int nZp, int nU, int nV,
                           int nVp)
 {
     const int g = get_global_id(0), j = get_global_id(1), i = get_global_id(2);
-    const int k0 = g * 8;
-    const real8 k8 = (real8)(0, 1, 2, 3, 4, 5, 6, 7) + (real)k0;
+    const int k0 = g * ZB;
     const real fi = (real)i, fj = (real)j;
-    const real zlo = (real)(k0 - 1), zhi = (real)(k0 + 8);
-    real8 acc = (real8)0;
+    const real zlo = (real)(k0 - 1), zhi = (real)(k0 + ZB);
+    const real8 k8 = (real8)(0, 1, 2, 3, 4, 5, 6, 7);
+    real8 acc0 = (real8)0, acc1 = (real8)0, acc2 = (real8)0, acc3 = (real8)0;
 
     for (int n = 0; n < n_views; ++n) {
         __global const real *view = views + n * VIEW_STRIDE;
@@ -90,18 +104,25 @@ __kernel void ct_backward(__global const real *proj, __global const real *views,
             d = d < 0 ? -d : d;
             real wo = (real)1 - d;
             if (!(wo > 0)) continue;
-            real A = view[8] + t * view[10], B = view[9] + t * view[11];
+            /* local height of row v: lz = z - k0 = A + v B */
+            real A = view[8] + t * view[10] - (real)k0, B = view[9] + t * view[11];
             real wcol = wo * c.s5;
             __global const real *pcol = pview + (size_t)u * nVp;
             for (int v = vlo; v <= vhi; ++v) {
-                real z = A + (real)v * B;
-                real8 dz = (real8)z - k8;
-                dz = dz < (real8)0 ? -dz : dz;
-                real8 w = (real8)1 - dz;
-                w = w > (real8)0 ? w : (real8)0;
-                acc += (pcol[v] * wcol) * w;
+                real lz = A + (real)v * B;
+                if (!(lz > (real)-1 && lz < (real)ZB)) continue;
+                real p = pcol[v] * wcol;
+                /* the row touches voxels floor(lz) and floor(lz) + 1: one block of 8, or two */
+                if (lz < (real)8) acc0 += p * HAT(lz);
+                if (lz > (real)7 && lz < (real)16) acc1 += p * HAT(lz - (real)8);
+                if (lz > (real)15 && lz < (real)24) acc2 += p * HAT(lz - (real)16);
+                if (lz > (real)23) acc3 += p * HAT(lz - (real)24);
             }
         }
     }
-    vstore8(acc, 0, out + ((size_t)i * nY + j) * nZp + k0);
+    __global real *dst = out + ((size_t)i * nY + j) * nZp + k0;
+    vstore8(acc0, 0, dst);
+    vstore8(acc1, 1, dst);
+    vstore8(acc2, 2, dst);
+    vstore8(acc3, 3, dst);
 }

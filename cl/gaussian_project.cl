@@ -21,6 +21,18 @@ inline void load_gauss(int g, __global const real *means, __global const real *m
     for (int k = 0; k < 6; k++) S[k] = mats[6 * g + k];
 }
 
+
+/* Can Q(du) = A du^2 + 2 B du + C (A > 0) be <= 0 on the 8 lanes [lo, lo + 7]? Checked at the
+ * lane interval's point nearest the minimum; used to skip rows a footprint's box holds but its
+ * ellipse misses (the C passed in carries a small margin, so no pixel with q <= 9 is skipped). */
+inline int row_hits(real A, real iA, real B, real C, real lo)
+{
+    real m = -B * iA;
+    m = m < lo ? lo : (m > lo + RC(7.0) ? lo + RC(7.0) : m);
+    return (A * m + RC(2.0) * B) * m + C <= RC(0.0);
+}
+#define QTEST 9.01
+
 /* ------------------------------------------------------------------ per (Gaussian, view) set-up */
 __kernel void preprocess(const int N, const int U, const int V, const real scale,
                          __global const real *means, __global const real *mats, __global const real *rho,
@@ -87,8 +99,13 @@ __kernel void render(const int N, const int U, const int V, const int ntx, const
         }
         const real a1 = R[7], a2 = R[8], a3 = R[9], a4 = R[10], a5 = R[11];
         const real d0 = R[12], d1 = R[13], d2 = R[14], d3 = R[15], d4 = R[16], d5 = R[17];
+        const real M00 = R[4] - RC(QTEST) * a3, iM00 = RC(1.0) / M00, M01 = R[5] - RC(QTEST) * a4;
+        const real M11 = R[6] - RC(QTEST) * a5;
+        const real lo = (real)u0 - uc;
         for (int r = r0; r <= r1; r++) {
             const real dv = (real)(v0 + r) - vc;
+            if (!row_hits(M00, iM00, M01 * dv - RC(QTEST) * a1, (M11 * dv - RC(2.0 * QTEST) * a2) * dv - RC(QTEST), lo))
+                continue;
             const real nB = nk1 * dv, nC = nk2 * dv * dv;
             const real aB = RC(2.0) * (a1 + a4 * dv), aC = RC(1.0) + RC(2.0) * a2 * dv + a5 * dv * dv;
             const real dB = RC(2.0) * (d1 + d4 * dv), dC = d0 + RC(2.0) * d2 * dv + d5 * dv * dv;
@@ -101,8 +118,11 @@ __kernel void render(const int N, const int U, const int V, const int ntx, const
             acc[r] += select((real8)(RC(0.0)), val, x >= RC(-0.5 * QCUT));
         }
 #else
+        const real ik0 = RC(1.0) / R[4];
+        const real lo = (real)u0 - uc;
         for (int r = r0; r <= r1; r++) {
             const real dv = (real)(v0 + r) - vc;
+            if (!row_hits(R[4], ik0, R[5] * dv, R[6] * dv * dv - RC(QTEST), lo)) continue;
             const real nB = nk1 * dv, nC = nk2 * dv * dv;
             const real8 x = (nk0 * du + nB) * du + nC; /* -q/2 */
             acc[r] += select((real8)(RC(0.0)), amp * fast_exp8(x), x >= RC(-0.5 * QCUT));
@@ -227,8 +247,11 @@ __kernel void backward(const int N, const int nviews, const int U, const int V, 
             real8 Sw0 = zero, Sw1 = zero, Sw2 = zero, S0 = zero;
             real8 W0 = zero, W1 = zero, W2 = zero, W3 = zero, W4 = zero, W5 = zero;
             real8 Q0 = zero, Qu = zero, Qv = zero, Quu = zero, Quv = zero, Qvv = zero;
+            const real M00 = sp.k0 - RC(QTEST) * sp.a3, iM00 = RC(1.0) / M00, M01 = sp.k1 - RC(QTEST) * sp.a4;
+            const real M11 = sp.k2 - RC(QTEST) * sp.a5;
             for (int v = b.z; v <= b.w; v++) {
                 const real dv = (real)v - sp.vc;
+                const real rB = M01 * dv - RC(QTEST) * sp.a1, rC = (M11 * dv - RC(2.0 * QTEST) * sp.a2) * dv - RC(QTEST);
                 const real nB = nk1 * dv, nC = nk2 * dv * dv;
                 const real aB = RC(2.0) * (sp.a1 + sp.a4 * dv), aC = RC(1.0) + RC(2.0) * sp.a2 * dv + sp.a5 * dv * dv;
                 const real dB = RC(2.0) * (sp.d1 + sp.d4 * dv), dC = sp.d0 + RC(2.0) * sp.d2 * dv + sp.d5 * dv * dv;
@@ -236,6 +259,7 @@ __kernel void backward(const int N, const int nviews, const int U, const int V, 
                 const real beC = RC(1.0) + sp.a2 * dv;
                 const real3 gvc = dv * gv;
                 for (int s = s0; s <= b.y; s += 8) {
+                    if (!row_hits(M00, iM00, rB, rC, (real)s - sp.uc)) continue;
                     const real8 gg = load_grad(gi, U, v, s, b.x, b.y);
                     const real8 du = (real)s + lane - sp.uc;
                     const real8 arg = (nk0 * du + nB) * du + nC;
@@ -281,10 +305,13 @@ __kernel void backward(const int N, const int nviews, const int U, const int V, 
         /* conic splat (affine, or exact parallel): 6 moments of g E over the box */
         const real nk0 = RC(-0.5) * sp.k0, nk1 = -sp.k1, nk2 = RC(-0.5) * sp.k2;
         real8 S0 = zero, Su = zero, Sv = zero, Suu = zero, Suv = zero, Svv = zero;
+        const real ik0 = RC(1.0) / sp.k0;
         for (int v = b.z; v <= b.w; v++) {
             const real dv = (real)v - sp.vc;
             const real nB = nk1 * dv, nC = nk2 * dv * dv;
+            const real rB = sp.k1 * dv, rC = sp.k2 * dv * dv - RC(QTEST);
             for (int s = s0; s <= b.y; s += 8) {
+                if (!row_hits(sp.k0, ik0, rB, rC, (real)s - sp.uc)) continue;
                 const real8 gg = load_grad(gi, U, v, s, b.x, b.y);
                 const real8 du = (real)s + lane - sp.uc;
                 const real8 x = (nk0 * du + nB) * du + nC;

@@ -95,9 +95,11 @@ inline int2 pixel_range(real c, real r, int n)
     const real m = RC(0.01) + RC(1e-4) * r;
     real lo = c - r - m, hi = c + r + m;
     if (!(lo <= (real)(n - 1)) || !(hi >= RC(0.0))) return (int2)(1, 0);
-    lo = fmax(lo, RC(-1.0));
-    hi = fmin(hi, (real)n);
-    return (int2)(max(0, (int)ceil(lo)), min(n - 1, (int)floor(hi)));
+    lo = lo < RC(0.0) ? RC(0.0) : lo;
+    hi = hi > (real)(n - 1) ? (real)(n - 1) : hi;
+    int a = (int)lo;
+    a += (real)a < lo; /* ceil and floor of numbers in [0, n-1] without builtins */
+    return (int2)(a, (int)hi);
 }
 
 inline int set_box(Splat *sp, real cu, real cv, real ru, real rv, int U, int V)

@@ -5,7 +5,8 @@
  * (e_i = 3 sigma along each axis), tested on the very numbers d = x - p that the reference
  * computes, so kernel and reference agree on which Gaussians touch which sample.
  *
- * Gaussians are packed as GSTRIDE reals: p (3), rho, P (xx, xy, xz, yy, yz, zz), e (3), pad.
+ * Gaussians are packed as GSTRIDE reals: p (3), rho, P (xx, xy, xz, yy, yz, zz), e (3), pad; the
+ * binning copies them into cell order, so the forward kernels stream through them.
  * Gradients come out as 10 reals per Gaussian: dp (3), dP (6, packed as P), drho.
  *
  * Everything is a gather (no float atomics): binning is a counting sort over chunks of Gaussians
@@ -157,8 +158,10 @@ kernel void bin_scan(global const int *total, int ncells, global int *start)
     start[ncells] = s;
 }
 
+/* list gets the Gaussian indices; when copy != 0, packed gets their GSTRIDE-real records in list
+ * order too, so the forward kernels read them sequentially instead of chasing indices. */
 kernel void bin_fill(global const real *gs, int n, int chunk, int nchunks, int home, CELL_ARGS, global int *hist,
-                     global const int *start, global int *list)
+                     global const int *start, global int *list, int copy, global real *packed)
 {
     int c = get_global_id(0);
     if (c >= nchunks)
@@ -173,7 +176,10 @@ kernel void bin_fill(global const real *gs, int n, int chunk, int nchunks, int h
                 for (int x = x0; x <= x1; x++) {
                     int cell = (z * ncy + y) * ncx + x;
                     global int *h = hist + (size_t)cell * nchunks + c;
-                    list[start[cell] + *h] = i;
+                    int slot = start[cell] + *h;
+                    list[slot] = i;
+                    if (copy)
+                        vstore16(vload16(i, gs), slot, packed);
                     *h += 1;
                 }
     }
@@ -183,7 +189,7 @@ kernel void bin_fill(global const real *gs, int n, int chunk, int nchunks, int h
 /* Grid forward: one work-item per brick (8 x BRICK_Y x BRICK_Z voxels), one real8 per x row.
  * xs/ys/zs are the sample coordinates; xs is padded to a multiple of 8 (pads are never stored). */
 
-kernel void vox_grid(global const real *gs, global const int *start, global const int *list,
+kernel void vox_grid(global const real *packed, global const int *start,
                      global const real *xs, global const real *ys, global const real *zs,
                      int nx, int ny, int nz, int nbx, int nby, int nbricks, global real *out)
 {
@@ -205,22 +211,28 @@ kernel void vox_grid(global const real *gs, global const int *start, global cons
 
     int k1 = start[b + 1];
     for (int k = start[b]; k < k1; k++) {
-        gauss_t g = load_gauss(gs, list[k]);
+        gauss_t g = load_gauss(packed, k);
         real8 dx = cx - g.px;
         real8 w = ((dx >= -g.ex) & (dx <= g.ex)) ? (real8)(g.rho) : (real8)(0);
+        /* rows inside the box: coordinates increase, so they form one run; trim both ends */
+        int zlo = 0, zhi = nzb - 1, ylo = 0, yhi = nyb - 1;
+        while (zlo <= zhi && cz[zlo] - g.pz < -g.ez)
+            zlo++;
+        while (zhi >= zlo && cz[zhi] - g.pz > g.ez)
+            zhi--;
+        while (ylo <= yhi && cy[ylo] - g.py < -g.ey)
+            ylo++;
+        while (yhi >= ylo && cy[yhi] - g.py > g.ey)
+            yhi--;
         real a = (real)-0.5 * g.pxx;
         real8 adx = a * dx;
-        for (int zz = 0; zz < nzb; zz++) {
+        for (int zz = zlo; zz <= zhi; zz++) {
             real dz = cz[zz] - g.pz;
-            if (dz < -g.ez || dz > g.ez)
-                continue;
             real cz2 = (real)-0.5 * g.pzz * dz * dz;
             real bxz = -g.pxz * dz;
             real byz = -g.pyz * dz;
-            for (int yy = 0; yy < nyb; yy++) {
+            for (int yy = ylo; yy <= yhi; yy++) {
                 real dy = cy[yy] - g.py;
-                if (dy < -g.ey || dy > g.ey)
-                    continue;
                 real bb = bxz - g.pxy * dy;
                 real cc = ((real)-0.5 * g.pyy * dy + byz) * dy + cz2;
                 acc[zz * BRICK_Y + yy] += w * fast_exp8((adx + bb) * dx + cc);
@@ -304,18 +316,27 @@ kernel void vox_grid_grad(global const real *gs, global const int *order, int n,
     if (sample_range(g.px, g.ex, xs[0], (real)1 / hx, nx, &x0, &x1)
         && sample_range(g.py, g.ey, ys[0], (real)1 / hy, ny, &y0, &y1)
         && sample_range(g.pz, g.ez, zs[0], (real)1 / hz, nz, &z0, &z1)) {
+        /* trim the estimates to the exact runs of samples inside the box */
+        while (x0 <= x1 && xs[x0] - g.px < -g.ex)
+            x0++;
+        while (x1 >= x0 && xs[x1] - g.px > g.ex)
+            x1--;
+        while (y0 <= y1 && ys[y0] - g.py < -g.ey)
+            y0++;
+        while (y1 >= y0 && ys[y1] - g.py > g.ey)
+            y1--;
+        while (z0 <= z1 && zs[z0] - g.pz < -g.ez)
+            z0++;
+        while (z1 >= z0 && zs[z1] - g.pz > g.ez)
+            z1--;
         real a = (real)-0.5 * g.pxx;
         for (int z = z0; z <= z1; z++) {
             real dz = zs[z] - g.pz;
-            if (dz < -g.ez || dz > g.ez)
-                continue;
             real cz2 = (real)-0.5 * g.pzz * dz * dz;
             real bxz = -g.pxz * dz;
             real byz = -g.pyz * dz;
             for (int y = y0; y <= y1; y++) {
                 real dy = ys[y] - g.py;
-                if (dy < -g.ey || dy > g.ey)
-                    continue;
                 real bb = bxz - g.pxy * dy;
                 real cc = ((real)-0.5 * g.pyy * dy + byz) * dy + cz2;
                 global const real *grow = gout + ((size_t)z * ny + y) * nx;
@@ -368,7 +389,7 @@ kernel void vox_grid_grad(global const real *gs, global const int *order, int n,
  * point of their cell: their outputs are dropped and their incoming gradient is zero);
  * chunk_cell gives the cell of each group of 8. */
 
-kernel void vox_points(global const real *gs, global const int *start, global const int *list,
+kernel void vox_points(global const real *packed, global const int *start,
                        global const real *X, global const real *Y, global const real *Z,
                        global const int *chunk_cell, int nchunks, global real *out)
 {
@@ -380,7 +401,7 @@ kernel void vox_points(global const real *gs, global const int *start, global co
     real8 acc = (real8)(0);
     int k1 = start[cell + 1];
     for (int k = start[cell]; k < k1; k++) {
-        gauss_t g = load_gauss(gs, list[k]);
+        gauss_t g = load_gauss(packed, k);
         real8 dx = x - g.px, dy = y - g.py, dz = z - g.pz;
         real8 in = ((dx >= -g.ex) & (dx <= g.ex) & (dy >= -g.ey) & (dy <= g.ey) & (dz >= -g.ez) & (dz <= g.ez))
                    ? (real8)(g.rho) : (real8)(0);

@@ -203,3 +203,5 @@ def _r2gs_adapter(mod) -> Method:
 _ADAPTERS = {"r2gs": _r2gs_adapter}
 
 register_lazy("r2gs", "clgs.r2gs", help="R2-Gaussian: radiative Gaussian splatting (slow, best at few views)")
+register_lazy("shape", "clgs.shape_guided",
+              help="shape-guided Gaussian splatting with an anatomy's shape model and density atlas")

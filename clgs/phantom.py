@@ -197,41 +197,65 @@ def _owns(e, p, q, u, w):
     return (e > 0) | ((e == 0) & ((ddy < 0) | ((ddy == 0) & (ddx < 0))))
 
 
-def point_mesh_distance(points, vertices, faces, k: int = 16, chunk: int = 20000) -> np.ndarray:
-    """Unsigned Euclidean distance (mm) from points (N, 3) to a triangle mesh.
+def point_mesh_distance(points, vertices, faces, k: int = 16, max_edge: float | None = None,
+                        chunk: int = 20000) -> np.ndarray:
+    """Unsigned Euclidean distance (mm) from points (N, 3) to a triangle mesh, exact.
 
-    Candidate triangles are the ``k`` whose centroids are nearest (KD-tree); the distance to each
-    candidate is exact (plane if the foot lies inside the triangle, otherwise the nearest edge).
-    For meshes of roughly even triangles this finds the true nearest triangle."""
+    Candidates are the ``k`` triangles with the nearest centroids (KD-tree); the distance to each
+    is exact (plane if the foot lies inside the triangle, else the nearest edge). The result is
+    certified: a triangle outside the candidates has its centroid at least D_k (the k-th centroid
+    distance) away, so it is at least D_k - r_max away (r_max: the largest centroid-to-corner
+    radius); points without that guarantee are redone with twice as many candidates. With
+    ``max_edge`` long triangles are first split (midpoint subdivision, same surface) so r_max
+    stays small and few points need a second pass."""
     from scipy.spatial import cKDTree
 
     v, f = np.asarray(vertices, float), np.asarray(faces, np.int64)
+    if max_edge is not None:
+        import trimesh
+
+        v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=float(max_edge), max_iter=20)
+        f = np.asarray(f, np.int64)
     pts = np.asarray(points, float).reshape(-1, 3)
     tri = v[f]
-    tree = cKDTree(tri.mean(1))
-    k = int(min(k, len(f)))
+    centroid = tri.mean(1)
+    r_max = float(np.linalg.norm(tri - centroid[:, None], axis=-1).max())
+    tree = cKDTree(centroid)
     out = np.empty(len(pts))
-    for s in range(0, len(pts), chunk):
-        p = pts[s:s + chunk]
-        _, idx = tree.query(p, k=k)
-        idx = idx.reshape(len(p), k)
-        A, B, C = tri[idx, 0], tri[idx, 1], tri[idx, 2]
-        q = p[:, None, :]
-        d2 = np.minimum(np.minimum(_seg_d2(q, A, B), _seg_d2(q, B, C)), _seg_d2(q, C, A))
-        n = np.cross(B - A, C - A)
-        nn = np.einsum("...i,...i->...", n, n)
-        ok = nn > 0
-        nn_safe = np.where(ok, nn, 1.0)
-        h = np.einsum("...i,...i->...", q - A, n)
-        foot = q - (h / nn_safe)[..., None] * n
-        # the foot is inside when it lies on the inner side of all three edges
-        s1 = np.einsum("...i,...i->...", np.cross(B - A, foot - A), n)
-        s2 = np.einsum("...i,...i->...", np.cross(C - B, foot - B), n)
-        s3 = np.einsum("...i,...i->...", np.cross(A - C, foot - C), n)
-        inside = ok & (s1 >= 0) & (s2 >= 0) & (s3 >= 0)
-        d2 = np.where(inside, np.minimum(d2, h * h / nn_safe), d2)
-        out[s:s + chunk] = np.sqrt(d2.min(1))
+    todo = np.arange(len(pts))
+    k = int(min(k, len(f)))
+    while todo.size:
+        nxt = []
+        for s in range(0, todo.size, chunk):
+            sel = todo[s:s + chunk]
+            dk, idx = tree.query(pts[sel], k=k)
+            idx = idx.reshape(len(sel), k)
+            best = np.sqrt(_tri_d2(pts[sel], tri[idx]).min(1))
+            out[sel] = best
+            if k < len(f):
+                nxt.append(sel[best > dk.reshape(len(sel), k)[:, -1] - r_max])
+        todo = np.concatenate(nxt) if nxt else np.zeros(0, np.int64)
+        k = min(2 * k, len(f))
     return out
+
+
+def _tri_d2(p, tri):
+    """Squared distance from points p (N, 3) to triangles tri (N, K, 3 corners, 3)."""
+    A, B, C = tri[:, :, 0], tri[:, :, 1], tri[:, :, 2]
+    q = p[:, None, :]
+    d2 = np.minimum(np.minimum(_seg_d2(q, A, B), _seg_d2(q, B, C)), _seg_d2(q, C, A))
+    n = np.cross(B - A, C - A)
+    nn = np.einsum("...i,...i->...", n, n)
+    ok = nn > 0
+    nn_safe = np.where(ok, nn, 1.0)
+    h = np.einsum("...i,...i->...", q - A, n)
+    foot = q - (h / nn_safe)[..., None] * n
+    # the foot is inside when it lies on the inner side of all three edges
+    s1 = np.einsum("...i,...i->...", np.cross(B - A, foot - A), n)
+    s2 = np.einsum("...i,...i->...", np.cross(C - B, foot - B), n)
+    s3 = np.einsum("...i,...i->...", np.cross(A - C, foot - C), n)
+    inside = ok & (s1 >= 0) & (s2 >= 0) & (s3 >= 0)
+    return np.where(inside, np.minimum(d2, h * h / nn_safe), d2)
 
 
 def _seg_d2(q, a, b):
@@ -277,7 +301,7 @@ def signed_distance(shape, grid, band_voxels: float = 2.5) -> np.ndarray:
         kk, jj, ii = np.nonzero(band)
         xs, ys, zs = grid_axes(grid)
         pts = np.stack([xs[ii], ys[jj], zs[kk]], 1)
-        d = point_mesh_distance(pts, *mesh)
+        d = point_mesh_distance(pts, *mesh, max_edge=2.0 * h)
         sdf[band] = np.where(label[band], -d, d)
     return sdf.astype(np.float32)
 
@@ -514,7 +538,8 @@ def _plateau(t, half_width, softness):
     """1 in the middle of [0, 1], falling smoothly to 0 at |t - 0.5| = half_width."""
     if half_width <= 0:
         return np.zeros_like(t)
-    return 1.0 / (1.0 + np.exp(-(half_width - np.abs(t - 0.5)) / max(softness, 1e-6)))
+    s = np.clip((half_width - np.abs(t - 0.5)) / max(softness, 1e-6) + 0.5, 0.0, 1.0)
+    return s * s * (3.0 - 2.0 * s)  # smoothstep over a transition of width ``softness``
 
 
 def _ramp(x, h):

@@ -122,6 +122,9 @@ class ShapeGuidedSet(GaussianSet):
         self.params = {"alpha": a.detach().clone().requires_grad_(True), **self.params}
         self.last_u = None  # the latest displacement field (detached), for the density prior
 
+    def __len__(self):
+        return int(self.p_ref.shape[0])
+
     @property
     def alpha(self) -> torch.Tensor:
         return self.params["alpha"]
@@ -466,6 +469,72 @@ def bone_surface(volume, geometry, level: float | None = None):
     verts_xyz = (verts + origin_zyx)[:, ::-1]
     return verts_xyz.astype(np.float64), faces.astype(np.int64)
 
+
+# ---------------------------------------------------------------------- `--method shape`
+def _anatomy_for(scan, anatomy):
+    if anatomy is not None and not isinstance(anatomy, str):
+        return anatomy
+    from clgs import plugins
+
+    name = anatomy or (scan.meta or {}).get("anatomy")
+    if not name:
+        raise ValueError("the shape-guided method needs an anatomy: pass --anatomy NAME (see `clgs anatomies`) "
+                         "or reconstruct with `clgs <anatomy> reconstruct`")
+    return plugins.get_anatomy(name)
+
+
+def run_method(scan, out_dir=None, iterations: int = 30_000, anatomy=None, resume: bool = False,
+               progress: bool = True, **settings) -> dict:
+    """The ``shape`` entry of :mod:`clgs.methods`."""
+    import click
+
+    anatomy = _anatomy_for(scan, anatomy)
+    result = reconstruct_shape_guided(scan, anatomy, out_dir, iterations, resume=resume, progress=progress,
+                                      **settings)
+    click.echo(result.summary, err=True)
+    if result.interrupted:
+        where = f"; continue with --resume --out {out_dir}" if out_dir is not None else ""
+        click.echo(f"interrupted at iteration {result.trainer.iteration}: outputs so far written{where}", err=True)
+    info = {"iterations": result.trainer.iteration, "n_gaussians": result.trainer.n_gaussians,
+            "training_seconds": result.trainer.seconds, "seconds": result.seconds,
+            "value_scale": result.value_scale, "interrupted": result.interrupted,
+            "alpha": [float(a) for a in result.alpha], "history": result.log.rows}
+    files = sorted(str(p) for p in Path(out_dir).iterdir()) if out_dir is not None else []
+    return {"volume": result.volume, "files": files, "info": info}
+
+
+def click_options() -> list:
+    import click
+
+    from clgs.r2gs import click_options as r2gs_options
+
+    keep = {"iterations", "resume", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every",
+            "checkpoint_every", "progress", "max_gaussians"}
+    opts = [o for o in r2gs_options() if o.name in keep]
+    return opts + [
+        click.Option(["--anatomy", "anatomy"], default=None,
+                     help="anatomy plugin giving template, shape model and atlas [default: the scan's]"),
+        click.Option(["--shape-gaussians", "n_shape"], type=click.IntRange(min=1), default=None,
+                     help="shape-guided Gaussians [default: 35000]"),
+        click.Option(["--free-gaussians", "n_free"], type=click.IntRange(min=0), default=None,
+                     help="free (R2-Gaussian) Gaussians at the start [default: 15000]"),
+        click.Option(["--tau", "tau"], type=click.FloatRange(0, 1, min_open=True), default=None,
+                     help="thinning along the surface normal [default: 0.5]"),
+        click.Option(["--shape-prior/--no-shape-prior", "shape_prior"], default=None,
+                     help="bind the shape-guided Gaussians to the shape model [default: on]"),
+        click.Option(["--density-prior/--no-density-prior", "density_prior"], default=None,
+                     help="atlas density prior on the shape-guided Gaussians [default: on]"),
+    ]
+
+
+def _method():
+    from clgs.methods import Method
+
+    return Method("shape", run_method, options=click_options, atomic_dir=False,
+                  help="shape-guided Gaussian splatting with an anatomy's shape model and density atlas")
+
+
+METHOD = _method()
 
 __all__ = ["ShapeGuidedConfig", "ShapeGuidedSet", "ShapeGuidedResult", "reconstruct_shape_guided",
            "build_trainer", "bone_surface", "DensityPrior", "random_subgrid"]

@@ -202,11 +202,10 @@ def mesh_distance(points, vertices, faces, k: int = 8, step: float = None) -> np
     samples, ids = sample_surface(v, f, step, return_faces=True)
     _, nn = cKDTree(samples).query(pts, k=min(k, len(samples)))
     nn = nn.reshape(len(pts), -1)
-    best = np.full(len(pts), np.inf)
-    for j in range(nn.shape[1]):
-        tri = f[ids[nn[:, j]]]
-        best = np.minimum(best, point_triangle_distance(pts, v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]))
-    return best
+    tri = f[ids[nn.reshape(-1)]]
+    rep = np.repeat(pts, nn.shape[1], axis=0)
+    d = point_triangle_distance(rep, v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]])
+    return d.reshape(len(pts), -1).min(1)
 
 
 def mesh_to_sdf(vertices, faces, shape, spacing, origin, label=None, band_cells: float = 3.0) -> np.ndarray:

@@ -76,8 +76,10 @@ class Backend:
         from clgs import gaussian_math
         from clgs.reference.projection import project_patches
 
-        mats = (gaussian_math.covariance if mode == "affine" else gaussian_math.precision)(scales, quats)
-        return torch.stack([project_patches(means, mats, densities, geometry, int(v), mode=mode) for v in views])
+        # the reference builds its Jacobians with torch.func, which returns NaN under no_grad here
+        with torch.enable_grad():
+            mats = (gaussian_math.covariance if mode == "affine" else gaussian_math.precision)(scales, quats)
+            return torch.stack([project_patches(means, mats, densities, geometry, int(v), mode=mode) for v in views])
 
     def project(self, means, scales, quats, densities, geometry, views):
         return self._project(means, scales, quats, densities, geometry, list(views), mode=self.mode)
@@ -220,11 +222,14 @@ class Trainer:
                     p.grad = None  # frozen: Adam's moments must not move either
         self.optimizer.step()
         self.iteration += 1
+        out = {k: float(v) for k, v in values.items()}
+        out["loss"] = float(total.detach()) if total is not None else 0.0
+        for k, v in out.items():  # running sums for the next log row (checkpointed)
+            self._sums[k] = self._sums.get(k, 0.0) + v
+        self._count += 1
         for h in self.hooks:
             if hasattr(h, "on_iteration"):
                 h.on_iteration(self)
-        out = {k: float(v) for k, v in values.items()}
-        out["loss"] = float(total.detach()) if total is not None else 0.0
         return out
 
     # ------------------------------------------------------------------ the loop
@@ -245,9 +250,6 @@ class Trainer:
                 t0 = time.perf_counter()
                 values = self.step()
                 self.seconds += time.perf_counter() - t0
-                for k, v in values.items():
-                    self._sums[k] = self._sums.get(k, 0.0) + v
-                self._count += 1
                 progress.update(1, {**values, "n_gaussians": self.n_gaussians,
                                     **{k: self.log.last(k) for k in ("proj_psnr", "psnr3d", "ssim3d")}})
                 if self.log_every > 0 and self.iteration % self.log_every == 0:

@@ -215,8 +215,9 @@ class Voxelizer:
         kernel.set_args(*args)
         runtime.cl.enqueue_nd_range_kernel(self.queue, kernel, (_round_up(max(n_items, 1), _LOCAL),), (_LOCAL,))
 
-    def _bin(self, prog, gbuf, n, real, origin, inv, nc, home=False):
-        """Counting sort of Gaussians into cells: (start (ncells+1), list, list length).
+    def _bin(self, prog, gbuf, n, real, origin, inv, nc, home=False, copy=False):
+        """Counting sort of Gaussians into cells: (start (ncells+1), list, list length), where
+        ``list`` holds Gaussian indices, or with ``copy`` their packed records in list order.
 
         ``home``: each kept Gaussian goes to one cell only (its clamped centre's), so the list is
         the kept Gaussians sorted by place."""
@@ -236,10 +237,12 @@ class Voxelizer:
         self._run(prog.kernel("bin_scan"), 1, total, np.int32(ncells), start)
         length = np.empty(1, np.int32)
         cl.enqueue_copy(self.queue, length, start, src_offset=4 * ncells)
-        lst = self._buffer("list", 4 * max(int(length[0]), 1))
-        if length[0] > 0:
-            self._run(prog.kernel("bin_fill"), nchunks, *common, hist, start, lst)
-        return start, lst, int(length[0])
+        length = int(length[0])
+        lst = self._buffer("list", 4 * max(length, 1))
+        packed = self._buffer("packed", GSTRIDE * np.dtype(real).itemsize * max(length, 1)) if copy else lst
+        if length > 0:
+            self._run(prog.kernel("bin_fill"), nchunks, *common, hist, start, lst, np.int32(bool(copy)), packed)
+        return start, (packed if copy else lst), length
 
     @staticmethod
     def _check_grid(grid: Grid):
@@ -280,10 +283,10 @@ class Voxelizer:
         yb, yk = self._input(ys)
         zb, zk = self._input(zs)
         origin, inv, (nbx, nby, nbz) = self._brick_cells(grid)
-        start, lst, length = self._bin(prog, gbuf, n, real, origin, inv, (nbx, nby, nbz))
+        start, packed, length = self._bin(prog, gbuf, n, real, origin, inv, (nbx, nby, nbz), copy=True)
         if length:
             obuf = self._output(out)
-            self._run(prog.kernel("vox_grid"), nbx * nby * nbz, gbuf, start, lst, xb, yb, zb,
+            self._run(prog.kernel("vox_grid"), nbx * nby * nbz, packed, start, xb, yb, zb,
                       np.int32(nx), np.int32(ny), np.int32(nz), np.int32(nbx), np.int32(nby),
                       np.int32(nbx * nby * nbz), obuf)
             self._fetch(obuf, out)
@@ -341,7 +344,7 @@ class Voxelizer:
             return torch.zeros(m, dtype=gauss.dtype), bins
         prog = self._program(dt)
         gbuf, gkeep = self._input(gauss.detach().numpy())
-        start, lst, length = self._bin(prog, gbuf, n, dt, bins.origin, (bins.inv,) * 3, bins.nc)
+        start, packed, length = self._bin(prog, gbuf, n, dt, bins.origin, (bins.inv,) * 3, bins.nc, copy=True)
         out = np.zeros(bins.total, dt)
         if length:
             xb, xk = self._input(bins.X)
@@ -350,7 +353,7 @@ class Voxelizer:
             cb, ck = self._input(bins.chunk_cell)
             obuf = self._output(out)
             nchunks = bins.total // 8
-            self._run(prog.kernel("vox_points"), nchunks, gbuf, start, lst, xb, yb, zb, cb, np.int32(nchunks), obuf)
+            self._run(prog.kernel("vox_points"), nchunks, packed, start, xb, yb, zb, cb, np.int32(nchunks), obuf)
             self._fetch(obuf, out)
             del xk, yk, zk, ck
         else:

@@ -71,20 +71,24 @@ def test_tiny_scene_converges(scene):
 
 @pytest.mark.parametrize("backend", ["cl", "torch"])
 def test_resume_is_bit_for_bit(scene, tmp_path, backend):
-    """30 iterations straight == 17 + checkpoint + a fresh process-like resume to 30 (densifying at
-    10, 20, 30 and TV patches drawn from the generator on the way)."""
-    whole = _trainer(scene, 30, backend=backend).fit()
-    first = _trainer(scene, 30, tmp_path, backend=backend)  # the lr schedules span 30 iterations
-    first.iterations = 17  # stop early, as an interrupted run would
+    """N iterations straight == K + checkpoint + a fresh resume to N, with densification on the way
+    (and, on the OpenCL backend, TV patches drawn from the generator and the evaluations)."""
+    if backend == "cl":
+        n, k, kw = 30, 17, {}
+    else:  # the plain-torch iteration is slow: a smaller run
+        n, k, kw = 12, 7, dict(n_gaussians=60, lambda_tv=0.0, log_every=0, densify_start=5, densify_interval=5)
+    whole = _trainer(scene, n, backend=backend, **kw).fit()
+    first = _trainer(scene, n, tmp_path, backend=backend, **kw)  # the lr schedules span n iterations
+    first.iterations = k  # stop early, as an interrupted run would
     first.fit()
     assert (tmp_path / "checkpoint.pt").is_file()
     state = ckpt.load(tmp_path / "checkpoint.pt")
-    assert state["iteration"] == 17
-    resumed = _trainer(scene, 30, tmp_path, backend=backend)
+    assert state["iteration"] == k
+    resumed = _trainer(scene, n, tmp_path, backend=backend, **kw)
     resumed.load_state_dict(state)
     resumed.fit()
     _same_state(whole, resumed)
-    assert not torch.equal(first.sets[0].params["means"][:5], resumed.sets[0].params["means"][:5])
+    assert len(whole.sets[0]) != 60 if backend == "torch" else len(whole.sets[0]) != 150  # densified
 
 
 def test_ctrl_c_from_a_hook_saves_a_checkpoint_that_resumes_exactly(scene, tmp_path):
@@ -169,8 +173,8 @@ def test_frozen_parameters_do_not_move(scene):
 
 
 def test_normalisation_maps_the_fdk_percentile_to_one():
-    vol = np.zeros((10, 10, 10), np.float32)
-    vol[:5] = 0.02
+    vol = np.zeros((20, 20, 20), np.float32)
+    vol[:10] = 0.02
     vol[0, 0, 0] = 5.0  # a hot voxel is ignored by the 99.9th percentile
     assert value_scale_from(vol) == pytest.approx(1 / 0.02, rel=0.01)
     with pytest.raises(ValueError, match="percentile"):

@@ -57,9 +57,10 @@ def _useful(means, cov, geometry, view):
 
     nv, nu = geometry.nDetector
     total = 0
-    with torch.no_grad():
-        for s in range(0, means.shape[0], 5000):
-            c, S2, _, vis = _affine_params(means[s:s + 5000].double(), cov[s:s + 5000].double(), geometry, view)
+    for s in range(0, means.shape[0], 5000):
+        c, S2, _, vis = _affine_params(means[s:s + 5000].detach().double(), cov[s:s + 5000].detach().double(),
+                                       geometry, view)
+        with torch.no_grad():
             det = S2[:, 0, 0] * S2[:, 1, 1] - S2[:, 0, 1] ** 2
             k0, k1, k2 = S2[:, 1, 1] / det, -S2[:, 0, 1] / det, S2[:, 0, 0] / det
             R = int(math.ceil(float((3 * torch.sqrt(torch.maximum(S2[:, 0, 0], S2[:, 1, 1]))).max()))) + 1

@@ -173,9 +173,24 @@ def surface_level(anatomy, truth) -> float:
     return float(threshold_multiotsu(t[:: max(1, t.shape[0] // 64)], classes=3)[-1])
 
 
+def bone_mask(volume, level: float):
+    """The solid bone: voxels above ``level``, enclosed cavities (medullary canal, cancellous
+    interior below the level) filled, only the largest connected piece kept; so the surface
+    compared is the outer bone surface, not every iso-contour."""
+    import numpy as np
+    from scipy import ndimage
+
+    mask = np.asarray(volume) > level
+    labels, n = ndimage.label(mask)
+    if n > 1:
+        sizes = ndimage.sum_labels(mask, labels, index=np.arange(1, n + 1))
+        mask = labels == (1 + int(np.argmax(sizes)))
+    return ndimage.binary_fill_holes(mask)
+
+
 def evaluate_volume(anatomy, scan, volume) -> dict:
     """PSNR/SSIM against the scan's truth and, when the scan has the true surface, the surface
-    distance (mm) of the reconstruction's bone iso-surface."""
+    distance (mm) from the reconstruction's outer bone surface (:func:`bone_mask`) to it."""
     import numpy as np
 
     from clgs import metrics
@@ -191,7 +206,7 @@ def evaluate_volume(anatomy, scan, volume) -> dict:
 
         level = surface_level(anatomy, scan.truth)
         try:
-            mesh = surface_from_volume(np.asarray(vol), level=level, geometry=scan.geometry)
+            mesh = surface_from_volume(bone_mask(vol, level), geometry=scan.geometry)
             sd = metrics.surface_distance(mesh, scan.surface, n_samples=20000)
             out.update({f"surface_{k}_mm": v for k, v in sd.items()}, surface_level=level)
         except SurfaceError as exc:

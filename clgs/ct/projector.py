@@ -26,6 +26,7 @@ import numpy as np
 from clgs.geometry import Geometry
 
 _VIEW_STRIDE = 16
+_ZB = 32  # z voxels per backprojector work-item (cl/ct_backproject.cl)
 
 
 def _as_real(array, name):
@@ -279,7 +280,7 @@ class CTProjector:
             raise ValueError(
                 f"projections have shape {proj.shape}, expected (n_views, V, U) = {(n, nv, nu)} for these views")
         nz, ny, nx = self.shape
-        nvp, nzp = _round8(nv), _round8(nz)
+        nvp, nzp = _round8(nv), (nz + _ZB - 1) // _ZB * _ZB
         tp = np.zeros((n, nu, nvp), dtype)
         np.multiply(proj.transpose(0, 2, 1), self._ray_scale(views, dtype), out=tp[:, :, :nv])
         p_buf = self._to_device("proj_in", tp)
@@ -288,7 +289,7 @@ class CTProjector:
         q = get_queue()
         t_buf = self._column_table(views, dtype, vbuf, n, prog)
         k = prog.kernel("ct_backward")
-        k(q, (nzp // 8, ny, nx), None, p_buf, vbuf, t_buf, out_buf, np.int32(n), np.int32(nx), np.int32(ny),
+        k(q, (nzp // _ZB, ny, nx), None, p_buf, vbuf, t_buf, out_buf, np.int32(n), np.int32(nx), np.int32(ny),
           np.int32(nz), np.int32(nzp), np.int32(nu), np.int32(nv), np.int32(nvp))
         out = np.empty((nx, ny, nzp), dtype)
         cl.enqueue_copy(q, out, out_buf)

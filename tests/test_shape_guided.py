@@ -1,0 +1,194 @@
+"""Shape-guided initialisation and reconstruction on a small synthetic anatomy (an ellipsoid bone)."""
+import numpy as np
+import pytest
+import torch
+
+from clgs.geometry import Geometry
+from clgs.shape_init import initialise, quaternion_from_z_to, sample_reference_centres
+from clgs.gaussian_math import quaternion_to_rotation
+
+
+@pytest.fixture(scope="module")
+def template():
+    import trimesh
+
+    from clgs.template import Template
+
+    m = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    v = m.vertices * np.array([14.0, 10.0, 22.0])
+    return Template.from_mesh(v, m.faces, spacing=2.0, margin=8.0, name="ellipsoid")
+
+
+@pytest.fixture(scope="module")
+def shape_model(template):
+    """Two smooth modes: a stretch along z and a shift along x (mm velocities on a coarse grid)."""
+    from clgs.shape_model import ShapeModel
+    from clgs.template import grid_points
+
+    shape, spacing, origin = template.model_grid(max_cells=12)
+    pts = grid_points(shape, spacing, origin)  # (Z, Y, X, 3)
+    mean = np.zeros((3,) + tuple(shape), np.float32)
+    stretch = np.zeros_like(mean)
+    stretch[2] = pts[..., 2] / 10.0
+    shift = np.zeros_like(mean)
+    shift[0] = 1.0
+    modes = np.stack([stretch / np.linalg.norm(stretch), shift / np.linalg.norm(shift)])
+    sigma = np.array([np.linalg.norm(stretch), np.linalg.norm(shift) * 2.0], np.float32)
+    return ShapeModel(mean, modes, sigma, spacing, origin)
+
+
+@pytest.fixture(scope="module")
+def atlas(template):
+    from clgs.shape_model import DensityAtlas
+
+    mean = np.where(template.label, 0.05, 0.0).astype(np.float32)
+    return DensityAtlas(mean, np.full_like(mean, 1e-4), template.spacing, template.origin)
+
+
+def geometry(n_views=8, det=48):
+    return Geometry(DSD=600.0, DSO=400.0, nDetector=(det, det), dDetector=(1.6, 1.6), nVoxel=(32, 32, 32),
+                    dVoxel=(2.0, 2.0, 2.0), angles=np.linspace(0, np.pi, n_views, endpoint=False))
+
+
+def test_quaternion_turns_z_onto_normal():
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(50, 3))
+    n = np.concatenate([n, [[0, 0, -1.0], [0, 0, 1.0]]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    r = quaternion_to_rotation(torch.as_tensor(quaternion_from_z_to(n))).numpy()
+    np.testing.assert_allclose(r[:, :, 2], n, atol=1e-12)
+
+
+def test_reference_centres_are_inside_and_denser_near_surface(template):
+    pts = sample_reference_centres(template, 4000, boundary_weight=4.0, seed=3)
+    d = template.sdf_at(pts)
+    assert d.max() < 2.0 * max(template.spacing)  # inside, up to the jitter of a boundary voxel
+    band = 2.0 * max(template.spacing)
+    inside = template.sdf < 0.5 * min(template.spacing)
+    frac_volume = np.mean(np.abs(template.sdf[inside]) < band)
+    frac_samples = np.mean(np.abs(d) < band)
+    assert frac_samples > frac_volume + 0.1
+    np.testing.assert_array_equal(pts, sample_reference_centres(template, 4000, boundary_weight=4.0, seed=3))
+
+
+@pytest.mark.parametrize("backend", ["cl", "torch"])
+def test_initial_densities_share_the_atlas(template, atlas, backend):
+    init = initialise(template, atlas, geometry(), 1500, tau=0.5, seed=1, backend=backend)
+    assert np.all(np.isfinite(init.densities)) and np.all(init.densities >= 0)
+    # density x overlap gives back the atlas value at each centre (where the overlap exceeds 1)
+    a = atlas.mean_at(init.centres)
+    ok = init.overlap > 1
+    np.testing.assert_allclose((init.densities * init.overlap)[ok], a[ok], rtol=1e-5, atol=1e-7)
+    # near the surface the normal axis is thinned by tau
+    near = init.near_surface
+    assert near.any() and (~near).any()
+    np.testing.assert_allclose(init.scales[near, 2], 0.5 * init.scales[near, 0])
+    np.testing.assert_allclose(init.scales[~near, 2], init.scales[~near, 0])
+
+
+def test_overlap_backends_agree(template, atlas):
+    a = initialise(template, atlas, geometry(), 800, seed=2, backend="cl")
+    b = initialise(template, atlas, geometry(), 800, seed=2, backend="torch")
+    np.testing.assert_allclose(a.overlap, b.overlap, rtol=1e-4)
+
+
+def _scan(template, n_views=8, det=48, alpha=(0.8, -0.6), shape_model=None, I0=None, shift_mm=0.0):
+    """A scan of the ellipsoid deformed by ``alpha`` (truth: 0.05/mm inside, soft tissue 0.01)."""
+    from clgs.ct.projector import CTProjector
+    from clgs.io.scan import Scan
+
+    geo = geometry(n_views, det)
+    pts = geo.volume_grid(scene=False).points()
+    if shape_model is not None:
+        u = shape_model.displacement(torch.as_tensor(alpha, dtype=torch.float32))
+        back = pts.reshape(-1, 3)
+        for _ in range(3):  # invert x = y + u(y) by fixed-point iteration
+            back = pts.reshape(-1, 3) - shape_model.sample(u, torch.as_tensor(back, dtype=torch.float32)).numpy()
+        d = template.sdf_at(back - np.array([shift_mm, 0, 0])).reshape(pts.shape[:-1])
+    else:
+        d = template.sdf_at(pts - np.array([shift_mm, 0, 0]))
+    r = np.linalg.norm(pts[..., :2], axis=-1)
+    truth = np.where(d < 0, 0.05, np.where(r < 28.0, 0.01, 0.0)).astype(np.float32)
+    proj = CTProjector(geo).forward(truth)
+    if I0 is not None:
+        from clgs.ct.noise import add_noise
+
+        proj = add_noise(proj, I0=I0, sigma=10.0, seed=0)
+    return Scan(geo, np.asarray(proj, np.float32), truth=truth)
+
+
+def _small(**kw):
+    base = dict(n_shape=1500, n_free=500, log_every=0, checkpoint_every=0, progress=False, tv_size=8,
+                density_points=8, densify_start=10_000)
+    base.update(kw)
+    return base
+
+
+def test_shape_guided_fits_alpha_and_beats_its_start(template, shape_model, atlas):
+    from clgs.metrics import psnr3d
+    from clgs.shape_guided import reconstruct_shape_guided
+
+    scan = _scan(template, alpha=(1.0, -0.8), shape_model=shape_model)
+    res0 = reconstruct_shape_guided(scan, (template, shape_model, atlas), iterations=1, **_small())
+    res = reconstruct_shape_guided(scan, (template, shape_model, atlas), iterations=250, **_small())
+    assert np.all(np.isfinite(res.volume))
+    assert psnr3d(res.volume, scan.truth) > psnr3d(res0.volume, scan.truth) + 2.0
+    # the shape coefficients move towards the truth (both signs right)
+    assert res.alpha[0] > 0.2 and res.alpha[1] < -0.2
+
+
+def test_stability_extreme_alpha_few_views_noise_and_offset(template, shape_model, atlas):
+    """|alpha| = 10, 1 and 2 views, I0 = 1e3, a subject partly outside the template grid: finite, fold-free."""
+    from clgs.shape_guided import ShapeGuidedSet, reconstruct_shape_guided
+
+    parts = (template, shape_model, atlas)
+    for kw in (dict(n_views=1), dict(n_views=2), dict(I0=1e3), dict(shift_mm=30.0)):
+        scan = _scan(template, shape_model=shape_model, **kw)
+        res = reconstruct_shape_guided(scan, parts, iterations=60, **_small(alpha_freeze=5))
+        assert np.all(np.isfinite(res.volume)), kw
+        s = res.trainer.sets[0]
+        assert isinstance(s, ShapeGuidedSet)
+        assert torch.all(torch.isfinite(s.alpha))
+    with torch.no_grad():
+        s.params["alpha"].copy_(torch.tensor([10.0, -10.0]))
+        means = s.tensors()[0]
+    assert torch.all(torch.isfinite(means))
+    assert shape_model.jacobian_determinant(torch.tensor([10.0, -10.0])).min() > 0
+
+
+def test_ablation_switches_change_the_model(template, shape_model, atlas):
+    from clgs.shape_guided import ShapeGuidedSet, build_trainer, ShapeGuidedConfig
+
+    scan = _scan(template)
+    parts = (template, shape_model, atlas)
+    cfg = ShapeGuidedConfig(**{k: v for k, v in _small(iterations=5).items() if k != "progress"})
+    t = build_trainer(scan, parts, cfg)
+    assert isinstance(t.sets[0], ShapeGuidedSet) and {"shape", "density"} <= {x.name for x in t.losses}
+    cfg = ShapeGuidedConfig(**{k: v for k, v in _small(iterations=5, shape_prior=False, density_prior=False).items()
+                               if k != "progress"})
+    t = build_trainer(scan, parts, cfg)
+    assert not isinstance(t.sets[0], ShapeGuidedSet)
+    assert not ({"shape", "density"} & {x.name for x in t.losses})
+    # without a shape model or atlas the terms (and their cost) are left out
+    t = build_trainer(scan, (template, None, None), ShapeGuidedConfig(**{k: v for k, v in _small(iterations=5).items()
+                                                                          if k != "progress"}))
+    assert not ({"shape", "density"} & {x.name for x in t.losses})
+
+
+def test_resume_is_bitwise(template, shape_model, atlas, tmp_path):
+    from clgs.shape_guided import reconstruct_shape_guided
+
+    scan = _scan(template, shape_model=shape_model)
+    parts = (template, shape_model, atlas)
+    kw = _small(alpha_freeze=3)
+    kw.pop("checkpoint_every")
+    full = reconstruct_shape_guided(scan, parts, iterations=30, out_dir=tmp_path / "a", checkpoint_every=15, **kw)
+    half = reconstruct_shape_guided(scan, parts, iterations=15, out_dir=tmp_path / "b", checkpoint_every=15,
+                                    schedule_iterations=30, **kw)
+    assert not half.interrupted
+    resumed = reconstruct_shape_guided(scan, parts, iterations=30, out_dir=tmp_path / "b", resume=True,
+                                       progress=False)
+    np.testing.assert_array_equal(full.alpha, resumed.alpha)
+    np.testing.assert_array_equal(full.volume, resumed.volume)
+    for name in ("alpha.json", "shape_surface.stl", "volume.nii.gz", "log.csv"):
+        assert (tmp_path / "b" / name).is_file()
