@@ -6,7 +6,7 @@
  * The Gaussians are cut into chunks of consecutive indices. Each work-item owns one (chunk, view)
  * column of the histogram `hist[view][chunk][tile]`, so it counts without atomics; `bin_totals`
  * turns each tile's counts into per-chunk offsets, `bin_scan` gives every (view, tile) list its
- * start, and `bin_fill` writes each chunk's Gaussians, in index order, at its own offsets. Every
+ * start, and `fill` (gaussian_project.cl) writes each chunk's Gaussians, in index order, at its own offsets. Every
  * list therefore holds its Gaussians in increasing index order, whatever the device does, and the
  * forward sums are bitwise reproducible. */
 #ifndef TW
@@ -61,25 +61,5 @@ __kernel void bin_scan(const int n, __global const int *totals, __global int *st
     starts[n] = s;
 }
 
-__kernel void bin_fill(const int N, const int chunk, const int nchunks, const int ntx, const int ntiles,
-                       __global const int4 *box, __global int *hist, __global const int *starts,
-                       __global int *list)
-{
-    const int c = get_global_id(0);
-    const int view = get_global_id(1);
-    if (c >= nchunks) return;
-    __global int *h = hist + ((size_t)view * nchunks + c) * ntiles;
-    __global const int *st = starts + (size_t)view * ntiles;
-    const int g1 = min(N, (c + 1) * chunk);
-    for (int g = c * chunk; g < g1; g++) {
-        const int4 b = box[(size_t)view * N + g];
-        if (b.x > b.y) continue;
-        const int tx0 = b.x / TW, tx1 = b.y / TW, ty0 = b.z / TH, ty1 = b.w / TH;
-        for (int ty = ty0; ty <= ty1; ty++)
-            for (int tx = tx0; tx <= tx1; tx++) {
-                const int t = ty * ntx + tx;
-                list[st[t] + h[t]] = g;
-                h[t] += 1;
-            }
-    }
-}
+/* The fill pass, which also copies each Gaussian's record next to its list entry, is the
+ * `fill` kernel of gaussian_project.cl (it needs the record layout). */

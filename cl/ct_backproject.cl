@@ -15,10 +15,10 @@
  * The host has already multiplied each pixel by its ray's length scale |D| in mm (the forward
  * kernel applies the same factor per ray), so the inner loop has no square root.
  *
- * One work-item: a column (i, j) and ZB = 32 consecutive z voxels, so that the per-view and
- * per-column set-up is shared by many voxels; they are four float8 accumulators. Each row v of a
- * candidate column meets the column at height z and adds to the one or two blocks of eight that
- * hold the voxels around z (hat weights on the block's eight lanes).
+ * One work-item: a column (i, j) and ZB = 32 consecutive z voxels (four float8 accumulators),
+ * so the per-view and per-column set-up is shared by 32 voxels: per view the candidate columns
+ * are set up once (up to UMAX at a time, in private arrays), then each block of eight voxels
+ * gathers their rows in its own z range with hat weights on its eight lanes.
  * Global size (nZp / ZB, nY, nX). Output layout: out[(i * nY + j) * nZp + k], z fastest.
  *
  * View record entries 12-15 (host): H (columns), delta (relative depth change across a voxel),
@@ -40,7 +40,8 @@ __kernel void ct_columns(__global const real *views, __global real *table, int n
     row[6] = 0; row[7] = 0;
 }
 
-#define ZB 32  /* z voxels per work-item: four float8 blocks */
+#define ZB 32     /* z voxels per work-item: four blocks of eight */
+#define UMAX 16   /* candidate columns set up at once */
 
 /* hat weights max(0, 1 - |z - k|) of the eight voxels k = 0..7 of a block */
 inline real8 ct_hat(real z, real8 k8)
@@ -50,7 +51,35 @@ inline real8 ct_hat(real z, real8 k8)
     d = (real8)1 - d;
     return d > (real8)0 ? d : (real8)0;
 }
-#define HAT(z) ct_hat(z, k8)
+
+/* rows that can meet z in (zlo, zhi) for this voxel column and view (see the header) */
+#ifdef CONE
+#define ROW_RANGE(zlo, zhi, vlo, vhi) {                                              \
+        real e0 = ((zlo) - view[8]) * il, e1 = ((zhi) - view[8]) * il;               \
+        real m0 = e0 < 0 ? -e0 : e0, m1 = e1 < 0 ? -e1 : e1;                         \
+        real margin = (m0 > m1 ? m0 : m1) * view[13];                                \
+        real r0 = (e0 - margin - view[10]) * view[14], r1 = (e1 + margin - view[10]) * view[14]; \
+        vlo = r0 < 0 ? 0 : (r0 > (real)nV ? nV : (int)r0);                           \
+        vhi = r1 < 0 ? -1 : (r1 > (real)(nV - 1) ? nV - 1 : (int)r1 + 1);            \
+        if (vhi > nV - 1) vhi = nV - 1; }
+#else
+#define ROW_RANGE(zlo, zhi, vlo, vhi) {                                              \
+        real r0 = ((zlo) - view[8]) * view[14], r1 = ((zhi) - view[8]) * view[14];   \
+        vlo = r0 < 0 ? 0 : (r0 > (real)nV ? nV : (int)r0);                           \
+        vhi = r1 < 0 ? -1 : (r1 > (real)(nV - 1) ? nV - 1 : (int)r1 + 1);            \
+        if (vhi > nV - 1) vhi = nV - 1; }
+#endif
+
+/* block b (0..3) of the work-item's column: every candidate column's rows in range */
+#define BLOCK(b, acc) {                                                              \
+        int vlo, vhi;                                                                \
+        ROW_RANGE((real)(k0 + 8 * (b) - 1), (real)(k0 + 8 * (b) + 8), vlo, vhi);     \
+        for (int c = 0; c < nc; ++c) {                                               \
+            real A = cA[c] - (real)(8 * (b)), B = cB[c], w = cW[c];                  \
+            __global const real *pcol = pview + (size_t)cU[c] * nVp;                 \
+            for (int v = vlo; v <= vhi; ++v)                                         \
+                acc += (pcol[v] * w) * ct_hat(A + (real)v * B, k8);                  \
+        } }
 
 __kernel void ct_backward(__global const real *proj, __global const real *views, __global const real *table,
                           __global real *out, int n_views, int nX, int nY, int nZ, int nZp, int nU, int nV,
@@ -59,9 +88,10 @@ __kernel void ct_backward(__global const real *proj, __global const real *views,
     const int g = get_global_id(0), j = get_global_id(1), i = get_global_id(2);
     const int k0 = g * ZB;
     const real fi = (real)i, fj = (real)j;
-    const real zlo = (real)(k0 - 1), zhi = (real)(k0 + ZB);
     const real8 k8 = (real8)(0, 1, 2, 3, 4, 5, 6, 7);
     real8 acc0 = (real8)0, acc1 = (real8)0, acc2 = (real8)0, acc3 = (real8)0;
+    real cA[UMAX], cB[UMAX], cW[UMAX];
+    int cU[UMAX];
 
     for (int n = 0; n < n_views; ++n) {
         __global const real *view = views + n * VIEW_STRIDE;
@@ -71,53 +101,48 @@ __kernel void ct_backward(__global const real *proj, __global const real *views,
         real inv = (real)1 / ct_cross(view[6], view[7], qx, qy);
         real uc = -ct_cross(view[4], view[5], qx, qy) * inv;
         real il = -view[15] * inv;                 /* 1 / lambda: detector distance / point distance */
-        real e0 = (zlo - view[8]) * il, e1 = (zhi - view[8]) * il;   /* z - source z, scaled */
-        real m0 = e0 < 0 ? -e0 : e0, m1 = e1 < 0 ? -e1 : e1;
-        real margin = (m0 > m1 ? m0 : m1) * view[13];
-        real r0 = (e0 - margin - view[10]) * view[14], r1 = (e1 + margin - view[10]) * view[14];
 #else
         real uc = ct_cross(fi - view[0], fj - view[1], view[4], view[5]) * view[15];
-        real r0 = (zlo - view[8]) * view[14], r1 = (zhi - view[8]) * view[14];
 #endif
         real ua = uc - H, ub = uc + H;
         if (!(ub >= 0 && ua <= (real)(nU - 1))) continue;  /* also skips NaN */
-        if (!(r1 >= 0 && r0 <= (real)(nV - 1))) continue;
+        int vlo_all, vhi_all;
+        ROW_RANGE((real)(k0 - 1), (real)(k0 + ZB), vlo_all, vhi_all);
+        if (vhi_all < vlo_all) continue;
         int ulo = ua < 0 ? 0 : (int)ua;
         int uhi = ub > (real)(nU - 1) ? nU - 1 : (int)ub + 1;
         if (uhi > nU - 1) uhi = nU - 1;
-        int vlo = r0 < 0 ? 0 : (int)r0;
-        int vhi = r1 > (real)(nV - 1) ? nV - 1 : (int)r1 + 1;
-        if (vhi > nV - 1) vhi = nV - 1;
         __global const real *pview = proj + (size_t)n * nU * nVp;
         __global const real *tview = table + (size_t)n * nU * 8;
 
-        for (int u = ulo; u <= uhi; ++u) {
-            real8 c = vload8(u, tview);
-            int main_x = c.s4 > (real)0.5;
-            real plane = main_x ? fi : fj, other = main_x ? fj : fi;
-            real t = (plane - c.s0) * c.s1;
+        for (int u_start = ulo; u_start <= uhi; u_start += UMAX) {
+            /* set up the candidate columns that do touch the voxel column */
+            int nc = 0;
+            int u_end = u_start + UMAX - 1 < uhi ? u_start + UMAX - 1 : uhi;
+            for (int u = u_start; u <= u_end; ++u) {
+                real8 c = vload8(u, tview);
+                int main_x = c.s4 > (real)0.5;
+                real plane = main_x ? fi : fj, other = main_x ? fj : fi;
+                real t = (plane - c.s0) * c.s1;
 #ifdef CONE
-            if (!(t > 0)) continue;
+                if (!(t > 0)) continue;
 #endif
-            real co = c.s2 + t * c.s3;
-            real d = co - other;
-            d = d < 0 ? -d : d;
-            real wo = (real)1 - d;
-            if (!(wo > 0)) continue;
-            /* local height of row v: lz = z - k0 = A + v B */
-            real A = view[8] + t * view[10] - (real)k0, B = view[9] + t * view[11];
-            real wcol = wo * c.s5;
-            __global const real *pcol = pview + (size_t)u * nVp;
-            for (int v = vlo; v <= vhi; ++v) {
-                real lz = A + (real)v * B;
-                if (!(lz > (real)-1 && lz < (real)ZB)) continue;
-                real p = pcol[v] * wcol;
-                /* the row touches voxels floor(lz) and floor(lz) + 1: one block of 8, or two */
-                if (lz < (real)8) acc0 += p * HAT(lz);
-                if (lz > (real)7 && lz < (real)16) acc1 += p * HAT(lz - (real)8);
-                if (lz > (real)15 && lz < (real)24) acc2 += p * HAT(lz - (real)16);
-                if (lz > (real)23) acc3 += p * HAT(lz - (real)24);
+                real co = c.s2 + t * c.s3;
+                real d = co - other;
+                d = d < 0 ? -d : d;
+                real wo = (real)1 - d;
+                if (!(wo > 0)) continue;
+                cA[nc] = view[8] + t * view[10] - (real)k0;   /* height of row v: A + v B */
+                cB[nc] = view[9] + t * view[11];
+                cW[nc] = wo * c.s5;
+                cU[nc] = u;
+                ++nc;
             }
+            if (nc == 0) continue;
+            BLOCK(0, acc0);
+            BLOCK(1, acc1);
+            BLOCK(2, acc2);
+            BLOCK(3, acc3);
         }
     }
     __global real *dst = out + ((size_t)i * nY + j) * nZp + k0;

@@ -3,9 +3,10 @@
  *
  * Forward: one work-item owns a TW x TH tile (TW = 8 pixels = one real8 row) of one view and
  * walks the tile's Gaussian list (built on the device by binning.cl, in index order), touching
- * only the rows inside each Gaussian's box. Backward: one work-item per Gaussian walks its own
- * box in every view, row by row in aligned 8-pixel segments, and gathers dL/dI into moment sums,
- * then applies the chain rule once per view. Neither needs atomics; both are reproducible. */
+ * only the rows inside each Gaussian's box. Backward: one work-item per Gaussian (a run of them
+ * on CPUs) walks its own box in every view, in 8-pixel segments from the box's left edge
+ * (segments outer, rows inner), gathers dL/dI into moment sums, then applies the chain rule once
+ * per view. Neither needs atomics; both are reproducible. */
 #include "project_setup.h"
 
 #ifndef TW
@@ -21,26 +22,11 @@ inline void load_gauss(int g, __global const real *means, __global const real *m
     for (int k = 0; k < 6; k++) S[k] = mats[6 * g + k];
 }
 
-
-/* Can Q(du) = A du^2 + 2 B du + C (A > 0) be <= 0 on the 8 lanes [lo, lo + 7]? Checked at the
- * lane interval's point nearest the minimum; used to skip rows a footprint's box holds but its
- * ellipse misses (the C passed in carries a small margin, so no pixel with q <= 9 is skipped). */
-inline int row_hits(real A, real iA, real B, real C, real lo)
-{
-    real m = -B * iA;
-    m = m < lo ? lo : (m > lo + RC(7.0) ? lo + RC(7.0) : m);
-    return (A * m + RC(2.0) * B) * m + C <= RC(0.0);
-}
-#define QTEST 9.01
-
 /* ------------------------------------------------------------------ per (Gaussian, view) set-up */
-__kernel void preprocess(const int N, const int U, const int V, const real scale,
+inline void preprocess_one(const int g, const int view, const int N, const int U, const int V, const real scale,
                          __global const real *means, __global const real *mats, __global const real *rho,
                          __global const real *vparams, __global real *rec, __global int4 *box)
 {
-    const int g = get_global_id(0);
-    const int view = get_global_id(1);
-    if (g >= N) return;
     real3 p;
     real S[6];
     load_gauss(g, means, mats, &p, S);
@@ -54,16 +40,83 @@ __kernel void preprocess(const int N, const int U, const int V, const real scale
     box[idx] = sp.box;
     __global real *r = rec + idx * REC;
     r[0] = sp.uc; r[1] = sp.vc; r[2] = rho[g] * sp.amp0; r[3] = (real)sp.straddle;
-    r[4] = sp.k0; r[5] = sp.k1; r[6] = sp.k2;
+    r[4] = RC(-0.5) * sp.k0; r[5] = -sp.k1; r[6] = RC(-0.5) * sp.k2; /* -q/2 coefficients */
 #if defined(EXACT) && defined(CONE)
     r[7] = sp.a1; r[8] = sp.a2; r[9] = sp.a3; r[10] = sp.a4; r[11] = sp.a5;
     r[12] = sp.d0; r[13] = sp.d1; r[14] = sp.d2; r[15] = sp.d3; r[16] = sp.d4; r[17] = sp.d5;
+    r[18] = sp.kap;
 #endif
+    r[REC - 1] = sp.amp0;
+}
+
+/* The set-up the forward stored (record + box), for a backward right after it */
+inline int load_splat(__global const real *rec, __global const int4 *box, size_t idx, Splat *sp)
+{
+    sp->box = box[idx];
+    if (sp->box.x > sp->box.y) return 0;
+    __global const real *r = rec + idx * REC;
+    sp->uc = r[0]; sp->vc = r[1]; sp->straddle = r[3] != RC(0.0);
+    sp->k0 = RC(-2.0) * r[4]; sp->k1 = -r[5]; sp->k2 = RC(-2.0) * r[6];
+#if defined(EXACT) && defined(CONE)
+    sp->a1 = r[7]; sp->a2 = r[8]; sp->a3 = r[9]; sp->a4 = r[10]; sp->a5 = r[11];
+    sp->d0 = r[12]; sp->d1 = r[13]; sp->d2 = r[14]; sp->d3 = r[15]; sp->d4 = r[16]; sp->d5 = r[17];
+    sp->kap = r[18];
+#else
+    sp->kap = RC(1.0);
+#endif
+    sp->amp0 = r[REC - 1];
+    return 1;
+}
+
+/* work-item i handles Gaussians [i per, (i + 1) per) of one view (per > 1 on CPUs: fewer groups) */
+__kernel void preprocess(const int N, const int per, const int U, const int V, const real scale,
+                         __global const real *means, __global const real *mats, __global const real *rho,
+                         __global const real *vparams, __global real *rec, __global int4 *box)
+{
+    const int view = get_global_id(1);
+    const int g1 = min(N, (int)(get_global_id(0) + 1) * per);
+    for (int g = get_global_id(0) * per; g < g1; g++)
+        preprocess_one(g, view, N, U, V, scale, means, mats, rho, vparams, rec, box);
 }
 
 /* ------------------------------------------------------------------ forward */
-__kernel void render(const int N, const int U, const int V, const int ntx, const int ntiles,
-                     __global const real *rec, __global const int4 *box, __global const int *starts,
+/* Last binning pass (see binning.cl): each (chunk, view) work-item writes its Gaussians, in
+ * index order, at its own offsets in the tile lists, together with a copy of their record and
+ * row range, so that the render reads every list front to back instead of gathering records
+ * from all over memory (that gather, not the arithmetic, was what bounded the render). */
+__kernel void fill(const int N, const int chunk, const int nchunks, const int ntx, const int ntiles,
+                   __global const int4 *box, __global const real *rec, __global int *hist,
+                   __global const int *starts, __global int *list, __global real *prec, __global int2 *prow)
+{
+    const int c = get_global_id(0);
+    const int view = get_global_id(1);
+    if (c >= nchunks) return;
+    __global int *h = hist + ((size_t)view * nchunks + c) * ntiles;
+    __global const int *st = starts + (size_t)view * ntiles;
+    const int g1 = min(N, (c + 1) * chunk);
+    for (int g = c * chunk; g < g1; g++) {
+        const size_t idx = (size_t)view * N + g;
+        const int4 b = box[idx];
+        if (b.x > b.y) continue;
+        const int tx0 = b.x / TW, tx1 = b.y / TW, ty0 = b.z / TH, ty1 = b.w / TH;
+        for (int ty = ty0; ty <= ty1; ty++)
+            for (int tx = tx0; tx <= tx1; tx++) {
+                const int t = ty * ntx + tx;
+                const int pos = st[t] + h[t];
+                h[t] += 1;
+                list[pos] = g;
+                prow[pos] = b.zw;
+#if REC == 8
+                vstore8(vload8(0, rec + idx * REC), 0, prec + (size_t)pos * REC);
+#else
+                for (int i = 0; i < REC; i++) prec[(size_t)pos * REC + i] = rec[idx * REC + i];
+#endif
+            }
+    }
+}
+
+__kernel void render(const int U, const int V, const int ntx, const int ntiles,
+                     __global const real *prec, __global const int2 *prow, __global const int *starts,
                      __global const int *list, __global const real *means, __global const real *mats,
                      __global const real *rho, __global const real *vparams, const real scale,
                      __global real *out)
@@ -77,16 +130,15 @@ __kernel void render(const int N, const int U, const int V, const int ntx, const
     const real8 uu = (real)u0 + (real8)(RC(0.0), RC(1.0), RC(2.0), RC(3.0), RC(4.0), RC(5.0), RC(6.0), RC(7.0));
     const int beg = starts[view * ntiles + tile], end = starts[view * ntiles + tile + 1];
     for (int k = beg; k < end; k++) {
-        const int g = list[k];
-        const size_t idx = (size_t)view * N + g;
-        const int4 b = box[idx];
-        const int r0 = max(b.z, v0) - v0, r1 = min(b.w, v0 + TH - 1) - v0;
-        __global const real *R = rec + idx * REC;
+        const int2 b = prow[k];
+        const int r0 = max(b.x, v0) - v0, r1 = min(b.y, v0 + TH - 1) - v0;
+        __global const real *R = prec + (size_t)k * REC;
         const real uc = R[0], vc = R[1], amp = R[2];
-        const real nk0 = RC(-0.5) * R[4], nk1 = -R[5], nk2 = RC(-0.5) * R[6];
+        const real nk0 = R[4], nk1 = R[5], nk2 = R[6];
         const real8 du = uu - uc;
 #if defined(EXACT) && defined(CONE)
         if (R[3] != RC(0.0)) {
+            const int g = list[k];
             real3 p;
             real S[6];
             load_gauss(g, means, mats, &p, S);
@@ -99,13 +151,8 @@ __kernel void render(const int N, const int U, const int V, const int ntx, const
         }
         const real a1 = R[7], a2 = R[8], a3 = R[9], a4 = R[10], a5 = R[11];
         const real d0 = R[12], d1 = R[13], d2 = R[14], d3 = R[15], d4 = R[16], d5 = R[17];
-        const real M00 = R[4] - RC(QTEST) * a3, iM00 = RC(1.0) / M00, M01 = R[5] - RC(QTEST) * a4;
-        const real M11 = R[6] - RC(QTEST) * a5;
-        const real lo = (real)u0 - uc;
         for (int r = r0; r <= r1; r++) {
             const real dv = (real)(v0 + r) - vc;
-            if (!row_hits(M00, iM00, M01 * dv - RC(QTEST) * a1, (M11 * dv - RC(2.0 * QTEST) * a2) * dv - RC(QTEST), lo))
-                continue;
             const real nB = nk1 * dv, nC = nk2 * dv * dv;
             const real aB = RC(2.0) * (a1 + a4 * dv), aC = RC(1.0) + RC(2.0) * a2 * dv + a5 * dv * dv;
             const real dB = RC(2.0) * (d1 + d4 * dv), dC = d0 + RC(2.0) * d2 * dv + d5 * dv * dv;
@@ -114,18 +161,15 @@ __kernel void render(const int N, const int U, const int V, const int ntx, const
             const real8 DD = (d3 * du + dB) * du + dC;
             const real8 ia = RC(1.0) / A;
             const real8 x = arg * ia; /* -q/2 */
-            const real8 val = amp * sqrt(DD * ia) * fast_exp8(x);
+            const real8 val = amp * sqrt(DD * ia) * splat_exp8(x);
             acc[r] += select((real8)(RC(0.0)), val, x >= RC(-0.5 * QCUT));
         }
 #else
-        const real ik0 = RC(1.0) / R[4];
-        const real lo = (real)u0 - uc;
         for (int r = r0; r <= r1; r++) {
             const real dv = (real)(v0 + r) - vc;
-            if (!row_hits(R[4], ik0, R[5] * dv, R[6] * dv * dv - RC(QTEST), lo)) continue;
             const real nB = nk1 * dv, nC = nk2 * dv * dv;
             const real8 x = (nk0 * du + nB) * du + nC; /* -q/2 */
-            acc[r] += select((real8)(RC(0.0)), amp * fast_exp8(x), x >= RC(-0.5 * QCUT));
+            acc[r] += select((real8)(RC(0.0)), amp * splat_exp8(x), x >= RC(-0.5 * QCUT));
         }
 #endif
     }
@@ -144,6 +188,7 @@ __kernel void render(const int N, const int U, const int V, const int ntx, const
 }
 
 /* ------------------------------------------------------------------ backward */
+
 inline real hsum8(real8 x)
 {
     const real4 a = x.lo + x.hi;
@@ -151,20 +196,15 @@ inline real hsum8(real8 x)
     return b.x + b.y;
 }
 
-/* dL/dI of one aligned 8-pixel segment of row v starting at column s, lanes outside [lo, hi] zero */
-inline real8 load_grad(__global const real *gimg, int U, int v, int s, int lo, int hi)
+/* dL/dI of the 8 pixels of row v from column s (lanes past the detector edge repeat its last
+ * pixel; the caller masks lanes outside the Gaussian's box, which lies on the detector) */
+inline real8 load_row(__global const real *gimg, int U, int v, int s)
 {
     __global const real *row = gimg + (size_t)v * U;
-    real8 g;
-    if (s + 8 <= U) {
-        g = vload8(0, row + s);
-    } else {
-        real tmp[8];
-        for (int i = 0; i < 8; i++) tmp[i] = (s + i < U) ? row[s + i] : RC(0.0);
-        g = vload8(0, tmp);
-    }
-    const real8 uu = (real)s + (real8)(RC(0.0), RC(1.0), RC(2.0), RC(3.0), RC(4.0), RC(5.0), RC(6.0), RC(7.0));
-    return select((real8)(RC(0.0)), g, (uu >= (real)lo) & (uu <= (real)hi));
+    if (s + 8 <= U) return vload8(0, row + s);
+    real tmp[8];
+    for (int i = 0; i < 8; i++) tmp[i] = row[min(s + i, U - 1)];
+    return vload8(0, tmp);
 }
 
 inline void add_sym_outer(real *G, real c, real3 a, real3 b)
@@ -177,13 +217,12 @@ inline void add_sym_outer(real *G, real c, real3 a, real3 b)
     G[5] += c * a.z * b.z;
 }
 
-__kernel void backward(const int N, const int nviews, const int U, const int V, const real scale,
-                       __global const real *means, __global const real *mats, __global const real *rho,
-                       __global const real *vparams, __global const real *gimg,
-                       __global real *g_means, __global real *g_mats, __global real *g_rho)
+inline void backward_one(const int g, const int N, const int nviews, const int U, const int V, const real scale,
+                         const int cached, __global const real *rec, __global const int4 *box,
+                         __global const real *means, __global const real *mats, __global const real *rho,
+                         __global const real *vparams, __global const real *gimg,
+                         __global real *g_means, __global real *g_mats, __global real *g_rho)
 {
-    const int g = get_global_id(0);
-    if (g >= N) return;
     real3 p;
     real S[6];
     load_gauss(g, means, mats, &p, S);
@@ -197,10 +236,14 @@ __kernel void backward(const int N, const int nviews, const int U, const int V, 
     for (int view = 0; view < nviews; view++) {
         const View Vw = load_view(vparams, view);
         Splat sp;
-        if (!setup(p, S, Vw, scale, U, V, &sp)) continue;
+        if (cached) {
+            if (!load_splat(rec, box, (size_t)view * N + g, &sp)) continue;
+        } else if (!setup(p, S, Vw, scale, U, V, &sp)) {
+            continue;
+        }
         __global const real *gi = gimg + (size_t)view * V * U;
         const int4 b = sp.box;
-        const int s0 = b.x & ~7;
+        const int s0 = b.x; /* unaligned 8-pixel segments from the box edge: fewest segments */
 #if defined(EXACT) && defined(CONE)
         if (sp.straddle) {
             /* per-pixel closed form with the erfc factor; sums in world coordinates */
@@ -208,7 +251,8 @@ __kernel void backward(const int N, const int nviews, const int U, const int V, 
             real8 M0 = zero, M1 = zero, M2 = zero, M3 = zero, M4 = zero, M5 = zero;
             for (int v = b.z; v <= b.w; v++) {
                 for (int s = s0; s <= b.y; s += 8) {
-                    const real8 gg = load_grad(gi, U, v, s, b.x, b.y);
+                    const real8 uu = (real)s + lane;
+                    const real8 gg = select(zero, load_row(gi, U, v, s), (uu >= (real)b.x) & (uu <= (real)b.y));
                     real8 w[3], d[3], ia, beta, vnf;
                     const real8 val0 = straddle_eval(p, S, Vw, sp.amp0, (real)s + lane, (real)v, w, d, &ia, &beta, &vnf);
                     const real8 gv0 = gg * val0;
@@ -247,42 +291,41 @@ __kernel void backward(const int N, const int nviews, const int U, const int V, 
             real8 Sw0 = zero, Sw1 = zero, Sw2 = zero, S0 = zero;
             real8 W0 = zero, W1 = zero, W2 = zero, W3 = zero, W4 = zero, W5 = zero;
             real8 Q0 = zero, Qu = zero, Qv = zero, Quu = zero, Quv = zero, Qvv = zero;
-            const real M00 = sp.k0 - RC(QTEST) * sp.a3, iM00 = RC(1.0) / M00, M01 = sp.k1 - RC(QTEST) * sp.a4;
-            const real M11 = sp.k2 - RC(QTEST) * sp.a5;
-            for (int v = b.z; v <= b.w; v++) {
-                const real dv = (real)v - sp.vc;
-                const real rB = M01 * dv - RC(QTEST) * sp.a1, rC = (M11 * dv - RC(2.0 * QTEST) * sp.a2) * dv - RC(QTEST);
-                const real nB = nk1 * dv, nC = nk2 * dv * dv;
-                const real aB = RC(2.0) * (sp.a1 + sp.a4 * dv), aC = RC(1.0) + RC(2.0) * sp.a2 * dv + sp.a5 * dv * dv;
-                const real dB = RC(2.0) * (sp.d1 + sp.d4 * dv), dC = sp.d0 + RC(2.0) * sp.d2 * dv + sp.d5 * dv * dv;
-                const real alB = RC(2.0) * sp.a4 * dv + sp.a1, alC = dv * (sp.a5 * dv + sp.a2);
-                const real beC = RC(1.0) + sp.a2 * dv;
-                const real3 gvc = dv * gv;
-                for (int s = s0; s <= b.y; s += 8) {
-                    if (!row_hits(M00, iM00, rB, rC, (real)s - sp.uc)) continue;
-                    const real8 gg = load_grad(gi, U, v, s, b.x, b.y);
-                    const real8 du = (real)s + lane - sp.uc;
-                    const real8 arg = (nk0 * du + nB) * du + nC;
-                    const real8 A = (sp.a3 * du + aB) * du + aC;
-                    const real8 DD = (sp.d3 * du + dB) * du + dC;
+            for (int s = s0; s <= b.y; s += 8) {
+                /* 8-pixel segment outer, rows inner: the du parts of every polynomial once */
+                const real8 uu = (real)s + lane;
+                const mask8 lm = (uu >= (real)b.x) & (uu <= (real)b.y);
+                const real8 du = uu - sp.uc;
+                const real8 Ndu = nk0 * du * du, NB = nk1 * du;
+                const real8 Adu = RC(1.0) + (RC(2.0) * sp.a1 + sp.a3 * du) * du, AB = RC(2.0) * (sp.a4 * du + sp.a2);
+                const real8 Ddu = sp.d0 + (RC(2.0) * sp.d1 + sp.d3 * du) * du, DB = RC(2.0) * (sp.d4 * du + sp.d2);
+                const real8 alDu = (sp.a3 * du + sp.a1) * du, alB = RC(2.0) * sp.a4 * du + sp.a2;
+                const real8 beDu = RC(1.0) + sp.a1 * du;
+                const real8 gx = du * gu.x, gy = du * gu.y, gz = du * gu.z;
+                real8 c0 = zero, cv = zero, cvv = zero;
+                for (int v = b.z; v <= b.w; v++) {
+                    const real dv = (real)v - sp.vc;
+                    const real8 gg = load_row(gi, U, v, s);
+                    const real8 A = Adu + dv * (AB + sp.a5 * dv);
                     const real8 ia = RC(1.0) / A;
-                    const real8 x = arg * ia;
-                    const real8 val0 = select(zero, sp.amp0 * sqrt(DD * ia) * fast_exp8(x), x >= RC(-0.5 * QCUT));
-                    const real8 gI = gg * val0;
-                    const real8 al = ((sp.a3 * du + alB) * du + alC) * ia;
-                    const real8 be = (sp.a1 * du + beC) * ia * ik;
-                    const real8 w0 = al * e.x + be * (du * gu.x + gvc.x);
-                    const real8 w1 = al * e.y + be * (du * gu.y + gvc.y);
-                    const real8 w2 = al * e.z + be * (du * gu.z + gvc.z);
+                    const real8 x = (Ndu + dv * (NB + nk2 * dv)) * ia;
+                    const real8 DD = Ddu + dv * (DB + sp.d5 * dv);
+                    const real8 gI = select(zero, gg * sp.amp0 * sqrt(DD * ia) * splat_exp8(x), lm & (x >= RC(-0.5 * QCUT)));
+                    const real8 al = (alDu + dv * (alB + sp.a5 * dv)) * ia;
+                    const real8 be = (beDu + sp.a2 * dv) * ia * ik;
+                    const real8 w0 = al * e.x + be * (gx + dv * gv.x);
+                    const real8 w1 = al * e.y + be * (gy + dv * gv.y);
+                    const real8 w2 = al * e.z + be * (gz + dv * gv.z);
                     S0 += gI;
                     const real8 gw0 = gI * w0, gw1 = gI * w1, gw2 = gI * w2;
                     Sw0 += gw0; Sw1 += gw1; Sw2 += gw2;
                     W0 += gw0 * w0; W1 += gw0 * w1; W2 += gw0 * w2;
                     W3 += gw1 * w1; W4 += gw1 * w2; W5 += gw2 * w2;
                     const real8 gIa = gI * ia;
-                    Q0 += gIa; Qu += gIa * du; Qv += gIa * dv;
-                    Quu += gIa * du * du; Quv += gIa * du * dv; Qvv += gIa * dv * dv;
+                    c0 += gIa; cv += gIa * dv; cvv += gIa * (dv * dv);
                 }
+                Q0 += c0; Qu += du * c0; Quu += du * du * c0;
+                Qv += cv; Quv += du * cv; Qvv += cvv;
             }
             const real3 Sw = (real3)(hsum8(Sw0), hsum8(Sw1), hsum8(Sw2));
             gp += rh * symv(S, Sw);
@@ -305,21 +348,21 @@ __kernel void backward(const int N, const int nviews, const int U, const int V, 
         /* conic splat (affine, or exact parallel): 6 moments of g E over the box */
         const real nk0 = RC(-0.5) * sp.k0, nk1 = -sp.k1, nk2 = RC(-0.5) * sp.k2;
         real8 S0 = zero, Su = zero, Sv = zero, Suu = zero, Suv = zero, Svv = zero;
-        const real ik0 = RC(1.0) / sp.k0;
-        for (int v = b.z; v <= b.w; v++) {
-            const real dv = (real)v - sp.vc;
-            const real nB = nk1 * dv, nC = nk2 * dv * dv;
-            const real rB = sp.k1 * dv, rC = sp.k2 * dv * dv - RC(QTEST);
-            for (int s = s0; s <= b.y; s += 8) {
-                if (!row_hits(sp.k0, ik0, rB, rC, (real)s - sp.uc)) continue;
-                const real8 gg = load_grad(gi, U, v, s, b.x, b.y);
-                const real8 du = (real)s + lane - sp.uc;
-                const real8 x = (nk0 * du + nB) * du + nC;
-                const real8 gE = select(zero, gg * fast_exp8(x), x >= RC(-0.5 * QCUT));
-                const real8 gEu = gE * du;
-                S0 += gE; Su += gEu; Suu += gEu * du;
-                Sv += gE * dv; Suv += gEu * dv; Svv += gE * (dv * dv);
+        for (int s = s0; s <= b.y; s += 8) {
+            /* 8-pixel segment outer, rows inner; row moments summed per segment */
+            const real8 uu = (real)s + lane;
+            const mask8 lm = (uu >= (real)b.x) & (uu <= (real)b.y);
+            const real8 du = uu - sp.uc;
+            const real8 A8 = nk0 * du * du, B8 = nk1 * du;
+            real8 c0 = zero, cv = zero, cvv = zero;
+            for (int v = b.z; v <= b.w; v++) {
+                const real dv = (real)v - sp.vc;
+                const real8 x = A8 + dv * (B8 + nk2 * dv);
+                const real8 gE = select(zero, load_row(gi, U, v, s) * splat_exp8(x), lm & (x >= RC(-0.5 * QCUT)));
+                c0 += gE; cv += gE * dv; cvv += gE * (dv * dv);
             }
+            S0 += c0; Su += du * c0; Suu += du * du * c0;
+            Sv += cv; Suv += du * cv; Svv += cvv;
         }
         const real s0_ = hsum8(S0), su = hsum8(Su), sv = hsum8(Sv);
         const real suu = hsum8(Suu), suv = hsum8(Suv), svv = hsum8(Svv);
@@ -343,7 +386,7 @@ __kernel void backward(const int N, const int nviews, const int U, const int V, 
             const real l = sqrt(tx * tx + ty * ty + tz * tz);
             T1 = (Vw.fx * iz) * (Vw.eu - (tx * iz) * Vw.w);
             T2 = (Vw.fy * iz) * (Vw.ev - (ty * iz) * Vw.w);
-            T3 = pm / l;
+            T3 = pm * (RC(1.0) / l);
 #else
             T1 = Vw.fx * Vw.eu; T2 = Vw.fy * Vw.ev; T3 = Vw.w;
 #endif
@@ -413,6 +456,20 @@ __kernel void backward(const int N, const int nviews, const int U, const int V, 
 #ifndef NO_GRAD_DENSITY
     g_rho[g] = grho;
 #endif
+}
+
+/* work-item i handles Gaussians [i per, (i + 1) per), each over every view; cached != 0: reuse
+ * the set-up the forward left in rec and box (same inputs and views), else recompute it */
+__kernel void backward(const int N, const int per, const int nviews, const int U, const int V, const real scale,
+                       const int cached, __global const real *rec, __global const int4 *box,
+                       __global const real *means, __global const real *mats, __global const real *rho,
+                       __global const real *vparams, __global const real *gimg,
+                       __global real *g_means, __global real *g_mats, __global real *g_rho)
+{
+    const int g1 = min(N, (int)(get_global_id(0) + 1) * per);
+    for (int g = get_global_id(0) * per; g < g1; g++)
+        backward_one(g, N, nviews, U, V, scale, cached, rec, box, means, mats, rho, vparams, gimg, g_means, g_mats,
+                     g_rho);
 }
 
 /* ------------------------------------------------------------------ exp throughput probe */

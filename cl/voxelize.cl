@@ -62,15 +62,16 @@ inline gauss_t load_gauss(global const real *gs, int i)
  * [p - e, p + e], widened by BIN_MARGIN; 0 when it misses them all (or is NaN). */
 inline int cell_range(real p, real e, real o, real inv_s, int n, int *lo, int *hi)
 {
-    real slack = BIN_MARGIN + (fabs(p) + e + fabs(o)) * inv_s * (4 * REAL_EPS);
+    /* no builtin calls: this runs for every Gaussian, most of them culled for a small block */
+    real slack = BIN_MARGIN + ((p < 0 ? -p : p) + e + (o < 0 ? -o : o)) * inv_s * (4 * REAL_EPS);
     real a = (p - e - o) * inv_s - slack;
     real b = (p + e - o) * inv_s + slack;
     if (!(b >= (real)0) || !(a < (real)n))
         return 0;
-    a = fmax(a, (real)0);
-    b = fmin(b, (real)(n - 1));
-    *lo = (int)floor(a);
-    *hi = (int)floor(b);
+    a = a > (real)0 ? a : (real)0;
+    b = b < (real)(n - 1) ? b : (real)(n - 1);
+    *lo = (int)a; /* truncation is floor here: both are >= 0 */
+    *hi = (int)b;
     return 1;
 }
 
@@ -112,7 +113,9 @@ inline int gauss_cells_mode(gauss_t g, int home, CELL_ARGS, int *x0, int *x1, in
 /* ------------------------------------------------------------------------------------------ */
 /* Binning: counting sort of (cell, Gaussian) pairs. hist is (ncells, nchunks), zeroed by the host. */
 
-kernel void bin_count(global const real *gs, int n, int chunk, int nchunks, int home, CELL_ARGS, global int *hist)
+/* also stores each Gaussian's cell box in ranges (8 ints; x0 = -1 when culled) for bin_fill */
+kernel void bin_count(global const real *gs, int n, int chunk, int nchunks, int home, CELL_ARGS, global int *hist,
+                      global int *ranges)
 {
     int c = get_global_id(0);
     if (c >= nchunks)
@@ -120,8 +123,12 @@ kernel void bin_count(global const real *gs, int n, int chunk, int nchunks, int 
     int i1 = min(n, (c + 1) * chunk);
     for (int i = c * chunk; i < i1; i++) {
         int x0, x1, y0, y1, z0, z1;
-        if (!gauss_cells_mode(load_gauss(gs, i), home, ox, oy, oz, isx, isy, isz, ncx, ncy, ncz, &x0, &x1, &y0, &y1, &z0, &z1))
+        global int *rg = ranges + (size_t)i * 8;
+        if (!gauss_cells_mode(load_gauss(gs, i), home, ox, oy, oz, isx, isy, isz, ncx, ncy, ncz, &x0, &x1, &y0, &y1, &z0, &z1)) {
+            rg[0] = -1;
             continue;
+        }
+        rg[0] = x0; rg[1] = x1; rg[2] = y0; rg[3] = y1; rg[4] = z0; rg[5] = z1;
         for (int z = z0; z <= z1; z++)
             for (int y = y0; y <= y1; y++)
                 for (int x = x0; x <= x1; x++)
@@ -145,32 +152,36 @@ kernel void bin_cell_offsets(global int *hist, int nchunks, int ncells, global i
     total[cell] = s;
 }
 
-/* exclusive scan of the cell totals: start[ncells] is the length of the whole list */
+/* exclusive scan of the cell totals: start[ncells] is the length of the whole list, or -1 when
+ * it would not fit in an int (the host reports that) */
 kernel void bin_scan(global const int *total, int ncells, global int *start)
 {
     if (get_global_id(0) != 0)
         return;
-    int s = 0;
+    long s = 0;
     for (int i = 0; i < ncells; i++) {
-        start[i] = s;
+        start[i] = (int)min(s, (long)INT_MAX);
         s += total[i];
     }
-    start[ncells] = s;
+    start[ncells] = s > (long)INT_MAX ? -1 : (int)s;
 }
 
 /* list gets the Gaussian indices; when copy != 0, packed gets their GSTRIDE-real records in list
  * order too, so the forward kernels read them sequentially instead of chasing indices. */
-kernel void bin_fill(global const real *gs, int n, int chunk, int nchunks, int home, CELL_ARGS, global int *hist,
-                     global const int *start, global int *list, int copy, global real *packed)
+kernel void bin_fill(global const real *gs, int n, int chunk, int nchunks, int ncx, int ncy, global int *hist,
+                     global const int *ranges, global const int *start, global int *list, int copy,
+                     global real *packed)
 {
     int c = get_global_id(0);
     if (c >= nchunks)
         return;
     int i1 = min(n, (c + 1) * chunk);
     for (int i = c * chunk; i < i1; i++) {
-        int x0, x1, y0, y1, z0, z1;
-        if (!gauss_cells_mode(load_gauss(gs, i), home, ox, oy, oz, isx, isy, isz, ncx, ncy, ncz, &x0, &x1, &y0, &y1, &z0, &z1))
+        global const int *rg = ranges + (size_t)i * 8;
+        int x0 = rg[0];
+        if (x0 < 0)
             continue;
+        int x1 = rg[1], y0 = rg[2], y1 = rg[3], z0 = rg[4], z1 = rg[5];
         for (int z = z0; z <= z1; z++)
             for (int y = y0; y <= y1; y++)
                 for (int x = x0; x <= x1; x++) {
@@ -330,6 +341,9 @@ kernel void vox_grid_grad(global const real *gs, global const int *order, int n,
         while (z1 >= z0 && zs[z1] - g.pz > g.ez)
             z1--;
         real a = (real)-0.5 * g.pxx;
+        /* per-lane sums, reduced once at the end */
+        real8 v_a = (real8)(0), v_ax = v_a, v_ay = v_a, v_az = v_a, v_axx = v_a, v_axy = v_a, v_axz = v_a,
+              v_ayy = v_a, v_ayz = v_a, v_azz = v_a;
         for (int z = z0; z <= z1; z++) {
             real dz = zs[z] - g.pz;
             real cz2 = (real)-0.5 * g.pzz * dz * dz;
@@ -362,24 +376,26 @@ kernel void vox_grid_grad(global const real *gs, global const int *order, int n,
                     s2 += ge * dx * dx;
 #endif
                 }
-                real r0 = hsum8(s0);
-                m.a += r0;
+                v_a += s0;
 #ifdef NEED_FIRST
-                real r1 = hsum8(s1);
-                m.ax += r1;
-                m.ay += dy * r0;
-                m.az += dz * r0;
+                v_ax += s1;
+                v_ay += dy * s0;
+                v_az += dz * s0;
 #endif
 #ifdef NEED_SECOND
-                m.axx += hsum8(s2);
-                m.axy += dy * r1;
-                m.axz += dz * r1;
-                m.ayy += dy * dy * r0;
-                m.ayz += dy * dz * r0;
-                m.azz += dz * dz * r0;
+                v_axx += s2;
+                v_axy += dy * s1;
+                v_axz += dz * s1;
+                v_ayy += (dy * dy) * s0;
+                v_ayz += (dy * dz) * s0;
+                v_azz += (dz * dz) * s0;
 #endif
             }
         }
+        m.a = hsum8(v_a);
+        m.ax = hsum8(v_ax); m.ay = hsum8(v_ay); m.az = hsum8(v_az);
+        m.axx = hsum8(v_axx); m.axy = hsum8(v_axy); m.axz = hsum8(v_axz);
+        m.ayy = hsum8(v_ayy); m.ayz = hsum8(v_ayz); m.azz = hsum8(v_azz);
     }
     write_grad(grad, i, g, m);
 }

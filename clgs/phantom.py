@@ -39,6 +39,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# version of the phantom model: part of the key of cached models built from phantoms
+PHANTOM_VERSION = 1
+
 # tissue codes of the label map returned with every phantom (dominant tissue per voxel)
 AIR, SKIN, FAT, MUSCLE, MARROW, TRABECULAR, CORTICAL = range(7)
 TISSUE_NAMES = ("air", "skin", "fat", "muscle", "marrow", "trabecular", "cortical")
@@ -197,45 +200,59 @@ def _owns(e, p, q, u, w):
     return (e > 0) | ((e == 0) & ((ddy < 0) | ((ddy == 0) & (ddx < 0))))
 
 
-def point_mesh_distance(points, vertices, faces, k: int = 16, max_edge: float | None = None,
-                        chunk: int = 20000) -> np.ndarray:
+def point_mesh_distance(points, vertices, faces, k: int = 16, chunk: int = 20000) -> np.ndarray:
     """Unsigned Euclidean distance (mm) from points (N, 3) to a triangle mesh, exact.
 
-    Candidates are the ``k`` triangles with the nearest centroids (KD-tree); the distance to each
-    is exact (plane if the foot lies inside the triangle, else the nearest edge). The result is
-    certified: a triangle outside the candidates has its centroid at least D_k (the k-th centroid
-    distance) away, so it is at least D_k - r_max away (r_max: the largest centroid-to-corner
-    radius); points without that guarantee are redone with twice as many candidates. With
-    ``max_edge`` long triangles are first split (midpoint subdivision, same surface) so r_max
-    stays small and few points need a second pass."""
+    An upper bound U comes from the ``k`` triangles with the nearest centroids (the k-th at
+    distance D_k). Then every triangle that could be closer is visited (only groups with
+    D_k - r_max < U can hold one): a triangle whose centroid is farther than
+    U + r (r: its centroid-to-corner radius) cannot be. Triangles are grouped by radius (powers
+    of two, largest first, each group with its own KD-tree) so that a few long slivers do not
+    widen the search for all the others; U tightens after each group. The distance to each
+    candidate is exact (the plane when the foot is inside the triangle, else the nearest edge)."""
     from scipy.spatial import cKDTree
 
     v, f = np.asarray(vertices, float), np.asarray(faces, np.int64)
-    if max_edge is not None:
-        import trimesh
-
-        v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=float(max_edge), max_iter=20)
-        f = np.asarray(f, np.int64)
     pts = np.asarray(points, float).reshape(-1, 3)
+    if len(pts) == 0:
+        return np.zeros(0)
     tri = v[f]
     centroid = tri.mean(1)
-    r_max = float(np.linalg.norm(tri - centroid[:, None], axis=-1).max())
+    radius = np.linalg.norm(tri - centroid[:, None], axis=-1).max(1)
+    level = np.floor(np.log2(np.maximum(radius, 1e-9))).astype(int)
+    groups = []
+    for lv in sorted(set(level.tolist()), reverse=True):
+        members = np.nonzero(level == lv)[0]
+        groups.append((members, cKDTree(centroid[members]), float(radius[members].max())))
     tree = cKDTree(centroid)
-    out = np.empty(len(pts))
-    todo = np.arange(len(pts))
     k = int(min(k, len(f)))
-    while todo.size:
-        nxt = []
-        for s in range(0, todo.size, chunk):
-            sel = todo[s:s + chunk]
-            dk, idx = tree.query(pts[sel], k=k)
-            idx = idx.reshape(len(sel), k)
-            best = np.sqrt(_tri_d2(pts[sel], tri[idx]).min(1))
-            out[sel] = best
-            if k < len(f):
-                nxt.append(sel[best > dk.reshape(len(sel), k)[:, -1] - r_max])
-        todo = np.concatenate(nxt) if nxt else np.zeros(0, np.int64)
-        k = min(2 * k, len(f))
+    out = np.empty(len(pts))
+    for s in range(0, len(pts), chunk):
+        p = pts[s:s + chunk]
+        dk, idx = tree.query(p, k=k)
+        best = _tri_d2(p, tri[idx.reshape(len(p), k)]).min(1)
+        dk = dk.reshape(len(p), k)[:, -1]  # every other centroid is at least this far
+        for members, gtree, rmax in groups:
+            if k == len(f):
+                break
+            act = np.nonzero(dk - rmax < np.sqrt(best))[0]  # points this group might still improve
+            if act.size == 0:
+                continue
+            lists = gtree.query_ball_point(p[act], r=np.sqrt(best[act]) + rmax + 1e-9)
+            lens = np.fromiter(map(len, lists), dtype=np.int64, count=act.size)
+            if lens.sum() == 0:
+                continue
+            cand = members[np.concatenate([np.asarray(x, np.int64) for x in lists if len(x)])]
+            owner = np.repeat(act, lens)
+            # the triangle's own bounding sphere must reach within the current bound
+            gap = np.linalg.norm(p[owner] - centroid[cand], axis=1) - radius[cand]
+            keep = gap * np.abs(gap) < best[owner]
+            cand, owner = cand[keep], owner[keep]
+            if cand.size == 0:
+                continue
+            d2 = _tri_d2(p[owner], tri[cand][:, None])[:, 0]
+            np.minimum.at(best, owner, d2)
+        out[s:s + chunk] = np.sqrt(best)
     return out
 
 
@@ -266,7 +283,7 @@ def _seg_d2(q, a, b):
     return np.einsum("...i,...i->...", d, d)
 
 
-def signed_distance(shape, grid, band_voxels: float = 2.5) -> np.ndarray:
+def signed_distance(shape, grid, band_voxels: float = 1.5) -> np.ndarray:
     """Signed distance (float32 mm, negative inside) on ``grid``.
 
     ``shape`` is a bool label volume (Z, Y, X) or a closed mesh ``(vertices, faces)``. From a
@@ -301,7 +318,11 @@ def signed_distance(shape, grid, band_voxels: float = 2.5) -> np.ndarray:
         kk, jj, ii = np.nonzero(band)
         xs, ys, zs = grid_axes(grid)
         pts = np.stack([xs[ii], ys[jj], zs[kk]], 1)
-        d = point_mesh_distance(pts, *mesh, max_edge=2.0 * h)
+        import trimesh
+
+        # split long slivers (same surface) so that few triangles need the wide search
+        fine = trimesh.remesh.subdivide_to_size(mesh[0], mesh[1], max_edge=1.5 * h, max_iter=12)
+        d = point_mesh_distance(pts, fine[0], fine[1])
         sdf[band] = np.where(label[band], -d, d)
     return sdf.astype(np.float32)
 
@@ -377,7 +398,6 @@ def align_rigid(vertices, reference_vertices, allow_mirror: bool = True, max_ite
     best = None
     for mirrored in ([False, True] if allow_mirror else [False]):
         src = mov * np.array([-1.0 if mirrored else 1.0, 1.0, 1.0])
-        src_tree = cKDTree(src)
         e_src = _pca_axes(src)
         for signs in ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)):
             rot = e_ref @ np.diag(signs) @ e_src.T
@@ -399,7 +419,6 @@ def align_rigid(vertices, reference_vertices, allow_mirror: bool = True, max_ite
             rms = float(np.sqrt(0.5 * (np.mean(d1 * d1) + np.mean(d2 * d2))))
             if best is None or rms < best.rms_mm:
                 best = Alignment(rot, trans, mirrored, rms, it)
-        del src_tree
     return best
 
 
@@ -573,10 +592,14 @@ def limb_distance(label, grid, soft: SoftTissue) -> np.ndarray:
     hx, hy = 0.5 * (xhi - xlo)[near], 0.5 * (yhi - ylo)[near]
     sig = soft.smooth_mm / grid.spacing[2]
     if sig > 0 and nz > 1:
+        from scipy.ndimage import maximum_filter1d
+
         cx, cy = gaussian_filter1d(cx, sig, mode="nearest"), gaussian_filter1d(cy, sig, mode="nearest")
-        # smooth the half-extents but never below the slice's own bone extent
-        hx = np.maximum(gaussian_filter1d(hx, sig, mode="nearest"), hx)
-        hy = np.maximum(gaussian_filter1d(hy, sig, mode="nearest"), hy)
+        # a smooth envelope of the half-extents (running maximum, then smoothed) that never dips
+        # below the slice's own bone extent, so the limb has no steps where the bone widens
+        win = 2 * int(np.ceil(2 * sig)) + 1
+        hx = np.maximum(gaussian_filter1d(maximum_filter1d(hx, win, mode="nearest"), sig, mode="nearest"), hx)
+        hy = np.maximum(gaussian_filter1d(maximum_filter1d(hy, win, mode="nearest"), sig, mode="nearest"), hy)
     a = np.maximum(soft.min_semi_axes_mm[0], hx + soft.margin_mm + soft.fat_mm + soft.skin_mm)
     b = np.maximum(soft.min_semi_axes_mm[1], hy + soft.margin_mm + soft.fat_mm + soft.skin_mm)
     cx = cx + soft.offset_mm[0]
@@ -838,7 +861,7 @@ class SurfacePopulation:
         record = {"ids": self.population(), "grid": [list(self.grid.shape), list(self.grid.origin),
                                                      list(self.grid.spacing)],
                   "offset": list(self.frame_offset), "params": repr(self.params),
-                  "builder": self.builder_settings, "model": 1}
+                  "builder": self.builder_settings, "phantom": PHANTOM_VERSION}
         h.update(json.dumps(record, sort_keys=True).encode())
         return h.hexdigest()[:12]
 
@@ -907,16 +930,25 @@ class SurfacePopulation:
         v, f = al.apply_mesh(vertices, faces)
         return v, f, al
 
-    def subject_from_mesh(self, path, seed: int = 0, align: bool = True, sid: str | None = None):
-        """A simulated CT subject from a mesh file (STL/PLY/OBJ/npz, mm): (Subject, Alignment or None)."""
+    def subject_from_mesh(self, path, seed: int = 0, align: bool = True, sid: str | None = None, echo=print):
+        """A simulated CT subject from a mesh file (STL/PLY/OBJ/npz, mm, either side, any frame),
+        rigidly aligned to the template first (the fit is reported through ``echo``; None for
+        silence): (Subject, Alignment or None)."""
         import os
 
         from clgs.template import Subject
 
         v, f = load_mesh(path)
+        check_mesh(v, f)
         al = None
         if align:
             v, f, al = self.align_mesh(v, f)
+            if echo is not None:
+                echo(f"aligned {os.fspath(path)} to the {self.name} template: "
+                     f"{'mirrored (other side), ' if al.mirrored else ''}RMS {al.rms_mm:.2f} mm after "
+                     f"{al.iterations} ICP iterations\nrotation:\n"
+                     + np.array2string(al.rotation, precision=4, suppress_small=True)
+                     + "\ntranslation (mm): " + np.array2string(al.translation, precision=2))
         ph = make_phantom(v, f, self.grid, self.params, seed=seed)
         g = ph.grid
         meta = {"anatomy": self.name, "seed": int(seed), "source": os.path.abspath(os.fspath(path))}
@@ -925,54 +957,6 @@ class SurfacePopulation:
         subj = Subject(sid or os.path.splitext(os.path.basename(os.fspath(path)))[0], v, f, volume=ph.volume,
                        spacing=tuple(g.spacing[::-1]), origin=tuple(g.origin[::-1]), meta=meta)
         return subj, al
-
-    def simulate_mesh(self, mesh, out=None, n_views: int = 50, arc: float = np.pi, seed: int = 0,
-                      noise: bool = True, echo=print):
-        """Mesh file -> aligned phantom -> projections with the default scanner; saved as a clgs
-        scan folder when ``out`` is given. Returns (Scan, Alignment)."""
-        from clgs.ct.projector import CTProjector
-        from clgs.io.scan import Scan
-
-        subject, al = self.subject_from_mesh(mesh, seed=seed)
-        echo(f"aligned {mesh} to the {self.name} template: {'mirrored (right side), ' if al.mirrored else ''}"
-             f"RMS {al.rms_mm:.2f} mm after {al.iterations} ICP iterations")
-        echo("rotation:\n" + np.array2string(al.rotation, precision=4, suppress_small=True))
-        echo("translation (mm): " + np.array2string(al.translation, precision=2))
-        geo = self.geometry(n_views=n_views, arc=arc)
-        proj = CTProjector(geo).forward(subject.volume)
-        proj = np.asarray(proj.detach().cpu().numpy() if hasattr(proj, "detach") else proj, np.float32)
-        if noise:
-            from clgs.ct.noise import add_noise
-
-            proj = add_noise(proj, seed=seed)
-            proj = np.asarray(proj.detach().cpu().numpy() if hasattr(proj, "detach") else proj, np.float32)
-        scan = Scan(geo, proj, truth=subject.volume, meta={"anatomy": self.name, **subject.meta})
-        if out is not None:
-            scan.save(out)
-            echo(f"wrote {out}")
-        return scan, al
-
-    def mesh_command(self):
-        """The click command ``simulate-mesh`` of this anatomy's CLI group."""
-        import click
-
-        pop = self
-
-        @click.command("simulate-mesh")
-        @click.argument("mesh", type=click.Path(exists=True, dir_okay=False))
-        @click.option("--out", required=True, type=click.Path(file_okay=False), help="scan folder to write")
-        @click.option("--views", default=50, show_default=True, help="number of projections over the arc")
-        @click.option("--arc", default=180.0, show_default=True, help="arc in degrees")
-        @click.option("--seed", default=0, show_default=True, help="density variation and noise seed")
-        @click.option("--noise/--no-noise", default=True, show_default=True, help="Poisson and electronic noise")
-        def simulate_mesh(mesh, out, views, arc, seed, noise):
-            """Simulate a CT scan of a bone surface (STL/PLY/OBJ/npz, mm, left or right, any frame):
-            rigidly aligned to the template (mirrored if from the other side), filled with the
-            anatomy's density model and projected with its default scanner."""
-            pop.simulate_mesh(mesh, out, n_views=views, arc=np.deg2rad(arc), seed=seed, noise=noise,
-                              echo=click.echo)
-
-        return simulate_mesh
 
     # ---- plugin
     def geometry(self, n_views: int = 50, arc: float = np.pi):
@@ -985,15 +969,21 @@ class SurfacePopulation:
         return Geometry.from_dict(d)
 
     def anatomy(self, commands=()):
-        """The :class:`clgs.anatomy.Anatomy` handed to clgs (loaders stay lazy)."""
+        """The :class:`clgs.anatomy.Anatomy` handed to clgs (loaders stay lazy), with two extra
+        attributes: ``subject_from_mesh`` and ``population_model`` (this object)."""
         from clgs.anatomy import Anatomy
 
         try:
             path = self.model_path
         except OSError:
             path = None
-        return Anatomy(name=self.name, summary=self.summary, version=self.version,
-                       load_template=self.load_template, load_shape_model=self.load_shape_model,
-                       load_atlas=self.load_atlas, population=self.population, test_subjects=self.test_subjects,
-                       load_subject=self.load_subject, build_model=self.build_model, scene=dict(self.scene),
-                       commands=list(commands), model_path=path)
+        anatomy = Anatomy(name=self.name, summary=self.summary, version=self.version,
+                          load_template=self.load_template, load_shape_model=self.load_shape_model,
+                          load_atlas=self.load_atlas, population=self.population,
+                          test_subjects=self.test_subjects, load_subject=self.load_subject,
+                          build_model=self.build_model, scene=dict(self.scene), commands=list(commands),
+                          model_path=path)
+        # optional extra used by ``clgs <name> simulate --mesh FILE``: align, then fill with density
+        anatomy.subject_from_mesh = self.subject_from_mesh
+        anatomy.population_model = self
+        return anatomy

@@ -29,18 +29,28 @@ result.
 Compiled variants (``-D`` options of ``cl/gaussian_project.cl``; one program per set, compiled
 on first use in a process and cached by ``clgs.runtime``):
 
-=================  ==========================================================================
-``CONE``           cone beam (``geometry.mode == "cone"``); absent: parallel beam
-``EXACT``          ``mode="exact"`` (kernels take packed precision); absent: affine (packed
-                   covariance)
-``REAL=double``    float64 inputs (tests, gradcheck); default float
-``NO_GRAD_MEAN``,  backward only: set when means / the covariance-or-precision / densities do
-``NO_GRAD_COV``,   not require grad, so the kernel leaves those sums out (the forward program
-``NO_GRAD_DENSITY`` is built once per beam, mode and precision)
-``TW=8, TH=16``    tile size of the forward (fixed; also used by ``cl/binning.cl``)
-=================  ==========================================================================
+* ``CONE`` when ``geometry.mode == "cone"``, absent for parallel beam;
+* ``EXACT`` for ``mode="exact"`` (kernels take the packed precision), absent for affine (packed
+  covariance);
+* ``REAL=double`` for float64 inputs (tests, gradcheck), else float;
+* ``NO_GRAD_MEAN`` / ``NO_GRAD_COV`` / ``NO_GRAD_DENSITY`` in the backward's program when the
+  means / the covariance-or-precision / the densities need no gradient (the forward kernels are
+  the same in every gradient variant; in practice the forward program is the all-gradients one);
+* ``TW=8``, ``TH=16``: the forward's tile (fixed; ``cl/binning.cl`` gets the same).
 
-``cl/binning.cl`` (per-tile lists, counting sort, no atomics) is built once per tile size.
+The splat loops use ``splat_exp8`` (``cl/project_setup.h``): ``fastexp.h``'s method with a
+degree-5 fitted polynomial and no range handling, valid on the kept range ``-4.5 <= x <= 0``.
+
+``cl/binning.cl`` (per-tile list counts, no atomics) is built once per tile size.
+
+Pipeline of one forward call (all on the device, one read-back of the list length):
+``preprocess`` (per view and Gaussian: centre, conic or exact-cone polynomials, amplitude,
+footprint box, culling) -> ``bin_hist`` / ``bin_totals`` / ``bin_scan`` (deterministic counting
+sort into 8 x 16 tiles) -> ``fill`` (lists in Gaussian index order, each entry with a copy of its
+record so the render streams them) -> ``render`` (a work-item per tile, real8 rows). The
+backward is one kernel, a work-item per Gaussian run of 16 (CPU) gathering over its own box in
+every view; when it directly follows the forward of the same inputs (the autograd op passes the
+forward's token) it reuses the forward's per-(view, Gaussian) set-up instead of recomputing it.
 
 Conventions: the detector's u and v axes are perpendicular to each other and to the central
 ray (as every ``clgs.geometry.Geometry`` is). Forward and backward are gathers: every output is
@@ -48,7 +58,6 @@ written by one work-item, so same input gives the same bits.
 """
 from __future__ import annotations
 
-import math
 import threading
 
 import numpy as np
@@ -111,8 +120,11 @@ class GaussianProjector:
     are copied through pooled device buffers. One projector serialises its own calls.
     """
 
-    LOCAL_G = 64  # work-group size of the per-Gaussian kernels (global sizes are padded to it)
-    LOCAL_TILE = (2, 2, 1)
+    # Work-group sizes. PoCL's CPU device runs these kernels fastest one work-item per group
+    # (its work-group vectoriser only gets in the way of explicit real8 code); GPUs want groups.
+    # Per-Gaussian kernels: on CPUs each work-item takes PER consecutive Gaussians.
+    LOCAL_G_CPU, LOCAL_TILE_CPU, PER_CPU = 1, (1, 1, 1), 16
+    LOCAL_G_GPU, LOCAL_TILE_GPU, PER_GPU = 64, (8, 8, 1), 1
 
     def __init__(self):
         from . import runtime
@@ -121,7 +133,15 @@ class GaussianProjector:
         self.ctx = runtime.get_context()
         self.queue = runtime.get_queue()
         self.cpu = runtime.is_cpu_device()
+        self.LOCAL_G = self.LOCAL_G_CPU if self.cpu else self.LOCAL_G_GPU
+        self.LOCAL_TILE = self.LOCAL_TILE_CPU if self.cpu else self.LOCAL_TILE_GPU
+        self.PER = self.PER_CPU if self.cpu else self.PER_GPU
         self._pool: dict = {}
+        self._keep: list = []  # host arrays the queued commands still read
+        self._token = 0  # counts forward calls; the records in the pool belong to call _rec_token
+        self._rec_token = None
+        self.last_token = None
+        self.extra_defines: dict = {}  # tuning experiments only
         self._lock = threading.Lock()
 
     # ----------------------------------------------------------------------------- plumbing
@@ -130,6 +150,7 @@ class GaussianProjector:
         defines["NO_GRAD_MEAN"] = not grads[0]
         defines["NO_GRAD_COV"] = not grads[1]
         defines["NO_GRAD_DENSITY"] = not grads[2]
+        defines.update(self.extra_defines)
         return self._runtime.get_program("gaussian_project.cl", defines, self.ctx)
 
     def _binning(self):
@@ -152,8 +173,12 @@ class GaussianProjector:
         if arr.size == 0:
             return self._pooled(name, 16)
         if self.cpu:
+            if not (arr.flags.c_contiguous and arr.flags.writeable):
+                arr = np.array(arr, order="C")  # the driver wraps writable C-ordered memory only
+            self._keep.append(arr)  # alive until the call's results are read back
             return cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
         buf = self._pooled(name, arr.nbytes)
+        self._keep.append(arr)
         cl.enqueue_copy(self.queue, buf, arr, is_blocking=False)
         return buf
 
@@ -195,6 +220,9 @@ class GaussianProjector:
         self._check(means, mats, densities)
         real = _real_name(means.dtype)
         dt = means.dtype
+        if mats.dtype != dt or densities.dtype != dt:
+            raise ProjectorError(f"means, matrices and densities must share one dtype, got {means.dtype}, "
+                                 f"{mats.dtype}, {densities.dtype}")
         views = np.asarray(views, np.int64).reshape(-1)
         if views.size == 0:
             raise ProjectorError("no views asked for: pass at least one view index")
@@ -215,6 +243,9 @@ class GaussianProjector:
             V, U = geometry.nDetector
             nv, N = len(views), means.shape[0]
             out = np.empty((nv, V, U), dt)
+            self._token += 1
+            self.last_token = self._token
+            self._rec_token = None
             if N == 0:
                 out[...] = 0
                 return out
@@ -230,7 +261,8 @@ class GaussianProjector:
             b_rec = self._pooled(f"rec{dt.itemsize}", nv * N * rec_len * dt.itemsize)
             b_box = self._pooled("box", nv * N * 16)
             LG = self.LOCAL_G
-            prog.kernel("preprocess")(q, (_round_up(N, LG), nv), (LG, 1), i32(N), i32(U), i32(V),
+            nitems = -(-N // self.PER)
+            prog.kernel("preprocess")(q, (_round_up(nitems, LG), nv), (LG, 1), i32(N), i32(self.PER), i32(U), i32(V),
                                       rl(geometry.scale), b_means, b_mats, b_rho, b_vp, b_rec, b_box)
             ntx, nty = -(-U // TW), -(-V // TH)
             ntiles = ntx * nty
@@ -251,22 +283,28 @@ class GaussianProjector:
             if total < 0:
                 raise ProjectorError("more Gaussian-tile pairs than 2^31: use fewer views per call")
             b_list = self._pooled("list", max(total, 1) * 4)
-            binp.kernel("bin_fill")(q, (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks), i32(ntx),
-                                    i32(ntiles), b_box, b_hist, b_starts, b_list)
+            b_prec = self._pooled(f"prec{dt.itemsize}", max(total, 1) * rec_len * dt.itemsize)
+            b_prow = self._pooled("prow", max(total, 1) * 8)
+            prog.kernel("fill")(q, (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks), i32(ntx),
+                                i32(ntiles), b_box, b_rec, b_hist, b_starts, b_list, b_prec, b_prow)
             b_out = self._out("out", out)
             lt = self.LOCAL_TILE
-            prog.kernel("render")(q, (_round_up(ntx, lt[0]), _round_up(nty, lt[1]), nv), lt, i32(N), i32(U),
-                                  i32(V), i32(ntx), i32(ntiles), b_rec, b_box, b_starts, b_list, b_means,
+            prog.kernel("render")(q, (_round_up(ntx, lt[0]), _round_up(nty, lt[1]), nv), lt, i32(U),
+                                  i32(V), i32(ntx), i32(ntiles), b_prec, b_prow, b_starts, b_list, b_means,
                                   b_mats, b_rho, b_vp, rl(geometry.scale), b_out)
             self._fetch(b_out, out)
+            self._keep.clear()
             self.last_pairs = total
+            self._rec_token = self._token
             return out
 
     # ----------------------------------------------------------------------------- backward
     def backward(self, means, mats, densities, geometry, views, mode, grad_out: np.ndarray,
-                 needs=(True, True, True)):
+                 needs=(True, True, True), token=None):
         """Gradients (means (N,3), matrices (N,6), densities (N,)) of sum(grad_out * forward);
-        entries not in ``needs`` are returned as None."""
+        entries not in ``needs`` are returned as None. ``token``: the ``last_token`` of the
+        forward call with these very inputs and views; if no other forward ran since, the
+        per-(view, Gaussian) set-up it left on the device is reused instead of recomputed."""
         with self._lock:
             real, dt, views, vp = self._setup(means, mats, densities, geometry, views, mode)
             V, U = geometry.nDetector
@@ -281,8 +319,14 @@ class GaussianProjector:
             q = self.queue
             b = [self._out(f"grad{k}", o) for k, o in enumerate(outs)]
             LG = self.LOCAL_G
-            prog.kernel("backward")(q, (_round_up(N, LG),), (LG,), np.int32(N), np.int32(nv), np.int32(U),
-                                    np.int32(V), dt.type(geometry.scale), self._in("means", means),
+            nitems = -(-N // self.PER)
+            cached = token is not None and token == self._rec_token
+            rec_len = 20 if (mode == "exact" and geometry.mode == "cone") else 8
+            b_rec = self._pooled(f"rec{dt.itemsize}", nv * N * rec_len * dt.itemsize)
+            b_box = self._pooled("box", nv * N * 16)
+            prog.kernel("backward")(q, (_round_up(nitems, LG),), (LG,), np.int32(N), np.int32(self.PER),
+                                    np.int32(nv), np.int32(U), np.int32(V), dt.type(geometry.scale),
+                                    np.int32(cached), b_rec, b_box, self._in("means", means),
                                     self._in("mats", mats), self._in("rho", densities), self._in("vp", vp),
                                     self._in("gimg", grad_out), *b)
             res = []
@@ -293,6 +337,7 @@ class GaussianProjector:
                 else:
                     res.append(None)
             q.finish()
+            self._keep.clear()
             return tuple(res)
 
 
@@ -318,16 +363,16 @@ class _Project(torch.autograd.Function):
     def forward(ctx, means, mats, densities, geometry, views, mode, projector):
         out = projector.forward(_np(means), _np(mats), _np(densities), geometry, views, mode)
         ctx.save_for_backward(means, mats, densities)
-        ctx.args = (geometry, views, mode, projector)
+        ctx.args = (geometry, views, mode, projector, projector.last_token)
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad):
         means, mats, densities = ctx.saved_tensors
-        geometry, views, mode, projector = ctx.args
+        geometry, views, mode, projector, token = ctx.args
         needs = ctx.needs_input_grad[:3]
         g = projector.backward(_np(means), _np(mats), _np(densities), geometry, views, mode,
-                               _np(grad.to(means.dtype)), needs)
+                               _np(grad.to(means.dtype)), needs, token)
         return tuple(torch.from_numpy(x) if x is not None else None for x in g) + (None, None, None, None)
 
 

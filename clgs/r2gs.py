@@ -29,9 +29,7 @@ given explicitly (e.g. to compare runs on the same footing).
 """
 from __future__ import annotations
 
-import json
 import math
-import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
@@ -103,6 +101,7 @@ class R2GSResult:
     interrupted: bool
     out_dir: Path | None
     summary: str
+    files: dict = field(default_factory=dict)  # output name -> path
 
 
 # ---------------------------------------------------------------------- pieces
@@ -181,10 +180,12 @@ def voxelize_volume(trainer: Trainer, tensors=None) -> np.ndarray:
     return vol.numpy().astype(np.float32)
 
 
-def build_trainer(scan, cfg: R2GSConfig, out_dir=None, *, progress=False, fdk=None, state=None) -> Trainer:
+def build_trainer(scan, cfg: R2GSConfig, out_dir=None, *, progress=False, fdk=None, state=None,
+                  gaussians=None) -> Trainer:
     """Everything but the loop: normalisation, initial Gaussians, losses, densifier, trainer.
 
     ``state`` (a loaded checkpoint) skips the initialisation; the checkpoint then overwrites it.
+    ``gaussians``: initial (means, scales, quats, densities) in training units, instead of ``cfg.init``.
     """
     geo = scan.geometry
     box = volume_box(geo)
@@ -193,7 +194,9 @@ def build_trainer(scan, cfg: R2GSConfig, out_dir=None, *, progress=False, fdk=No
     if cfg.value_scale is None:
         fdk = fdk_volume(scan) if fdk is None else fdk
         cfg.value_scale = value_scale_from(fdk)
-    if state is not None:
+    if gaussians is not None:
+        gset = GaussianSet(*(np.asarray(a, np.float32) for a in gaussians), **kw)
+    elif state is not None:
         empty = np.zeros((0, 3), np.float32)
         gset = GaussianSet(empty, empty, np.zeros((0, 4), np.float32), np.zeros(0, np.float32), raw=True, **kw)
     elif cfg.init == "fdk":
@@ -293,14 +296,17 @@ def reconstruct_r2gs(scan, out_dir=None, iterations: int = 30_000, *, resume: bo
     trainer = build_trainer(scan, cfg, out_dir, progress=progress, fdk=fdk, state=state)
     if state is not None:
         trainer.load_state_dict(state)
-        trainer.iterations = cfg.iterations
+        trainer.iterations = trainer.config["iterations"] = cfg.iterations
     trainer.fit()
     volume = voxelize_volume(trainer) / np.float32(cfg.value_scale)
+    files = {}
     if out_dir is not None:
-        write_outputs(trainer, out_dir, cfg.value_scale, volume)
+        files = {k: Path(v) for k, v in write_outputs(trainer, out_dir, cfg.value_scale, volume).items()}
+        files["checkpoint"] = Path(out_dir) / CHECKPOINT
     return R2GSResult(volume=volume, gaussians=gaussians_in_scan_units(trainer, cfg.value_scale), log=trainer.log,
                       trainer=trainer, value_scale=cfg.value_scale, interrupted=trainer.interrupted,
-                      out_dir=None if out_dir is None else Path(out_dir), summary=trainer.log.summary())
+                      out_dir=None if out_dir is None else Path(out_dir), summary=trainer.log.summary(),
+                      files=files)
 
 
 # ---------------------------------------------------------------------- `clgs reconstruct --method r2gs`
@@ -317,8 +323,7 @@ def run_method(scan, out_dir=None, iterations: int = 30_000, resume: bool = Fals
     info = {"iterations": result.trainer.iteration, "n_gaussians": result.trainer.n_gaussians,
             "training_seconds": result.trainer.seconds, "value_scale": result.value_scale,
             "interrupted": result.interrupted}
-    files = sorted(str(p) for p in Path(out_dir).iterdir()) if out_dir is not None else []
-    return {"volume": result.volume, "files": files, "info": info}
+    return {"volume": result.volume, "files": {k: str(v) for k, v in result.files.items()}, "info": info}
 
 
 def click_options() -> list:

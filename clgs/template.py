@@ -375,7 +375,7 @@ class Template:
     def points(self) -> np.ndarray:
         return grid_points(self.shape, self.spacing, self.origin)
 
-    def model_grid(self, max_cells: int = 48):
+    def model_grid(self, max_cells: int = 64):
         """(shape, spacing, origin) of a coarser isotropic grid over the same box, for velocities."""
         lo, hi = self.bounds()
         return box_grid(lo, hi, max_cells=max_cells)

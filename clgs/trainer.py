@@ -62,15 +62,31 @@ class Backend:
             raise ValueError(f"projector mode must be 'affine' or 'exact', got {mode!r}")
         self.name, self.mode = name, mode
         if name == "cl":
-            from clgs.projector import project
-            from clgs.voxelizer import voxelize
-
-            self._project, self._voxelize = project, voxelize
+            self._project, self._voxelize = self._cl_project, self._cl_voxelize
         else:
             from clgs.reference import voxelization
 
             self._voxelize = getattr(voxelization, "voxelize_windowed", voxelization.voxelize)
             self._project = self._torch_project
+
+    # The kernels take packed covariances / precisions; building them here with element-wise
+    # torch (gaussians.packed_covariance) rather than batched 3x3 products is what keeps the torch
+    # side of an OpenCL iteration small.
+    @staticmethod
+    def _cl_project(means, scales, quats, densities, geometry, views, mode):
+        from clgs.gaussians import packed_covariance
+        from clgs.projector import project_packed
+
+        mats = packed_covariance(scales, quats, inverse=(mode == "exact"))
+        return project_packed(means, mats, densities, geometry, views, mode=mode)
+
+    @staticmethod
+    def _cl_voxelize(means, scales, quats, densities, grid):
+        from clgs.gaussians import axis_half_widths, packed_covariance
+        from clgs.voxelizer import voxelize_precision
+
+        prec = packed_covariance(scales, quats, inverse=True)
+        return voxelize_precision(means, prec, densities, axis_half_widths(scales, quats).to(means.dtype), grid)
 
     def _torch_project(self, means, scales, quats, densities, geometry, views, mode):
         from clgs import gaussian_math
@@ -131,7 +147,7 @@ class Trainer:
     def __init__(self, sets, geometry, projections, losses, *, iterations: int, backend="cl",
                  render_scale: float = 1.0, seed: int = 0, hooks=(), evaluate=None, log_every: int = 500,
                  checkpoint_every: int = 0, checkpoint_path=None, progress: bool = False,
-                 views=None, config: dict | None = None):
+                 views=None, config: dict | None = None, torch_threads: int | None = -1):
         self.sets = list(sets)
         names = [s.name for s in self.sets]
         if len(set(names)) != len(names):
@@ -154,6 +170,12 @@ class Trainer:
         self.views = list(range(geometry.n_views)) if views is None else [int(v) for v in views]
         self.config = dict(config or {})
         self.seed = int(seed)
+        # -1: automatic. With the OpenCL backend the torch side of an iteration is small element-wise
+        # work on N Gaussians; torch's extra threads would only spin against the OpenCL runtime's
+        # workers on the same cores, so one thread is used during fit (restored afterwards).
+        if torch_threads == -1:
+            torch_threads = 1 if self.backend.name == "cl" else None
+        self.torch_threads = torch_threads
         self.generator = torch.Generator().manual_seed(self.seed)
         self.rng = np.random.default_rng(self.seed)
         self.iteration = 0
@@ -175,7 +197,10 @@ class Trainer:
             for name, tensor, schedule in s.parameters():
                 groups.append({"params": [tensor], "lr": schedule(0), "name": f"{s.name}.{name}"})
                 self._schedules.append(schedule)
-        self.optimizer = torch.optim.Adam(groups, eps=1e-15)
+        try:  # the fused CPU kernel is ~3x faster than foreach on 50k Gaussians; same update
+            self.optimizer = torch.optim.Adam(groups, eps=1e-15, fused=True)
+        except (RuntimeError, TypeError, ValueError):
+            self.optimizer = torch.optim.Adam(groups, eps=1e-15)
 
     def scene_tensors(self):
         parts = [s.tensors() for s in self.sets]
@@ -241,6 +266,9 @@ class Trainer:
         old_handler = None
         if threading.current_thread() is threading.main_thread():
             old_handler = signal.signal(signal.SIGINT, self._on_sigint)
+        threads = torch.get_num_threads()
+        if self.torch_threads:
+            torch.set_num_threads(self.torch_threads)
         progress = Progress(self.iterations, self.iteration, self.progress_enabled)
         self._progress = progress
         try:
@@ -261,6 +289,7 @@ class Trainer:
         finally:
             if old_handler is not None:
                 signal.signal(signal.SIGINT, old_handler)
+            torch.set_num_threads(threads)
             progress.close()
         if self._stop:
             self.interrupted = True

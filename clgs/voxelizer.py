@@ -30,10 +30,13 @@ their peak in float32 (and to ~1e-10 in float64).
 How (``cl/voxelize.cl``): Gaussians are binned on the device into cells (8 x 8 x 8 voxel bricks
 for grids, a coarse cell grid over the points for point queries) by a deterministic counting sort,
 so every list is in Gaussian index order and every output is summed in the same order on every
-run. Forward: one work-item per brick looping over its list, one ``real8`` per x row; or one
-work-item per 8 points of a cell. Backward: one work-item per Gaussian gathers the incoming
-gradient over its own box (grid samples or points inside it): no atomics, same bits every time.
-Only Gaussians whose box meets the grid/block (or the points' bounding box) are binned.
+run; the binning also copies the Gaussians' records into list order, so the forward kernels
+stream through memory. Forward: one work-item per brick looping over its list, one ``real8`` per
+x row; or one work-item per 8 points of a cell. Backward: one work-item per Gaussian gathers the
+incoming gradient over its own box (grid samples or points inside it): no atomics, same bits
+every time; on grids the work-items take the kept Gaussians sorted by brick (the same counting
+sort, one cell per Gaussian), so neighbours read neighbouring rows from cache. Only Gaussians
+whose box meets the grid/block (or the points' bounding box) are binned or visited.
 
 Compile-time variants of ``cl/voxelize.cl`` (``-D`` options, one cached program each):
 
@@ -231,17 +234,26 @@ class Voxelizer:
         total = self._buffer("total", 4 * ncells)
         start = self._buffer("start", 4 * (ncells + 1))
         cl.enqueue_fill_buffer(self.queue, hist, np.int32(0), 0, 4 * ncells * nchunks)
-        common = [gbuf, np.int32(n), np.int32(chunk), np.int32(nchunks), np.int32(bool(home)), *cell_args]
-        self._run(prog.kernel("bin_count"), nchunks, *common, hist)
+        ranges = self._buffer("ranges", 32 * n)
+        self._run(prog.kernel("bin_count"), nchunks, gbuf, np.int32(n), np.int32(chunk), np.int32(nchunks),
+                  np.int32(bool(home)), *cell_args, hist, ranges)
         self._run(prog.kernel("bin_cell_offsets"), ncells, hist, np.int32(nchunks), np.int32(ncells), total)
         self._run(prog.kernel("bin_scan"), 1, total, np.int32(ncells), start)
         length = np.empty(1, np.int32)
         cl.enqueue_copy(self.queue, length, start, src_offset=4 * ncells)
         length = int(length[0])
+        itemsize = GSTRIDE * np.dtype(real).itemsize if copy else 4
+        if length < 0 or length * itemsize > self.ctx.devices[0].max_mem_alloc_size:
+            raise MemoryError(
+                f"{n} Gaussians meet too many of the {ncells} cells ({'over 2^31' if length < 0 else length} "
+                "Gaussian-cell pairs): the Gaussians are very large for this grid; voxelize a coarser grid "
+                "or smaller blocks, or bound the scales"
+            )
         lst = self._buffer("list", 4 * max(length, 1))
         packed = self._buffer("packed", GSTRIDE * np.dtype(real).itemsize * max(length, 1)) if copy else lst
         if length > 0:
-            self._run(prog.kernel("bin_fill"), nchunks, *common, hist, start, lst, np.int32(bool(copy)), packed)
+            self._run(prog.kernel("bin_fill"), nchunks, gbuf, np.int32(n), np.int32(chunk), np.int32(nchunks),
+                      np.int32(nc[0]), np.int32(nc[1]), hist, ranges, start, lst, np.int32(bool(copy)), packed)
         return start, (packed if copy else lst), length
 
     @staticmethod

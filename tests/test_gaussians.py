@@ -143,7 +143,7 @@ def test_densify_clone_split_prune_and_adam_state():
     assert torch.allclose(dd[0], dens0[0] * 0.5, rtol=1e-5) and torch.allclose(dd[3], dens0[0] * 0.5, rtol=1e-5)
     assert torch.allclose(dd[1:3], dens0[2:4])
     assert torch.allclose(s[4:6], scales0[1].expand(2, 3) / 1.6, rtol=1e-4)
-    assert torch.allclose(dd[4:6], dens0[1].expand(2), rtol=1e-5)
+    assert torch.allclose(dd[4:6], dens0[1].expand(2) * 1.6 ** 3 / 2, rtol=1e-5)  # mass kept
     assert not torch.equal(m[4], m[5])
     # Adam state follows the rows; new rows start at zero; optimizer holds the new tensors
     st = opt.state[g.params["means"]]
@@ -203,3 +203,22 @@ def test_view_space_gradient_matches_the_detector_coordinate_gradient(mode):
         got = d.view_space_grad(mean.detach(), mean.grad, 1)
         tol = 1e-9 if p[0] == 0 else 0.05
         assert float(got) == pytest.approx(float(w.norm()), rel=tol)
+
+
+def test_packed_covariance_matches_gaussian_math_values_and_gradients():
+    from clgs import gaussian_math as gm
+    from clgs.gaussians import axis_half_widths, packed_covariance
+
+    g = torch.Generator().manual_seed(0)
+    s = (torch.rand(50, 3, generator=g, dtype=torch.float64) * 0.3 + 1e-3).requires_grad_(True)
+    q = torch.randn(50, 4, generator=g, dtype=torch.float64).requires_grad_(True)
+    for inverse, ref in ((False, gm.covariance), (True, gm.precision)):
+        a, b = packed_covariance(s, q, inverse), ref(s, q)
+        assert torch.allclose(a, b, rtol=1e-12, atol=0)
+        w = torch.randn(50, 6, generator=g, dtype=torch.float64)
+        ga = torch.autograd.grad((a * w).sum(), (s, q))
+        gb = torch.autograd.grad((b * w).sum(), (s, q))
+        assert all(torch.allclose(x, y, rtol=1e-10, atol=1e-12) for x, y in zip(ga, gb))
+    f32 = packed_covariance(s.detach().float(), q.detach().float(), True)
+    assert torch.allclose(f32.double(), gm.precision(s, q).detach(), rtol=1e-5, atol=1e-6 * float(f32.abs().max()))
+    assert torch.allclose(axis_half_widths(s, q), gm.axis_extent(s, q), rtol=1e-12)

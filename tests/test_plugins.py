@@ -170,8 +170,10 @@ def test_registry_checks_what_plugins_return():
             return [Anatomy(name="knee", summary="again")]
 
     reg.register(Dup(), name="dup", package="pkg-dup")
-    with pytest.raises(DuplicateAnatomyError, match="pkg-good.*pkg-dup|pkg-dup.*pkg-good"):
-        reg.anatomies()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PluginWarning)  # the broken ones above warn again
+        with pytest.raises(DuplicateAnatomyError, match="pkg-good.*pkg-dup|pkg-dup.*pkg-good"):
+            reg.anatomies()
 
 
 # --------------------------------------------------------------------------------------- the group
@@ -219,16 +221,18 @@ def test_group_simulate_reconstruct_evaluate(toy, tmp_path):
     group = make_group(toy)
     runner = CliRunner()
     scan = tmp_path / "scan"
-    r = runner.invoke(group, ["simulate", "--subject", "09", "--out", str(scan), "--views", "6", "--no-noise"])
+    r = runner.invoke(group, ["simulate", "--subject", "09", "--out", str(scan), "--views", "24", "--no-noise"])
     assert r.exit_code == 0, r.output
     from clgs.io.scan import Scan
 
     s = Scan.load(scan)
-    assert s.n_views == 6 and s.truth.shape == (40, 40, 56) and s.meta["subject"] == "09"
+    assert s.n_views == 24 and s.truth.shape == (40, 40, 56) and s.meta["subject"] == "09"
     assert s.surface is not None
     r = runner.invoke(group, ["reconstruct", str(scan), "--out", str(tmp_path / "rec"), "--method", "fdk"])
     assert r.exit_code == 0, r.output
     assert (tmp_path / "rec" / "volume.npy").exists() and "psnr3d" in r.output
+    rec = dict(line.split(None, 1) for line in r.output.strip().splitlines()[1:])
+    assert float(rec["surface_mean_mm"]) < 1.0  # 24 noiseless views: FDK finds the bone surface
     truth = tmp_path / "truth.npy"
     import numpy as np
 
@@ -240,3 +244,31 @@ def test_group_simulate_reconstruct_evaluate(toy, tmp_path):
     assert float(lines["surface_mean_mm"]) < 0.5  # the truth's own bone surface vs the true mesh
     r = runner.invoke(group, ["reconstruct", str(scan), "--out", str(tmp_path / "rec2"), "--method", "nosuch"])
     assert r.exit_code != 0 and "not available" in r.output
+
+
+def test_generic_build_model_without_a_plugin_builder(tmp_path):
+    """An anatomy that gives only a template, a population and subjects gets the generic builder."""
+    import numpy as np
+
+    from clgs.commands.anatomy_group import make_group
+    from clgs.shape_model import read_metadata
+    from clgs.template import Subject, Template, box_grid, grid_points, mesh_from_sdf
+
+    def blob(axes, sid):
+        a = np.asarray(axes, float)
+        shape, sp, org = box_grid(-a - 3, a + 3, spacing=1.5)
+        v, f = mesh_from_sdf((np.linalg.norm(grid_points(shape, sp, org) / a, axis=-1) - 1) * a.min(), sp, org)
+        return Subject(sid, v, f)
+
+    axes = {"a": (14, 9, 8), "b": (16, 9, 7)}
+    mean = blob((15, 9.3, 7.7), "template")
+    template = Template.from_mesh(mean.vertices, mean.faces, spacing=2.5, margin=8.0, name="blob")
+    anatomy = Anatomy(name="blob", summary="b", load_template=lambda: template, population=lambda: list(axes),
+                      load_subject=lambda sid: blob(axes[sid], sid), model_path=str(tmp_path / "blob.npz"))
+    r = CliRunner().invoke(make_group(anatomy), ["build-model", "--max-cells", "6"])
+    assert r.exit_code == 0, r.output
+    meta = read_metadata(tmp_path / "blob.npz")
+    assert meta["population"] == ["a", "b"] and meta["has_atlas"] is False  # no CT given: no atlas
+    assert "no subject had a CT volume" in meta["atlas_note"]
+    r = CliRunner().invoke(make_group(anatomy), ["info"])
+    assert r.exit_code == 0 and "no subject had a CT volume" in r.output

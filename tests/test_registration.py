@@ -6,7 +6,7 @@ import torch
 from clgs.registration import RegistrationSettings, register
 from clgs.shape_model import exp_velocity, sample_field
 from clgs.template import (Subject, Template, box_grid, grid_points, mesh_from_sdf, mesh_to_label, mesh_to_sdf,
-                           sample_volume, vertex_normals)
+                           vertex_normals)
 
 
 @pytest.fixture(autouse=True)
@@ -97,23 +97,24 @@ def _register(template, vertices, max_cells=28, settings=None):
 
 def test_registration_recovers_a_known_deformation():
     t = _toy_template()
-    mshape, msp, morg = t.model_grid(28)
+    mshape, msp, morg = t.model_grid(24)
     P = torch.as_tensor(grid_points(mshape, msp, morg), dtype=torch.float32)
-    v_true = torch.stack([4 * torch.sin(P[..., 1] / 25 + 0.3) * torch.cos(P[..., 2] / 30),
-                          3 * torch.cos(P[..., 0] / 30), 3 * torch.sin(P[..., 0] / 35 + P[..., 1] / 40)], 0)
+    v_true = 1.5 * torch.stack([4 * torch.sin(P[..., 1] / 25 + 0.3) * torch.cos(P[..., 2] / 30),
+                                3 * torch.cos(P[..., 0] / 30), 3 * torch.sin(P[..., 0] / 35 + P[..., 1] / 40)], 0)
     u_true = exp_velocity(v_true, msp)
     verts = torch.as_tensor(t.vertices, dtype=torch.float32)
     subject = (verts + sample_field(u_true, verts, msp, morg)).numpy().astype(np.float64)
-    r, (shape, sp, org), fixed = _register(t, subject)
+    r, (shape, sp, org), fixed = _register(t, subject, max_cells=24,
+                                           settings=RegistrationSettings(levels=(12, 0), iterations=(60, 40)))
     assert r.velocity.shape == (3,) + tuple(shape) and sp == msp
     u = exp_velocity(torch.as_tensor(r.velocity), sp)
     err = (u - u_true).norm(dim=0).numpy()
     bone = fixed < 3.0  # the bone and a thin band around it, where the images say something
     cell = sp[0]
-    assert float(u_true.norm(dim=0).numpy()[bone].mean()) > 1.0 * cell  # the truth moves over a cell
-    assert err[bone].mean() < 0.7 * cell
-    assert r.residuals["surface_mean_mm"] < 0.3 * cell
-    assert r.residuals["dice"] > 0.97
+    assert float(u_true.norm(dim=0).numpy()[bone].mean()) > 1.3 * cell  # the truth moves over a cell
+    assert err[bone].mean() < 0.7 * cell  # (sliding along the surface is not seen by any shape loss)
+    assert r.residuals["surface_mean_mm"] < 0.1 * cell
+    assert r.residuals["dice"] > 0.98
     assert r.residuals["min_jacobian"] > 0
 
 

@@ -34,7 +34,7 @@ def _smooth_field(P, amplitude=1.0):
                                     4 * torch.sin(x / 11 + y / 13)], 0)
 
 
-def _rk4_flow(v, pts, n=200):
+def _rk4_flow(v, pts, n=64):
     f = lambda p: sample_field(v, p, SP, ORG)  # noqa: E731
     h = 1.0 / n
     for _ in range(n):

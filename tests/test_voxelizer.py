@@ -1,12 +1,11 @@
 """Gaussian voxelizer (cl/voxelize.cl) against the plain torch reference, finite differences,
 and itself (blocks vs full grid, points vs grid, float32 vs float64, run vs run)."""
-import numpy as np
 import pytest
 import torch
 
+from clgs.gaussian_math import axis_extent, precision
 from clgs.geometry import Grid
 from clgs.reference import voxelization as ref
-from clgs.gaussian_math import axis_extent, precision
 from clgs.voxelizer import Voxelizer, voxelize, voxelize_points, voxelize_precision
 
 GRID = Grid((17, 19, 23), (-0.93, -0.97, -1.01), (0.085, 0.1, 0.09))
@@ -40,9 +39,13 @@ def test_grid_matches_reference():
     assert (expected > 0).float().mean() > 0.5  # the scene covers most of the grid
 
 
-def test_windowed_reference_matches_dense_reference():
+def test_fast_references_match_the_dense_reference():
     params = scene(300, dtype=torch.float64)
     torch.testing.assert_close(ref.voxelize_windowed(*params, GRID), ref.voxelize(*params, GRID), rtol=1e-12, atol=1e-12)
+    pts = torch.rand(2000, 3, generator=torch.Generator().manual_seed(13), dtype=torch.float64) * 2.4 - 1.2
+    expected = ref.voxelize_points(*params, pts)
+    assert expected.max() > 0
+    torch.testing.assert_close(ref.voxelize_points_kdtree(*params, pts), expected, rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.parametrize("start, size", [((0, 0, 0), (17, 19, 23)), ((3, 5, 7), (8, 9, 10)), ((16, 18, 22), (1, 1, 1)),
@@ -206,6 +209,17 @@ def test_extreme_inputs_are_finite_and_right(case):
             torch.testing.assert_close(out.detach().double(), truth, rtol=0, atol=0.02 * float(truth.max()) + 1e-12)
         else:
             assert_close32(out, ref.voxelize(*[p.detach() for p in params], GRID)) if out.any() else None
+        # at the Gaussians' own centres every case has a field (unless all densities are zero)
+        centres = params[0].detach()
+        at_centres = voxelize_points(*params, centres)
+        expected_c = ref.voxelize_points(*[p.detach() for p in params], centres)
+        assert torch.isfinite(at_centres).all()
+        if case == "zero densities":
+            assert not at_centres.any()
+        elif dtype == torch.float64 or case not in ("needles", "pancakes"):
+            torch.testing.assert_close(at_centres, expected_c, rtol=1e-5 if dtype == torch.float32 else 1e-9,
+                                       atol=1e-6 * float(expected_c.abs().max()))
+            assert (at_centres >= params[3].detach() * (1 - 1e-6)).all()  # at least their own peak
         if case == "all outside" or case == "zero densities":
             assert not out.any() and not outp.any()
 

@@ -74,7 +74,8 @@ def bench_3d(size, views_list, sart_iters, arc_deg, noise, seed, repeat, echo):
     echo(f"3-D: head phantom {size}^3 ({256.0 / size:.1f} mm voxels, built in {time.perf_counter() - t0:.1f} s), "
          f"cone beam, detector {n_det}^2, arc {arc_deg:g} deg, "
          + ("noise I0=1e5 sigma=10" if noise else "noiseless") + f", OS-SART {sart_iters} iterations")
-    head = f"{'views':>5} | {'FDK s':>7} {'PSNR':>6} {'SSIM':>6} | {'SART s':>7} {'PSNR':>6} {'SSIM':>6} | {'fwd+bwd s':>9}"
+    head = (f"{'views':>5} | {'FDK s':>7} {'PSNR':>6} {'SSIM':>6} | {'SART s':>7} {'PSNR':>6} {'SSIM':>6} | "
+            f"{'fwd+bwd s':>9}")
     echo(head)
     echo("-" * len(head))
     rows = []

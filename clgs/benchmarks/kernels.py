@@ -8,7 +8,8 @@ For each detector (128^2, 256^2), beam (cone, parallel) and mode (affine, exact)
 
 * ``fwd ms`` / ``bwd ms``: medians over ``--repeat`` single-view calls (a different view each
   time) of ``GaussianProjector.forward`` (set-up, on-device binning, render, read-back) and
-  ``.backward`` (all three gradients), after a warm-up (compilation excluded).
+  ``.backward`` (all three gradients, reusing the forward's set-up as the autograd op does),
+  after a warm-up (compilation excluded).
 * ``Geval/s``: useful Gaussian-pixel evaluations per second, useful = pixels whose ray passes
   within 3 sigma of a Gaussian (counted in torch from the affine 2D covariances, the same
   count used for both modes; the two footprints differ by well under 1%).
@@ -16,8 +17,11 @@ For each detector (128^2, 256^2), beam (cone, parallel) and mode (affine, exact)
   (each Gaussian on a square patch, ``index_add_``, autograd backward) timed in the same run on
   torch's CPU threads; with more than ``--torch-n`` Gaussians torch runs on the first
   ``--torch-n`` and its time is scaled by N / torch-n (its cost is linear in N).
+* ``fwd cpu`` / ``bwd cpu``: the same calls' CPU time (all threads of the process, ms): on a
+  shared machine, CPU time / cores estimates the unloaded wall time better than wall time does.
 * ``exp ceil``: the fraction of the device's own exp throughput (probe kernel: ``fast_exp8`` in
-  a dependent loop, measured in the same run) reached by the useful evaluation rate.
+  a loop, measured in the same run) reached by the useful evaluation rate, both per CPU-second
+  (mean of forward and backward).
 * For exact rows: ``err vs exact`` is max |affine - exact| / max exact of the same view, and
   ``exact/affine`` the ratio of their fwd+bwd times.
 
@@ -76,6 +80,7 @@ def _useful(means, cov, geometry, view):
 
 
 def _exp_ceiling(projector, repeat):
+    """exp/s of the probe kernel: (per wall second, per CPU second of this process)."""
     import numpy as np
     import pyopencl as cl
 
@@ -85,32 +90,36 @@ def _exp_ceiling(projector, repeat):
     k = prog.kernel("exp_probe")
     k(projector.queue, (G,), (64,), np.int32(n), buf)
     projector.queue.finish()
-    ts = []
+    ts, cs = [], []
     for _ in range(repeat):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         k(projector.queue, (G,), (64,), np.int32(n), buf)
         projector.queue.finish()
         ts.append(time.perf_counter() - t)
-    return G * n * 8 / _median(ts)
+        cs.append(time.process_time() - c)
+    return G * n * 8 / _median(ts), G * n * 8 / _median(cs)
 
 
 def _time_kernels(projector, m, mats, rho, geometry, mode, repeat):
+    """Median wall and CPU milliseconds of forward and backward, and the view-0 image."""
     import numpy as np
 
     mn, mt, rn = m.numpy(), mats.numpy(), rho.numpy()
     out = projector.forward(mn, mt, rn, geometry, [0], mode)
     gout = np.random.default_rng(0).random(out.shape, dtype=np.float32)
-    projector.backward(mn, mt, rn, geometry, [0], mode, gout)
-    tf, tb = [], []
+    projector.backward(mn, mt, rn, geometry, [0], mode, gout, token=projector.last_token)
+    tf, tb, cf, cb = [], [], [], []
     for r in range(repeat):
         view = r % geometry.n_views
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         projector.forward(mn, mt, rn, geometry, [view], mode)
         tf.append(time.perf_counter() - t)
-        t = time.perf_counter()
-        projector.backward(mn, mt, rn, geometry, [view], mode, gout)
+        cf.append(time.process_time() - c)
+        t, c = time.perf_counter(), time.process_time()
+        projector.backward(mn, mt, rn, geometry, [view], mode, gout, token=projector.last_token)
         tb.append(time.perf_counter() - t)
-    return _median(tf) * 1e3, _median(tb) * 1e3, out[0]
+        cb.append(time.process_time() - c)
+    return [_median(x) * 1e3 for x in (tf, tb, cf, cb)] + [out[0]]
 
 
 def _time_torch(m, mats, rho, geometry, mode, repeat):
@@ -148,11 +157,12 @@ def main(quick, repeat, torch_n):
         repeat = min(repeat, 3)
         torch_n = min(torch_n, 2000)
     proj = GaussianProjector()
-    ceiling = _exp_ceiling(proj, max(3, repeat))
-    click.echo(f"device exp ceiling (fast_exp8 probe): {ceiling / 1e9:.2f} G exp/s")
-    header = (f"{'N':>6} {'det':>5} {'beam':>8} {'mode':>6} | {'fwd ms':>7} {'bwd ms':>7} | "
-              f"{'fwd Geval/s':>11} {'bwd Geval/s':>11} {'exp ceil':>8} | {'torch ms':>9} {'x torch':>7} | "
-              f"{'err vs exact':>12} {'exact/affine':>12}")
+    ceiling, ceiling_cpu = _exp_ceiling(proj, max(3, repeat))
+    click.echo(f"device exp ceiling (fast_exp8 probe): {ceiling / 1e9:.2f} G exp/s wall, "
+               f"{ceiling_cpu / 1e9:.2f} G exp per CPU-second")
+    header = (f"{'N':>6} {'det':>5} {'beam':>8} {'mode':>6} | {'fwd ms':>7} {'bwd ms':>7} "
+              f"{'fwd cpu':>7} {'bwd cpu':>7} | {'fwd Geval/s':>11} {'bwd Geval/s':>11} {'exp ceil':>8} | "
+              f"{'torch ms':>9} {'x torch':>7} | {'err vs exact':>12} {'exact/affine':>12}")
     click.echo(header)
     click.echo("-" * len(header))
     sizes = [10_000] if quick else [10_000, 50_000]
@@ -166,14 +176,14 @@ def main(quick, repeat, torch_n):
                 res = {}
                 for mode in ("affine", "exact"):
                     mats = cov if mode == "affine" else prec
-                    fwd, bwd, img = _time_kernels(proj, m, mats, rho, g, mode, repeat)
+                    fwd, bwd, cfwd, cbwd, img = _time_kernels(proj, m, mats, rho, g, mode, repeat)
                     k = min(n, torch_n)
                     t_f, t_fb = _time_torch(m[:k], mats[:k], rho[:k], g, mode, max(1, repeat // 3))
                     t_fb *= n / k
                     res[mode] = (fwd, bwd, img)
-                    line = (f"{n:>6} {det:>4}^2 {beam:>8} {mode:>6} | {fwd:7.2f} {bwd:7.2f} | "
-                            f"{useful / fwd / 1e6:11.2f} {useful / bwd / 1e6:11.2f} "
-                            f"{useful / (0.5 * (fwd + bwd)) * 1e3 / ceiling:8.0%} | "
+                    frac = useful / (0.5 * (cfwd + cbwd)) * 1e3 / ceiling_cpu
+                    line = (f"{n:>6} {det:>4}^2 {beam:>8} {mode:>6} | {fwd:7.2f} {bwd:7.2f} {cfwd:7.2f} {cbwd:7.2f} | "
+                            f"{useful / fwd / 1e6:11.2f} {useful / bwd / 1e6:11.2f} {frac:8.0%} | "
                             f"{t_fb:9.1f} {t_fb / (fwd + bwd):7.1f} |")
                     if mode == "exact":
                         a, e = res["affine"][2], img

@@ -122,6 +122,19 @@ def default_method(anatomy) -> str:
     return "shape" if anatomy.load_shape_model is not None else "r2gs"
 
 
+def method_accepts(method: str, option: str) -> bool:
+    """Whether the registered method's callable takes ``option`` (False when unknown)."""
+    import inspect
+
+    try:
+        from clgs import methods
+
+        params = inspect.signature(methods.get(method).callable()).parameters
+    except Exception:  # noqa: BLE001 - unknown or unimportable: the run reports it properly
+        return False
+    return option in params or any(p.kind == p.VAR_KEYWORD for p in params.values())
+
+
 def run_reconstruct(scan, anatomy, method: str, out=None, **options):
     """Reconstruct through ``clgs.recon.reconstruct`` when it exists, else the method registry
     (:mod:`clgs.methods`); the anatomy is passed to methods that take it. Returns the method's
@@ -350,9 +363,11 @@ def make_group(anatomy) -> click.Group:
     @click.option("--views", default=5, show_default=True)
     @click.option("--method", default=None, help="default: shape when the anatomy has a model, else r2gs")
     @click.option("--out", default=None, type=click.Path(file_okay=False), help="keep outputs here")
+    @click.option("--iterations", default=1000, show_default=True,
+                  help="optimisation steps for iterative methods (the papers use 30000: hours on a CPU)")
     @click.option("--seed", default=0, show_default=True)
     @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="method option (repeatable)")
-    def demo(subject_id, views, method, out, seed, settings):
+    def demo(subject_id, views, method, out, iterations, seed, settings):
         """Simulate a held-out subject, reconstruct it from few views, print error vs time."""
         import math
         import tempfile
@@ -370,7 +385,10 @@ def make_group(anatomy) -> click.Group:
         work = out or tempfile.mkdtemp(prefix=f"clgs-{name}-demo-")
         scan.save(os.path.join(work, "scan"), overwrite=True)
         t1 = time.perf_counter()
-        result = run_reconstruct(scan, anatomy, method, out=os.path.join(work, "recon"), **_parse_options(settings))
+        opts = _parse_options(settings)
+        if method_accepts(method, "iterations"):
+            opts.setdefault("iterations", iterations)
+        result = run_reconstruct(scan, anatomy, method, out=os.path.join(work, "recon"), **opts)
         elapsed = time.perf_counter() - t1
         history = result.get("history") or (result.get("info") or {}).get("history")
         if history:

@@ -95,11 +95,11 @@ def view_weights(geometry: Geometry, short_scan="auto"):
         gamma = np.arctan(u_mm / geometry.DSD)
     else:
         gamma = np.zeros(nu)
+    if short_scan not in ("auto", True, False):
+        raise ValueError(f"short_scan must be 'auto', True or False, got {short_scan!r}")
     if n == 1:
         return np.array([np.pi]), np.ones((1, nu))
     order, un, gaps, full = _sorted_arc(angles)
-    if short_scan not in ("auto", True, False):
-        raise ValueError(f"short_scan must be 'auto', True or False, got {short_scan!r}")
     step = np.empty(n)
     if full and short_scan is not True:
         step[order] = 0.5 * (gaps + np.roll(gaps, 1))
@@ -158,7 +158,8 @@ def filter_projections(projections, geometry: Geometry, filter="ram-lak", short_
 def backproject(filtered, geometry: Geometry) -> np.ndarray:
     """Voxel-driven FDK/FBP backprojection (OpenCL) of already filtered, weighted projections.
 
-    float64 input runs the double-precision build; otherwise float32. Returns (Z, Y, X).
+    float64 input runs the double-precision build; otherwise float32. Returns (Z, Y, X). Work-items
+    own eight voxels along z, or along x for volumes thinner than eight slices.
     """
     import pyopencl as cl
 
@@ -183,14 +184,22 @@ def backproject(filtered, geometry: Geometry) -> np.ndarray:
     q_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=padded)
     t_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=trig)
     g_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=geo)
-    out = np.empty((nx, ny, nzp), dtype)
-    o_buf = cl.Buffer(ctx, mf.WRITE_ONLY, size=out.nbytes)
     real = "double" if dtype == np.float64 else "float"
-    k = get_program("fdk.cl", {"REAL": real, "CONE": g.mode == "cone"}).kernel("fdk_backproject")
-    k(queue, (nzp // 8, ny, nx), None, q_buf, t_buf, o_buf, g_buf, np.int32(n), np.int32(nx), np.int32(ny),
-      np.int32(nzp), np.int32(nu), np.int32(nv))
+    prog = get_program("fdk.cl", {"REAL": real, "CONE": g.mode == "cone"})
+    if nz >= 8:  # eight z voxels per work-item
+        out = np.empty((nx, ny, nzp), dtype)
+        o_buf = cl.Buffer(ctx, mf.WRITE_ONLY, size=out.nbytes)
+        prog.kernel("fdk_backproject")(queue, (nzp // 8, ny, nx), None, q_buf, t_buf, o_buf, g_buf, np.int32(n),
+                                       np.int32(nx), np.int32(ny), np.int32(nzp), np.int32(nu), np.int32(nv))
+        cl.enqueue_copy(queue, out, o_buf)
+        return np.ascontiguousarray(out[:, :, :nz].transpose(2, 1, 0))
+    nxp = (nx + 7) // 8 * 8  # thin volumes (a single slice): eight x voxels per work-item
+    out = np.empty((nz, ny, nxp), dtype)
+    o_buf = cl.Buffer(ctx, mf.WRITE_ONLY, size=out.nbytes)
+    prog.kernel("fdk_backproject_x")(queue, (nxp // 8, ny, nz), None, q_buf, t_buf, o_buf, g_buf, np.int32(n),
+                                     np.int32(nxp), np.int32(ny), np.int32(nu), np.int32(nv))
     cl.enqueue_copy(queue, out, o_buf)
-    return np.ascontiguousarray(out[:, :, :nz].transpose(2, 1, 0))
+    return np.ascontiguousarray(out[:, :, :nx])
 
 
 def fdk(projections, geometry: Geometry, filter: str = "ram-lak", short_scan="auto", dtype=np.float32) -> np.ndarray:

@@ -169,7 +169,7 @@ class CTProjector:
             arr = np.ascontiguousarray(rec, dtype=dtype)
             if len(self._view_cache) > 4096:
                 self._view_cache.clear()
-            hit = self._view_cache[key] = (arr, self._to_device("views%d" % len(self._view_cache), arr, fresh=True))
+            hit = self._view_cache[key] = (arr, self._constant_buffer(arr))
         return hit
 
     def _column_table(self, views, dtype, vbuf, n, prog):
@@ -188,15 +188,16 @@ class CTProjector:
         return hit
 
     def _ray_scale(self, views, dtype):
-        """(n, U, V) length in mm of each ray's direction vector D (cone: pixel - source), which
-        turns steps in the ray parameter into millimetres; 1 for parallel beam."""
+        """(n, U, Vp) length in mm of each ray's direction vector D (cone: pixel - source), which
+        turns steps in the ray parameter into millimetres; 1 for parallel beam; 0 in padded rows."""
         key = ("scale", None if views is None else np.asarray(views, np.int64).tobytes(), np.dtype(dtype).str)
         hit = self._view_cache.get(key)
         if hit is None:
             rec = self._views_all if views is None else self._views_all[np.asarray(views, np.int64)]
             nv, nu = self.geometry.nDetector
+            hit = np.zeros((rec.shape[0], nu, _round8(nv)), dtype)
             if not self.cone:
-                hit = np.ones((rec.shape[0], nu, nv), dtype)
+                hit[:, :, :nv] = 1.0
             else:
                 u = np.arange(nu, dtype=np.float64)[None, :, None]
                 v = np.arange(nv, dtype=np.float64)[None, None, :]
@@ -204,7 +205,7 @@ class CTProjector:
                 dx = (rec[:, 4, None, None] + u * rec[:, 6, None, None]) * sx
                 dy = (rec[:, 5, None, None] + u * rec[:, 7, None, None]) * sy
                 dz = (rec[:, 10, None, None] + v * rec[:, 11, None, None]) * sz
-                hit = np.sqrt(dx * dx + dy * dy + dz * dz).astype(dtype)
+                hit[:, :, :nv] = np.sqrt(dx * dx + dy * dy + dz * dz)
             self._view_cache[key] = hit
         return hit
 
@@ -219,13 +220,20 @@ class CTProjector:
             self._buffers[name] = buf
         return buf
 
-    def _to_device(self, name, array, fresh=False):
+    @staticmethod
+    def _constant_buffer(array):
         import pyopencl as cl
 
-        from clgs.runtime import get_context, get_queue
+        from clgs.runtime import get_context
 
-        if fresh:
-            return cl.Buffer(get_context(), cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=array)
+        return cl.Buffer(get_context(), cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=array)
+
+    def _to_device(self, name, array):
+        """Copy ``array`` into the reusable device buffer ``name`` (grown when too small)."""
+        import pyopencl as cl
+
+        from clgs.runtime import get_queue
+
         buf = self._buffer(name, array.nbytes)
         cl.enqueue_copy(get_queue(), buf, array)
         return buf
@@ -237,21 +245,56 @@ class CTProjector:
 
     def forward(self, volume, views=None) -> np.ndarray:
         """Line integrals (n_views, V, U) of ``volume`` (Z, Y, X), values per mm -> value x mm."""
+        vol = _as_real(volume, "volume")
+        if vol.shape != self.shape:
+            raise ValueError(f"volume has shape {vol.shape}, the geometry expects nVoxel (Z, Y, X) = {self.shape}")
+        nv = self.geometry.nDetector[0]
+        padded = self.pad_volume(vol)
+        return np.ascontiguousarray(self.forward_padded(padded, views)[:, :, :nv].transpose(0, 2, 1))
+
+    def backward(self, projections, views=None) -> np.ndarray:
+        """The exact transpose of :meth:`forward`: (n_views, V, U) -> volume (Z, Y, X)."""
+        proj = _as_real(projections, "projections")
+        dtype = proj.dtype.type
+        n = self._views(views, dtype)[0].shape[0]  # also checks the view indices
+        nv, nu = self.geometry.nDetector
+        if proj.ndim == 2 and n == 1:
+            proj = proj[None]
+        if proj.shape != (n, nv, nu):
+            raise ValueError(
+                f"projections have shape {proj.shape}, expected (n_views, V, U) = {(n, nv, nu)} for these views")
+        tp = np.zeros((n, nu, _round8(nv)), dtype)
+        tp[:, :, :nv] = proj.transpose(0, 2, 1)
+        nz = self.shape[0]
+        return np.ascontiguousarray(self.backward_internal(tp, views)[:, :, :nz].transpose(2, 1, 0))
+
+    # ------------------------------------------------------------------------------ internal layouts
+    # The kernels' own layouts, for iterative methods that keep their arrays in them (no transposes):
+    # volume padded (X + 3, Y + 3, Z + 3) with the voxel [k, j, i] at [i + 1, j + 1, k + 1];
+    # projections (n, U, V rounded up to 8) with row v fastest; backprojection (X, Y, Z rounded up).
+
+    def pad_volume(self, volume) -> np.ndarray:
+        """(Z, Y, X) -> the forward kernel's zero-padded (X + 3, Y + 3, Z + 3) layout."""
+        nz, ny, nx = self.shape
+        padded = np.zeros((nx + 3, ny + 3, nz + 3), volume.dtype)
+        padded[1:nx + 1, 1:ny + 1, 1:nz + 1] = volume.transpose(2, 1, 0)
+        return padded
+
+    def forward_padded(self, padded, views=None) -> np.ndarray:
+        """Forward projection of a padded volume (see :meth:`pad_volume`): (n, U, Vp) float array."""
         import pyopencl as cl
 
         from clgs.runtime import get_queue
 
-        vol = _as_real(volume, "volume")
-        if vol.shape != self.shape:
-            raise ValueError(f"volume has shape {vol.shape}, the geometry expects nVoxel (Z, Y, X) = {self.shape}")
-        dtype = vol.dtype.type
-        rec, vbuf = self._views(views, dtype)
+        dtype = np.float64 if padded.dtype == np.float64 else np.float32
+        padded = np.ascontiguousarray(padded, dtype)
         nz, ny, nx = self.shape
+        if padded.shape != (nx + 3, ny + 3, nz + 3):
+            raise ValueError(f"padded volume has shape {padded.shape}, expected {(nx + 3, ny + 3, nz + 3)}")
+        rec, vbuf = self._views(views, dtype)
         nv, nu = self.geometry.nDetector
         nvp = _round8(nv)
         n = rec.shape[0]
-        padded = np.zeros((nx + 3, ny + 3, nz + 3), dtype)
-        padded[1:nx + 1, 1:ny + 1, 1:nz + 1] = vol.transpose(2, 1, 0)
         vol_buf = self._to_device("vol_in", padded)
         out_buf = self._buffer("proj_out", n * nu * nvp * padded.itemsize)
         k = self._program(dtype, "forward").kernel("ct_forward")
@@ -261,30 +304,30 @@ class CTProjector:
           np.int32(nu), np.int32(nvp), sx, sy, sz)
         out = np.empty((n, nu, nvp), dtype)
         cl.enqueue_copy(q, out, out_buf)
-        return np.ascontiguousarray(out[:, :, :nv].transpose(0, 2, 1))
+        return out
 
-    def backward(self, projections, views=None) -> np.ndarray:
-        """The exact transpose of :meth:`forward`: (n_views, V, U) -> volume (Z, Y, X)."""
+    def backward_internal(self, tp, views=None) -> np.ndarray:
+        """Transpose of :meth:`forward_padded`: (n, U, Vp) projections -> (X, Y, Zp) volume.
+
+        Rows v >= V of ``tp`` are ignored.
+        """
         import pyopencl as cl
 
         from clgs.runtime import get_queue
 
-        proj = _as_real(projections, "projections")
-        dtype = proj.dtype.type
+        dtype = np.float64 if tp.dtype == np.float64 else np.float32
         rec, vbuf = self._views(views, dtype)
         n = rec.shape[0]
         nv, nu = self.geometry.nDetector
-        if proj.ndim == 2 and n == 1:
-            proj = proj[None]
-        if proj.shape != (n, nv, nu):
-            raise ValueError(
-                f"projections have shape {proj.shape}, expected (n_views, V, U) = {(n, nv, nu)} for these views")
+        nvp = _round8(nv)
+        if tp.shape != (n, nu, nvp):
+            raise ValueError(f"projections in kernel layout have shape {tp.shape}, expected {(n, nu, nvp)}")
         nz, ny, nx = self.shape
-        nvp, nzp = _round8(nv), (nz + _ZB - 1) // _ZB * _ZB
-        tp = np.zeros((n, nu, nvp), dtype)
-        np.multiply(proj.transpose(0, 2, 1), self._ray_scale(views, dtype), out=tp[:, :, :nv])
-        p_buf = self._to_device("proj_in", tp)
-        out_buf = self._buffer("vol_out", nx * ny * nzp * tp.itemsize)
+        nzp = (nz + _ZB - 1) // _ZB * _ZB
+        scaled = np.empty((n, nu, nvp), dtype)
+        np.multiply(tp, self._ray_scale(views, dtype), out=scaled)
+        p_buf = self._to_device("proj_in", scaled)
+        out_buf = self._buffer("vol_out", nx * ny * nzp * scaled.itemsize)
         prog = self._program(dtype, "backward")
         q = get_queue()
         t_buf = self._column_table(views, dtype, vbuf, n, prog)
@@ -293,4 +336,4 @@ class CTProjector:
           np.int32(nz), np.int32(nzp), np.int32(nu), np.int32(nv), np.int32(nvp))
         out = np.empty((nx, ny, nzp), dtype)
         cl.enqueue_copy(q, out, out_buf)
-        return np.ascontiguousarray(out[:, :, :nz].transpose(2, 1, 0))
+        return out

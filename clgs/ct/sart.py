@@ -39,7 +39,7 @@ def sart(projections, geometry: Geometry, n_iter: int = 10, subsets: int = 1, re
 
     ``projections``: (n_views, V, U) line integrals. ``x0``: starting volume (default zeros).
     ``callback(iteration, volume)`` runs after each iteration (``iteration`` counts from 1;
-    ``volume`` is the live array: copy it to keep it). ``verbose`` shows a tqdm bar.
+    ``volume`` is a fresh (Z, Y, X) copy of the current estimate). ``verbose`` shows a tqdm bar.
     ``projector``: an existing :class:`CTProjector` for this geometry, to reuse its buffers.
     """
     from clgs.ct.projector import CTProjector
@@ -76,14 +76,22 @@ def sart(projections, geometry: Geometry, n_iter: int = 10, subsets: int = 1, re
             np.maximum(x, 0, out=x)
 
     groups = subsets_of(geometry, subsets)
-    rows = P.forward(np.ones(shape, np.float32))
+    nz, ny, nx = shape
+    nv, nu = geometry.nDetector
+    # everything stays in the kernels' layouts (see CTProjector.pad_volume): no transposes per update
+    x_pad = P.pad_volume(x)
+    x_int = x_pad[1:nx + 1, 1:ny + 1, 1:nz + 1]          # (X, Y, Z) view of the interior
+    b_t = np.zeros((b.shape[0], nu, (nv + 7) // 8 * 8), np.float32)
+    b_t[:, :, :nv] = b.transpose(0, 2, 1)
+    rows = P.forward_padded(P.pad_volume(np.ones(shape, np.float32)))
     inv_rows = np.zeros_like(rows)
-    ok = rows > 1e-6 * float(rows.max()) if rows.size else rows > 0
-    inv_rows[ok] = 1.0 / rows[ok]
+    ok = rows > 1e-6 * float(rows.max())
+    inv_rows[ok] = 1.0 / rows[ok]                          # padded rows stay 0
 
     def inv_columns(views):
-        ones = np.ones((len(views), *geometry.nDetector), np.float32)
-        col = P.backward(ones, views=views)
+        ones = np.zeros((len(views), nu, b_t.shape[2]), np.float32)
+        ones[:, :, :nv] = 1.0
+        col = P.backward_internal(ones, views=views)[:, :, :nz]
         inv = np.zeros_like(col)
         good = col > 1e-6 * float(col.max()) if col.max() > 0 else col > 0
         inv[good] = 1.0 / col[good]
@@ -104,18 +112,19 @@ def sart(projections, geometry: Geometry, n_iter: int = 10, subsets: int = 1, re
             seq = rng.permutation(len(groups)) if order == "random" else range(len(groups))
             for s in seq:
                 views = groups[s]
-                resid = b[views] - P.forward(x, views=views)
+                resid = b_t[views] - P.forward_padded(x_pad, views=views)
                 resid *= inv_rows[views]
-                upd = P.backward(resid, views=views)
+                upd = P.backward_internal(resid, views=views)[:, :, :nz]
                 upd *= cols[s] if keep else inv_columns(views)
-                x += lam * upd
+                upd *= lam
+                x_int += upd
                 if nonneg:
-                    np.maximum(x, 0, out=x)
+                    np.maximum(x_int, 0, out=x_int)
             if bar is not None:
                 bar.update(1)
             if callback is not None:
-                callback(it + 1, x)
+                callback(it + 1, np.ascontiguousarray(x_int.transpose(2, 1, 0)))
     finally:
         if bar is not None:
             bar.close()
-    return x
+    return np.ascontiguousarray(x_int.transpose(2, 1, 0))

@@ -177,7 +177,7 @@ def project_patches(means, mats, densities, geometry, view, mode="affine", radiu
         centre = vmap(phi)(means.detach())[:, :2]
         rad = torch.full_like(centre, float(radius or 4))
         amp = densities
-    R = int(radius or max(1, math.ceil(float(rad.max()))))
+    R = int(radius or max(1, math.ceil(float(rad.detach().max()))))
     off = torch.arange(-R, R + 1, dtype=dtype)
     base = torch.round(centre.detach())
     pu = base[:, 0:1, None] + off[None, None, :]  # (N,1,K)

@@ -58,7 +58,7 @@ def population_model():
         n = np.asarray(SHAPE[::-1])
         grid = Grid(SHAPE, tuple(-0.5 * (n - 1) * SPACING_MM), (SPACING_MM,) * 3)
         scene = scan_geometry_kwargs(grid, DSO=1000.0, DSD=1500.0, pixel_mm=2.0)
-        scene.update(n_views=50, arc=float(np.pi))
+        scene.update(n_views=50, arc_deg=180.0)
         _population = SurfacePopulation(
             name="patella", summary="left patella (LLP26 real surfaces: 20 model subjects, 6 held out)",
             version=__version__, data_dir=DATA_DIR, file_pattern="patella_left_LLP26_subject{id}.npz",
@@ -70,4 +70,4 @@ def population_model():
 @hookimpl
 def clgs_anatomies():
     pop = population_model()
-    return [pop.anatomy(commands=[pop.mesh_command()])]
+    return [pop.anatomy()]

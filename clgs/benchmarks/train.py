@@ -1,0 +1,149 @@
+"""``clgs bench train``: training iterations per second, OpenCL against the same iteration in torch.
+
+One iteration is exactly what ``clgs reconstruct --method r2gs`` runs: learning rates from their
+schedules, one view, projection, L1 + 0.25 D-SSIM + 0.05 TV on a voxelised random 32^3 patch,
+backward, Adam, densification statistics. The scene: N Gaussians (default 50 000, 3-sigma radii of
+about 2-8 detector pixels) in a 128^3 volume, a 256^2 cone-beam detector, 50 views; the targets are
+the projections of a perturbed copy of the model. Both backends run in the same process, one after
+the other (torch for fewer iterations), so their ratio is measured under the same machine load.
+"""
+from __future__ import annotations
+
+import click
+
+
+def _scene(n: int, n_detector: int, n_voxel: int, n_views: int, mode: str, seed: int):
+    import numpy as np
+    import torch
+
+    from clgs.geometry import Geometry
+    from clgs.io.scan import Scan
+    from clgs.projector import project
+
+    geo = Geometry.default(n_views=n_views, n_voxel=n_voxel, n_detector=n_detector, volume_mm=256.0, mode=mode)
+    rng = np.random.default_rng(seed)
+    box = 0.5 * geo.sVoxel[::-1] * geo.scale
+    # pixels per scene unit at the rotation axis, to size the footprints in detector pixels
+    px = (geo.DSD / geo.DSO if mode == "cone" else 1.0) / (geo.dDetector[1] * geo.scale)
+    means = (rng.random((n, 3)) * 1.6 - 0.8) * box
+    scales = rng.uniform(2.0, 8.0, (n, 1)) / 3.0 / px * rng.uniform(0.7, 1.3, (n, 3))
+    quats = rng.normal(size=(n, 4))
+    dens = rng.uniform(0.2, 1.0, n)
+    truth = [torch.tensor(a, dtype=torch.float32) for a in
+             (means + rng.normal(0, 0.003, means.shape), scales, quats, dens * rng.uniform(0.8, 1.2, n))]
+    with torch.no_grad():
+        proj = torch.cat([project(*truth, geo, list(range(i, min(i + 10, n_views))))
+                          for i in range(0, n_views, 10)]).numpy()
+    return geo, Scan(geo, proj), (means, scales, quats, dens)
+
+
+def _trainer(scan, gaussians, backend: str, seed: int):
+    from clgs.r2gs import R2GSConfig, build_trainer
+
+    cfg = R2GSConfig(iterations=30_000, backend=backend, seed=seed, value_scale=1.0, log_every=0, checkpoint_every=0)
+    t = build_trainer(scan, cfg, gaussians=gaussians)
+    t.evaluate = None
+    return t
+
+
+def _time(trainer, n: int, warmup: int) -> float:
+    """Seconds per iteration, with the torch thread setting ``fit`` would use."""
+    import time
+
+    import torch
+
+    threads = torch.get_num_threads()
+    if trainer.torch_threads:
+        torch.set_num_threads(trainer.torch_threads)
+    try:
+        for _ in range(warmup):
+            trainer.step()
+        t0 = time.perf_counter()
+        for _ in range(n):
+            trainer.step()
+        return (time.perf_counter() - t0) / n
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _breakdown(trainer, n: int = 10) -> dict:
+    """ms per call of the iteration's two kernel pairs, forward + backward, on the trainer's model."""
+    import time
+
+    import torch
+
+    from clgs import losses as L
+
+    geo = trainer.geometry
+    threads = torch.get_num_threads()
+    if trainer.torch_threads:
+        torch.set_num_threads(trainer.torch_threads)
+
+    def proj():
+        trainer.backend.project(*trainer.scene_tensors(), geo, [3])[0].sum().backward()
+
+    def tv():
+        block = L.random_block(geo.volume_grid(), 32, trainer.generator)
+        L.tv3d(trainer.backend.voxelize(*trainer.scene_tensors(), block)).backward()
+
+    out = {}
+    try:
+        for name, f in (("projection fwd+bwd", proj), ("TV 32^3 patch fwd+bwd", tv)):
+            f()
+            t0 = time.perf_counter()
+            for _ in range(n):
+                f()
+            out[name] = (time.perf_counter() - t0) / n
+    finally:
+        torch.set_num_threads(threads)
+        trainer.optimizer.zero_grad(set_to_none=True)
+    return out
+
+
+@click.command()
+@click.option("--gaussians", "n", default=50_000, show_default=True, help="number of Gaussians")
+@click.option("--detector", "n_detector", default=256, show_default=True, help="detector pixels per side")
+@click.option("--voxels", "n_voxel", default=128, show_default=True, help="volume voxels per side")
+@click.option("--views", "n_views", default=50, show_default=True)
+@click.option("--mode", type=click.Choice(["cone", "parallel"]), default="cone", show_default=True)
+@click.option("--iterations", default=200, show_default=True, help="timed OpenCL iterations")
+@click.option("--torch-iterations", default=2, show_default=True, help="timed torch iterations (0: skip)")
+@click.option("--seed", default=0, show_default=True)
+def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, seed):
+    """Training iterations per second (OpenCL vs plain torch on the CPU, same iteration)."""
+    import torch
+
+    from clgs import runtime
+
+    geo, scan, gaussians = _scene(n, n_detector, n_voxel, n_views, mode, seed)
+    click.echo(f"scene: {n} Gaussians, {n_detector}^2 detector, {n_voxel}^3 volume, {n_views} {mode}-beam views; "
+               f"loss L1 + 0.25 D-SSIM + 0.05 TV(32^3 patch), Adam")
+    import os
+
+    click.echo(f"device: {runtime.device().name.strip()}; torch threads: {torch.get_num_threads()}; "
+               f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (others' work slows every figure)")
+    cl = _trainer(scan, gaussians, "cl", seed)
+    t_cl = _time(cl, iterations, warmup=5)
+    rows = [(f"OpenCL, {cl.torch_threads or torch.get_num_threads()} thr", iterations, t_cl)]
+    if torch_iterations > 0:
+        # torch's best thread setting counts: all cores, and one (faster when the cores are busy)
+        t_torch = None
+        for threads in sorted({torch.get_num_threads(), 1}, reverse=True):
+            tt = _trainer(scan, gaussians, "torch", seed)
+            tt.torch_threads = threads
+            t = _time(tt, torch_iterations, warmup=1)
+            rows.append((f"torch, {threads} thr", torch_iterations, t))
+            t_torch = t if t_torch is None else min(t_torch, t)
+    click.echo(f"{'backend':14s}{'iterations':>12s}{'ms / it':>12s}{'it / s':>10s}")
+    for name, k, t in rows:
+        click.echo(f"{name:14s}{k:12d}{t * 1e3:12.1f}{1.0 / t:10.1f}")
+    its = 1.0 / t_cl
+    line = f"OpenCL: {its:.1f} it/s (target >= 60)"
+    if torch_iterations > 0:
+        line += f"; speed-up over torch (its best setting): {t_torch / t_cl:.1f}x (target >= 40x)"
+    click.echo(line)
+    parts = _breakdown(cl)
+    rest = t_cl - sum(parts.values())
+    click.echo("OpenCL iteration, ms: " + ", ".join(f"{k} {v * 1e3:.1f}" for k, v in parts.items())
+               + f", everything else (losses, Adam, bookkeeping) {rest * 1e3:.1f}")
+    click.echo(f"30 000 iterations (R2-Gaussian's default) would take {30_000 * t_cl / 60:.1f} min here")
