@@ -91,22 +91,23 @@ def packed_covariance(scales: torch.Tensor, quats: torch.Tensor, inverse: bool =
     """(N, 6) covariance ``R diag(s^2) R^T`` (or, with ``inverse``, precision ``R diag(1/s^2) R^T``)
     packed as (xx, xy, xz, yy, yz, zz): the values of ``clgs.gaussian_math.covariance`` /
     ``precision``, written with element-wise ops on (N,) columns instead of batched 3x3 matrix
-    products. On a CPU that makes forward + backward for 50k Gaussians ~30x cheaper (a few ms
-    instead of ~100), which matters in a training iteration of ~15 ms."""
-    norm = torch.linalg.vector_norm(quats, dim=-1, keepdim=True)
-    q = quats / torch.clamp(norm, min=torch.finfo(quats.dtype).tiny ** 0.5)
-    w, x, y, z = q.unbind(-1)
+    products, on contiguous columns. On a CPU that makes forward + backward for 50k Gaussians
+    several times cheaper, which matters in a training iteration of ~15 ms."""
+    qt = quats.t().contiguous()  # columns as contiguous (N,) rows: the element-wise ops stream
+    norm = torch.sqrt((qt * qt).sum(0)).clamp_min(torch.finfo(quats.dtype).tiny ** 0.5)
+    w, x, y, z = (qt / norm).unbind(0)
     r = ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
          (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
          (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
-    d = scales * scales
+    st = scales.t().contiguous()
+    d = st * st
     if inverse:
         d = 1.0 / d
-    d0, d1, d2 = d.unbind(-1)
+    d0, d1, d2 = d.unbind(0)
     rd = [(row[0] * d0, row[1] * d1, row[2] * d2) for row in r]
     out = [rd[i][0] * r[j][0] + rd[i][1] * r[j][1] + rd[i][2] * r[j][2]
            for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))]
-    return torch.stack(out, -1)
+    return torch.stack(out, 0).t().contiguous()
 
 
 def axis_half_widths(scales: torch.Tensor, quats: torch.Tensor, n_sigma: float = 3.0) -> torch.Tensor:

@@ -42,26 +42,39 @@ def _blur(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return z
 
 
+def target_maps(b: torch.Tensor, window: int = 11, sigma: float = 1.5):
+    """The blurred mean and second moment of a fixed image ``b`` ((H, W) or (B, H, W)): computed
+    once per measured projection, they save two of SSIM's five filter passes every iteration."""
+    b = b.reshape(-1, 1, *b.shape[-2:])
+    maps = _blur(torch.cat([b, b * b], 0), _window(window, sigma, b.dtype))
+    n = b.shape[0]
+    return maps[:n], maps[n:]
+
+
 def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5,
-         c1: float = 0.01 ** 2, c2: float = 0.03 ** 2) -> torch.Tensor:
-    """Mean SSIM of images ``a``, ``b`` shaped (H, W) or (B, H, W)."""
+         c1: float = 0.01 ** 2, c2: float = 0.03 ** 2, b_maps=None) -> torch.Tensor:
+    """Mean SSIM of images ``a``, ``b`` shaped (H, W) or (B, H, W); ``b_maps`` = ``target_maps(b)``
+    when ``b`` is fixed and its maps are cached."""
     if a.shape != b.shape:
         raise ValueError(f"ssim: shapes differ, {tuple(a.shape)} vs {tuple(b.shape)}")
     a = a.reshape(-1, 1, *a.shape[-2:])
     b = b.reshape(-1, 1, *b.shape[-2:])
     w = _window(window, sigma, a.dtype)
-    # one batched filter pass for the five maps
-    maps = _blur(torch.cat([a, b, a * a, b * b, a * b], 0), w)
     n = a.shape[0]
-    mu_a, mu_b, aa, bb, ab = maps[:n], maps[n:2 * n], maps[2 * n:3 * n], maps[3 * n:4 * n], maps[4 * n:]
+    if b_maps is None:
+        mu_b, bb = target_maps(b, window, sigma)
+    else:
+        mu_b, bb = b_maps
+    maps = _blur(torch.cat([a, a * a, a * b], 0), w)  # one batched filter pass for the rest
+    mu_a, aa, ab = maps[:n], maps[n:2 * n], maps[2 * n:]
     va, vb, cov = aa - mu_a * mu_a, bb - mu_b * mu_b, ab - mu_a * mu_b
     s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a * mu_a + mu_b * mu_b + c1) * (va + vb + c2))
     return s.mean()
 
 
-def dssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+def dssim(a: torch.Tensor, b: torch.Tensor, b_maps=None) -> torch.Tensor:
     """D-SSIM = 1 - SSIM (R2-Gaussian weighs it 0.25)."""
-    return 1.0 - ssim(a, b)
+    return 1.0 - ssim(a, b, b_maps=b_maps)
 
 
 def l1(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 # version of the phantom model: part of the key of cached models built from phantoms
-PHANTOM_VERSION = 1
+PHANTOM_VERSION = 2
 
 # tissue codes of the label map returned with every phantom (dominant tissue per voxel)
 AIR, SKIN, FAT, MUSCLE, MARROW, TRABECULAR, CORTICAL = range(7)
@@ -568,7 +568,7 @@ def _ramp(x, h):
 
 def limb_distance(label, grid, soft: SoftTissue) -> np.ndarray:
     """Approximate signed distance (mm, negative inside) to the limb's elliptic outline, per slice."""
-    from scipy.ndimage import gaussian_filter1d
+    from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 
     nz, ny, nx = grid.shape
     xs, ys, zs = grid_axes(grid)
@@ -592,20 +592,27 @@ def limb_distance(label, grid, soft: SoftTissue) -> np.ndarray:
     hx, hy = 0.5 * (xhi - xlo)[near], 0.5 * (yhi - ylo)[near]
     sig = soft.smooth_mm / grid.spacing[2]
     if sig > 0 and nz > 1:
-        from scipy.ndimage import maximum_filter1d
-
         cx, cy = gaussian_filter1d(cx, sig, mode="nearest"), gaussian_filter1d(cy, sig, mode="nearest")
         # a smooth envelope of the half-extents (running maximum, then smoothed) that never dips
         # below the slice's own bone extent, so the limb has no steps where the bone widens
         win = 2 * int(np.ceil(2 * sig)) + 1
         hx = np.maximum(gaussian_filter1d(maximum_filter1d(hx, win, mode="nearest"), sig, mode="nearest"), hx)
         hy = np.maximum(gaussian_filter1d(maximum_filter1d(hy, win, mode="nearest"), sig, mode="nearest"), hy)
-    a = np.maximum(soft.min_semi_axes_mm[0], hx + soft.margin_mm + soft.fat_mm + soft.skin_mm)
-    b = np.maximum(soft.min_semi_axes_mm[1], hy + soft.margin_mm + soft.fat_mm + soft.skin_mm)
+    cover = soft.margin_mm + soft.fat_mm + soft.skin_mm
+    # inner ellipse (bone side of the cover), then grown per slice until it holds every bone voxel
+    ai = np.maximum(soft.min_semi_axes_mm[0] - cover, abs(soft.offset_mm[0]) + hx)
+    bi = np.maximum(soft.min_semi_axes_mm[1] - cover, abs(soft.offset_mm[1]) + hy)
     cx = cx + soft.offset_mm[0]
     cy = cy + soft.offset_mm[1]
     X = xs[None, None, :] - cx[:, None, None]
     Y = ys[None, :, None] - cy[:, None, None]
+    rr = np.sqrt((X / ai[:, None, None]) ** 2 + (Y / bi[:, None, None]) ** 2)
+    grow = np.maximum(np.where(label, rr, 0.0).max(axis=(1, 2)), 1.0)
+    if sig > 0 and nz > 1:
+        win = 2 * int(np.ceil(2 * sig)) + 1
+        grow = np.maximum(gaussian_filter1d(maximum_filter1d(grow, win, mode="nearest"), sig, mode="nearest"), grow)
+    a = ai * grow + cover
+    b = bi * grow + cover
     A, B = a[:, None, None], b[:, None, None]
     r = np.sqrt((X / A) ** 2 + (Y / B) ** 2)
     grad = np.sqrt((X / A**2) ** 2 + (Y / B**2) ** 2)
@@ -862,6 +869,12 @@ class SurfacePopulation:
                                                      list(self.grid.spacing)],
                   "offset": list(self.frame_offset), "params": repr(self.params),
                   "builder": self.builder_settings, "phantom": PHANTOM_VERSION}
+        try:
+            from clgs.model_builder import BUILDER_VERSION
+
+            record["builder_version"] = BUILDER_VERSION
+        except ImportError:
+            pass
         h.update(json.dumps(record, sort_keys=True).encode())
         return h.hexdigest()[:12]
 
@@ -873,20 +886,19 @@ class SurfacePopulation:
 
     def build_model(self, out_path=None, force: bool = False, subjects=None, **settings) -> str:
         """Build the shape model and density atlas from the population (held-out subjects never
-        enter) with :func:`clgs.model_builder.build_model`; returns the model file path."""
+        enter) with :func:`clgs.model_builder.build_model`; returns the model file path. An
+        up-to-date file (same builder settings) is kept; ``force`` rebuilds it."""
         import os
         import time
 
         from clgs import model_builder
 
         out_path = os.fspath(out_path) if out_path is not None else self.model_path
-        if os.path.exists(out_path) and not force:
-            return out_path
         ids = [str(s) for s in (subjects if subjects is not None else self.population())]
         leaked = sorted(set(ids) & set(self.test_ids))
         if leaked:
             raise ValueError(f"{self.name}: held-out subjects {leaked} must never build the model")
-        t0 = time.perf_counter()
+        t0, t0_wall = time.perf_counter(), time.time()
         template = self.load_template()
         # loaders, so that subjects whose registration is cached are never simulated again
         subjects = {sid: (lambda sid=sid: self.load_subject(sid)) for sid in ids}
@@ -898,6 +910,8 @@ class SurfacePopulation:
         extra.update(anatomy=self.name, held_out=self.test_ids, template="vertex-wise mean of the population",
                      density_params=repr(self.params))
         model_builder.build_model(template, subjects, out_path, extra_meta=extra, **kwargs)
+        if os.path.getmtime(out_path) < t0_wall:
+            return out_path  # it was up to date
         print(f"{self.name}: built the model from {len(subjects)} subjects in {time.perf_counter() - t0:.1f} s "
               f"-> {out_path}")
         return out_path

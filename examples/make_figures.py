@@ -3,9 +3,10 @@
     python examples/make_figures.py [--subject 20] [--out docs/img]
 
 Writes ``femur_ct_slices.png`` (axial, coronal and sagittal slices of a held-out subject's
-simulated CT, in 1/mm at 70 keV) and ``femur_projections.png`` (line integrals at a few angles
-over the default 180 degree arc) with the CT projector; the second is skipped with a note when
-the projector is not available.
+simulated CT, in 1/mm at 70 keV), ``femur_atlas.png`` (mean and standard deviation of the
+density atlas, when the femur model has been built) and ``femur_projections.png`` (line
+integrals at a few angles over the default 180 degree arc, with the CT projector); a missing
+model or projector skips its figure with a note.
 """
 from __future__ import annotations
 
@@ -70,6 +71,34 @@ def projection_montage(projections, angles, path, title):
     plt.close(fig)
 
 
+def atlas_figure(mean, var, spacing_zyx, path):
+    """Coronal and sagittal slices of the density atlas: mean and standard deviation."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    nz, ny, nx = mean.shape
+    dz, dy, dx = spacing_zyx
+    kk, jj, ii = np.nonzero(mean > 0.03)
+    j_c, i_c = int(np.median(jj)), int(np.median(ii))
+    sd = np.sqrt(np.maximum(var, 0))
+    fig, axes = plt.subplots(1, 4, figsize=(11, 7), constrained_layout=True)
+    panels = [(mean[:, j_c, :], (0, nx * dx), "mean, coronal", 0.055),
+              (mean[:, :, i_c], (0, ny * dy), "mean, sagittal", 0.055),
+              (sd[:, j_c, :], (0, nx * dx), "std. dev., coronal", float(sd.max())),
+              (sd[:, :, i_c], (0, ny * dy), "std. dev., sagittal", float(sd.max()))]
+    for ax, (img, ext, title, vmax) in zip(axes, panels):
+        im = ax.imshow(img, cmap="gray" if "mean" in title else "magma", vmin=0, vmax=vmax, origin="lower",
+                       extent=(*ext, 0, nz * dz))
+        ax.set_title(title, fontsize=9)
+        ax.axis("off")
+        fig.colorbar(im, ax=ax, fraction=0.08, shrink=0.6)
+    fig.suptitle("femur density atlas (20 subjects warped to the template; 1/mm at 70 keV)", fontsize=11)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--subject", default="20", help="femur subject id (20-25 are held out)")
@@ -90,6 +119,15 @@ def main(argv=None):
                   f"simulated CT, LLP26 femur {args.subject} (held out)" if args.subject in pop.test_ids
                   else f"simulated CT, LLP26 femur {args.subject}")
     print(f"wrote {slices}")
+    if os.path.exists(pop.model_path):  # the density atlas, when the model has been built
+        from clgs.shape_model import load_model
+
+        _, atlas = load_model(pop.model_path, need_shape_model=False)
+        path = os.path.join(args.out, "femur_atlas.png")
+        atlas_figure(atlas.mean, atlas.var, subject.spacing, path)
+        print(f"wrote {path}")
+    else:
+        print(f"no femur model at {pop.model_path} yet (clgs femur build-model): atlas figure skipped")
     try:
         from clgs.ct.projector import CTProjector
     except ImportError as exc:

@@ -32,6 +32,7 @@ def test_ssim_matches_the_2d_window_formula_and_bounds():
     b = (a + 0.2 * torch.rand(40, 33, generator=g, dtype=torch.float64)).clamp(0, 1)
     assert float(L.ssim(a, b)) == pytest.approx(float(_ssim_direct(a, b)), rel=1e-10)
     assert float(L.ssim(a, a)) == pytest.approx(1.0, abs=1e-12)
+    assert float(L.ssim(a, b, b_maps=L.target_maps(b))) == pytest.approx(float(_ssim_direct(a, b)), rel=1e-10)
     assert float(L.dssim(a, b)) == pytest.approx(1 - float(_ssim_direct(a, b)), rel=1e-9)
     assert 0 < float(L.dssim(a, 1 - a)) <= 2
     a32 = a.float().requires_grad_(True)

@@ -31,7 +31,7 @@ DATA_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data")
 SUBJECTS = [f"{i:02d}" for i in range(26)]
 TEST_SUBJECTS = SUBJECTS[20:]
 FRAME_OFFSET = (105.0, 23.0, 1010.0)  # LLP26 mm (x, y, z) -> grid centre
-SHAPE = (160, 72, 80)  # (Z, Y, X)
+SHAPE = (160, 80, 88)  # (Z, Y, X)
 SPACING_MM = 3.0
 
 _population = None
