@@ -23,6 +23,7 @@ inline void load_gauss(int g, __global const real *means, __global const real *m
 }
 
 /* ------------------------------------------------------------------ per (Gaussian, view) set-up */
+#ifdef EXACT /* (affine: preprocess8 below) */
 inline void preprocess_one(const int g, const int view, const int N, const int U, const int V, const real scale,
                          __global const real *means, __global const real *mats, __global const real *rho,
                          __global const real *vparams, __global real *rec, __global int4 *box)
@@ -68,15 +69,66 @@ inline int load_splat(__global const real *rec, __global const int4 *box, size_t
     return 1;
 }
 
-/* work-item i handles Gaussians [i per, (i + 1) per) of one view (per > 1 on CPUs: fewer groups) */
+#endif
+
+#ifndef EXACT
+/* in[0..2] x, y, z, in[3..8] the packed matrix, in[9] the density of Gaussians g0 + lane (lanes
+ * past N repeat Gaussian N - 1) */
+inline void gather8(const int g0, const int N, __global const real *means, __global const real *mats,
+                    __global const real *rho, real8 *in)
+{
+    for (int j = 0; j < 8; j++) {
+        const int g = g0 + j < N ? g0 + j : N - 1;
+        for (int k = 0; k < 3; k++) ((real *)&in[k])[j] = means[3 * g + k];
+        for (int k = 0; k < 6; k++) ((real *)&in[3 + k])[j] = mats[6 * g + k];
+        ((real *)&in[9])[j] = rho[g];
+    }
+}
+
+/* Affine: Gaussians [g0, g0 + 8) of one view at once, one per lane (setup_affine8). Lanes past
+ * N repeat Gaussian N - 1 and are not written. */
+inline void preprocess8(const int g0, const int view, const int N, const int U, const int V, const real scale,
+                        __global const real *means, __global const real *mats, __global const real *rho,
+                        __global const real *vparams, __global real *rec, __global int4 *box)
+{
+    real8 in[10];
+    gather8(g0, N, means, mats, rho, in);
+    vec8 p;
+    p.x = in[0]; p.y = in[1]; p.z = in[2];
+    Frame8 f;
+    const Splat8 sp = setup_affine8(p, in + 3, load_view(vparams, view), scale, U, V, &f);
+    const real8 out[REC] = {sp.uc, sp.vc, in[9] * sp.amp0, (real8)(RC(0.0)),
+                            RC(-0.5) * sp.k0, -sp.k1, RC(-0.5) * sp.k2, sp.amp0}; /* record, as preprocess_one */
+    const int8 bx[4] = {sp.u0, sp.u1, sp.v0, sp.v1};
+    const mask8 ok = sp.ok;
+    for (int j = 0; j < 8 && g0 + j < N; j++) {
+        const size_t idx = (size_t)view * N + g0 + j;
+        if (!((const mask1 *)&ok)[j]) {
+            box[idx] = (int4)(1, 0, 1, 0);
+            continue;
+        }
+        box[idx] = (int4)(((const int *)&bx[0])[j], ((const int *)&bx[1])[j], ((const int *)&bx[2])[j],
+                          ((const int *)&bx[3])[j]);
+        for (int i = 0; i < REC; i++) rec[idx * REC + i] = ((const real *)&out[i])[j];
+    }
+}
+#endif
+
+/* work-item i handles Gaussians [i per, (i + 1) per) of one view (per > 1 on CPUs: fewer groups;
+ * affine: per is a multiple of 8) */
 __kernel void preprocess(const int N, const int per, const int U, const int V, const real scale,
                          __global const real *means, __global const real *mats, __global const real *rho,
                          __global const real *vparams, __global real *rec, __global int4 *box)
 {
     const int view = get_global_id(1);
     const int g1 = min(N, (int)(get_global_id(0) + 1) * per);
+#ifndef EXACT
+    for (int g = get_global_id(0) * per; g < g1; g += 8)
+        preprocess8(g, view, N, U, V, scale, means, mats, rho, vparams, rec, box);
+#else
     for (int g = get_global_id(0) * per; g < g1; g++)
         preprocess_one(g, view, N, U, V, scale, means, mats, rho, vparams, rec, box);
+#endif
 }
 
 /* ------------------------------------------------------------------ forward */
@@ -107,7 +159,7 @@ __kernel void fill(const int N, const int chunk, const int nchunks, const int nt
                 list[pos] = g;
                 prow[pos] = b.zw;
 #if REC == 8
-                vstore8(vload8(0, rec + idx * REC), 0, prec + (size_t)pos * REC);
+                ST8G(prec + (size_t)pos * REC) = LD8G(rec + idx * REC);
 #else
                 for (int i = 0; i < REC; i++) prec[(size_t)pos * REC + i] = rec[idx * REC + i];
 #endif
@@ -115,6 +167,9 @@ __kernel void fill(const int N, const int chunk, const int nchunks, const int nt
     }
 }
 
+#if TW != 8
+#error "render: a tile row is one real8 (TW = 8)"
+#endif
 __kernel void render(const int U, const int V, const int ntx, const int ntiles,
                      __global const real *prec, __global const int2 *prow, __global const int *starts,
                      __global const int *list, __global const real *means, __global const real *mats,
@@ -131,7 +186,7 @@ __kernel void render(const int U, const int V, const int ntx, const int ntiles,
     const int beg = starts[view * ntiles + tile], end = starts[view * ntiles + tile + 1];
     for (int k = beg; k < end; k++) {
         const int2 b = prow[k];
-        const int r0 = max(b.x, v0) - v0, r1 = min(b.y, v0 + TH - 1) - v0;
+        const int r0 = (b.x > v0 ? b.x : v0) - v0, r1 = (b.y < v0 + TH - 1 ? b.y : v0 + TH - 1) - v0;
         __global const real *R = prec + (size_t)k * REC;
         const real uc = R[0], vc = R[1], amp = R[2];
         const real nk0 = R[4], nk1 = R[5], nk2 = R[6];
@@ -161,15 +216,15 @@ __kernel void render(const int U, const int V, const int ntx, const int ntiles,
             const real8 DD = (d3 * du + dB) * du + dC;
             const real8 ia = RC(1.0) / A;
             const real8 x = arg * ia; /* -q/2 */
-            const real8 val = amp * sqrt(DD * ia) * splat_exp8(x);
-            acc[r] += select((real8)(RC(0.0)), val, x >= RC(-0.5 * QCUT));
+            const real8 val = amp * sqrt8(DD * ia) * splat_exp8(x);
+            acc[r] += (x >= RC(-0.5 * QCUT) ? val : (real8)(RC(0.0)));
         }
 #else
         for (int r = r0; r <= r1; r++) {
             const real dv = (real)(v0 + r) - vc;
             const real nB = nk1 * dv, nC = nk2 * dv * dv;
             const real8 x = (nk0 * du + nB) * du + nC; /* -q/2 */
-            acc[r] += select((real8)(RC(0.0)), amp * splat_exp8(x), x >= RC(-0.5 * QCUT));
+            acc[r] += (x >= RC(-0.5 * QCUT) ? amp * splat_exp8(x) : (real8)(RC(0.0)));
         }
 #endif
     }
@@ -178,7 +233,7 @@ __kernel void render(const int U, const int V, const int ntx, const int ntiles,
         const int v = v0 + r;
         if (v >= V) break;
         if (u0 + TW <= U) {
-            vstore8(acc[r], 0, o + (size_t)v * U + u0);
+            ST8G(o + (size_t)v * U + u0) = acc[r];
         } else {
             real tmp[8];
             vstore8(acc[r], 0, tmp);
@@ -201,7 +256,7 @@ inline real hsum8(real8 x)
 inline real8 load_row(__global const real *gimg, int U, int v, int s)
 {
     __global const real *row = gimg + (size_t)v * U;
-    if (s + 8 <= U) return vload8(0, row + s);
+    if (s + 8 <= U) return LD8G(row + s);
     real tmp[8];
     for (int i = 0; i < 8; i++) tmp[i] = row[min(s + i, U - 1)];
     return vload8(0, tmp);
@@ -217,6 +272,37 @@ inline void add_sym_outer(real *G, real c, real3 a, real3 b)
     G[5] += c * a.z * b.z;
 }
 
+/* Moments (sum over the box of g E times 1, du, dv, du^2, du dv, dv^2) of dL/dI (g) against a
+ * conic splat E = exp(-q/2), q = k0 du^2 + 2 k1 du dv + k2 dv^2 (q <= 9 kept), du = u - uc, dv =
+ * v - vc: everything the chain rule of a conic splat needs from the pixels. 8-pixel segments
+ * from the box's left edge outer, rows inner (the du parts once per segment). */
+inline void conic_moments(__global const real *gi, int U, int4 b, real uc, real vc, real k0, real k1, real k2,
+                          real *mo)
+{
+    const real8 lane = (real8)(RC(0.0), RC(1.0), RC(2.0), RC(3.0), RC(4.0), RC(5.0), RC(6.0), RC(7.0));
+    const real8 zero = (real8)(RC(0.0));
+    const real nk0 = RC(-0.5) * k0, nk1 = -k1, nk2 = RC(-0.5) * k2;
+    real8 S0 = zero, Su = zero, Sv = zero, Suu = zero, Suv = zero, Svv = zero;
+    for (int s = b.x; s <= b.y; s += 8) {
+        const real8 uu = (real)s + lane;
+        const mask8 lm = uu <= (real)b.y;
+        const real8 du = uu - uc;
+        const real8 A8 = nk0 * du * du, B8 = nk1 * du;
+        real8 c0 = zero, cv = zero, cvv = zero;
+        for (int v = b.z; v <= b.w; v++) {
+            const real dv = (real)v - vc;
+            const real8 x = A8 + dv * (B8 + nk2 * dv);
+            const real8 gE = ((lm & (x >= RC(-0.5 * QCUT))) ? load_row(gi, U, v, s) * splat_exp8(x) : zero);
+            c0 += gE; cv += gE * dv; cvv += gE * (dv * dv);
+        }
+        S0 += c0; Su += du * c0; Suu += du * du * c0;
+        Sv += cv; Suv += du * cv; Svv += cvv;
+    }
+    mo[0] = hsum8(S0); mo[1] = hsum8(Su); mo[2] = hsum8(Sv);
+    mo[3] = hsum8(Suu); mo[4] = hsum8(Suv); mo[5] = hsum8(Svv);
+}
+
+#ifdef EXACT
 inline void backward_one(const int g, const int N, const int nviews, const int U, const int V, const real scale,
                          const int cached, __global const real *rec, __global const int4 *box,
                          __global const real *means, __global const real *mats, __global const real *rho,
@@ -252,7 +338,7 @@ inline void backward_one(const int g, const int N, const int nviews, const int U
             for (int v = b.z; v <= b.w; v++) {
                 for (int s = s0; s <= b.y; s += 8) {
                     const real8 uu = (real)s + lane;
-                    const real8 gg = select(zero, load_row(gi, U, v, s), (uu >= (real)b.x) & (uu <= (real)b.y));
+                    const real8 gg = (((uu >= (real)b.x) & (uu <= (real)b.y)) ? load_row(gi, U, v, s) : zero);
                     real8 w[3], d[3], ia, beta, vnf;
                     const real8 val0 = straddle_eval(p, S, Vw, sp.amp0, (real)s + lane, (real)v, w, d, &ia, &beta, &vnf);
                     const real8 gv0 = gg * val0;
@@ -310,7 +396,7 @@ inline void backward_one(const int g, const int N, const int nviews, const int U
                     const real8 ia = RC(1.0) / A;
                     const real8 x = (Ndu + dv * (NB + nk2 * dv)) * ia;
                     const real8 DD = Ddu + dv * (DB + sp.d5 * dv);
-                    const real8 gI = select(zero, gg * sp.amp0 * sqrt(DD * ia) * splat_exp8(x), lm & (x >= RC(-0.5 * QCUT)));
+                    const real8 gI = ((lm & (x >= RC(-0.5 * QCUT))) ? gg * sp.amp0 * sqrt8(DD * ia) * splat_exp8(x) : zero);
                     const real8 al = (alDu + dv * (alB + sp.a5 * dv)) * ia;
                     const real8 be = (beDu + sp.a2 * dv) * ia * ik;
                     const real8 w0 = al * e.x + be * (gx + dv * gv.x);
@@ -345,91 +431,12 @@ inline void backward_one(const int g, const int N, const int nviews, const int U
             grho += hsum8(S0);
         }
 #else
-        /* conic splat (affine, or exact parallel): 6 moments of g E over the box */
-        const real nk0 = RC(-0.5) * sp.k0, nk1 = -sp.k1, nk2 = RC(-0.5) * sp.k2;
-        real8 S0 = zero, Su = zero, Sv = zero, Suu = zero, Suv = zero, Svv = zero;
-        for (int s = s0; s <= b.y; s += 8) {
-            /* 8-pixel segment outer, rows inner; row moments summed per segment */
-            const real8 uu = (real)s + lane;
-            const mask8 lm = (uu >= (real)b.x) & (uu <= (real)b.y);
-            const real8 du = uu - sp.uc;
-            const real8 A8 = nk0 * du * du, B8 = nk1 * du;
-            real8 c0 = zero, cv = zero, cvv = zero;
-            for (int v = b.z; v <= b.w; v++) {
-                const real dv = (real)v - sp.vc;
-                const real8 x = A8 + dv * (B8 + nk2 * dv);
-                const real8 gE = select(zero, load_row(gi, U, v, s) * splat_exp8(x), lm & (x >= RC(-0.5 * QCUT)));
-                c0 += gE; cv += gE * dv; cvv += gE * (dv * dv);
-            }
-            S0 += c0; Su += du * c0; Suu += du * du * c0;
-            Sv += cv; Suv += du * cv; Svv += cvv;
-        }
-        const real s0_ = hsum8(S0), su = hsum8(Su), sv = hsum8(Sv);
-        const real suu = hsum8(Suu), suv = hsum8(Suv), svv = hsum8(Svv);
+        /* conic splat (exact parallel): 6 moments of g E over the box */
+        real mo[6];
+        conic_moments(gi, U, sp.box, sp.uc, sp.vc, sp.k0, sp.k1, sp.k2, mo);
+        const real s0_ = mo[0], su = mo[1], sv = mo[2], suu = mo[3], suv = mo[4], svv = mo[5];
         const real amp = rh * sp.amp0;
         grho += sp.amp0 * s0_;
-#ifndef EXACT
-        /* affine: back through C = S2^-1, mu = sqrt(2 pi det S3 / det S2), S3 = T Sigma T^T, T(p) */
-        {
-            const real k0 = sp.k0, k1 = sp.k1, k2 = sp.k2;
-            const real gc00 = RC(-0.5) * amp * suu, gc01 = RC(-0.5) * amp * suv, gc11 = RC(-0.5) * amp * svv;
-            const real X00 = gc00 * k0 + gc01 * k1, X01 = gc00 * k1 + gc01 * k2;
-            const real X10 = gc01 * k0 + gc11 * k1, X11 = gc01 * k1 + gc11 * k2;
-            real G00 = -(k0 * X00 + k1 * X10), G01 = -(k0 * X01 + k1 * X11), G11 = -(k1 * X01 + k2 * X11);
-            const real Guc = amp * (k0 * su + k1 * sv), Gvc = amp * (k1 * su + k2 * sv);
-            /* recompute T and S3 */
-            const real3 pm = p - Vw.s;
-            const real tx = dot3(Vw.eu, pm), ty = dot3(Vw.ev, pm), tz = dot3(Vw.w, pm);
-            real3 T1, T2, T3;
-#ifdef CONE
-            const real iz = RC(1.0) / tz;
-            const real l = sqrt(tx * tx + ty * ty + tz * tz);
-            T1 = (Vw.fx * iz) * (Vw.eu - (tx * iz) * Vw.w);
-            T2 = (Vw.fy * iz) * (Vw.ev - (ty * iz) * Vw.w);
-            T3 = pm * (RC(1.0) / l);
-#else
-            T1 = Vw.fx * Vw.eu; T2 = Vw.fy * Vw.ev; T3 = Vw.w;
-#endif
-            const real3 ST1 = symv(S, T1), ST2 = symv(S, T2), ST3 = symv(S, T3);
-            const real s00 = dot3(T1, ST1), s01 = dot3(T1, ST2), s02 = dot3(T1, ST3);
-            const real s11 = dot3(T2, ST2), s12 = dot3(T2, ST3), s22 = dot3(T3, ST3);
-            const real det2 = s00 * s11 - s01 * s01;
-            const real det3 = det2 * s22 - s00 * s12 * s12 - s11 * s02 * s02 + RC(2.0) * s01 * s02 * s12;
-            const real mu = sp.amp0 * scale;
-            const real hm = RC(0.5) * (rh / scale) * s0_ * mu;
-            const real id3 = hm / det3;
-            /* G3 = hm S3^-1 (adjugate / det) + top-left (G2 - hm C) */
-            real g3[6];
-            g3[0] = (s11 * s22 - s12 * s12) * id3 + G00 - hm * k0;
-            g3[1] = (s02 * s12 - s01 * s22) * id3 + G01 - hm * k1;
-            g3[2] = (s01 * s12 - s02 * s11) * id3;
-            g3[3] = (s00 * s22 - s02 * s02) * id3 + G11 - hm * k2;
-            g3[4] = (s01 * s02 - s00 * s12) * id3;
-            g3[5] = det2 * id3;
-            /* dL/dSigma = T^T G3 T */
-            const real3 U1 = g3[0] * T1 + g3[1] * T2 + g3[2] * T3;
-            const real3 U2 = g3[1] * T1 + g3[3] * T2 + g3[4] * T3;
-            const real3 U3 = g3[2] * T1 + g3[4] * T2 + g3[5] * T3;
-            add_sym_outer(gM, RC(1.0), T1, U1);
-            add_sym_outer(gM, RC(1.0), T2, U2);
-            add_sym_outer(gM, RC(1.0), T3, U3);
-#ifdef CONE
-            /* dL/dT = 2 G3 T Sigma, then T(t) and (uc, vc)(t) */
-            const real3 GT1 = RC(2.0) * (g3[0] * ST1 + g3[1] * ST2 + g3[2] * ST3);
-            const real3 GT2 = RC(2.0) * (g3[1] * ST1 + g3[3] * ST2 + g3[4] * ST3);
-            const real3 GT3 = RC(2.0) * (g3[2] * ST1 + g3[4] * ST2 + g3[5] * ST3);
-            const real fxz2 = Vw.fx * iz * iz, fyz2 = Vw.fy * iz * iz;
-            const real gtx = Guc * Vw.fx * iz - fxz2 * dot3(GT1, Vw.w);
-            const real gty = Gvc * Vw.fy * iz - fyz2 * dot3(GT2, Vw.w);
-            const real gtz = -Guc * fxz2 * tx - Gvc * fyz2 * ty
-                             - fxz2 * dot3(GT1, Vw.eu) + RC(2.0) * fxz2 * tx * iz * dot3(GT1, Vw.w)
-                             - fyz2 * dot3(GT2, Vw.ev) + RC(2.0) * fyz2 * ty * iz * dot3(GT2, Vw.w);
-            gp += gtx * Vw.eu + gty * Vw.ev + gtz * Vw.w + (GT3 - dot3(GT3, T3) * T3) / l;
-#else
-            gp += Guc * Vw.fx * Vw.eu + Gvc * Vw.fy * Vw.ev;
-#endif
-        }
-#else
         /* exact parallel: w = du w_u + dv w_v, w_u = gu - (h_u / a) r; envelope theorem */
         {
             const real3 r = Vw.w;
@@ -445,7 +452,6 @@ inline void backward_one(const int g, const int N, const int nviews, const int U
             add_sym_outer(gM, c * s0_ * ia, r, r);
         }
 #endif
-#endif
     }
 #ifndef NO_GRAD_MEAN
     g_means[3 * g] = gp.x; g_means[3 * g + 1] = gp.y; g_means[3 * g + 2] = gp.z;
@@ -458,8 +464,135 @@ inline void backward_one(const int g, const int N, const int nviews, const int U
 #endif
 }
 
-/* work-item i handles Gaussians [i per, (i + 1) per), each over every view; cached != 0: reuse
- * the set-up the forward left in rec and box (same inputs and views), else recompute it */
+#endif
+
+#ifndef EXACT
+inline void add_sym_outer8(real8 *G, vec8 a, vec8 b, mask8 ok)
+{ /* G += sym(a b^T) (packed, off-diagonals as the sum of both entries) on the lanes in ok */
+    const real8 zero = (real8)(RC(0.0));
+    G[0] += ok ? a.x * b.x : zero;
+    G[1] += ok ? a.x * b.y + a.y * b.x : zero;
+    G[2] += ok ? a.x * b.z + a.z * b.x : zero;
+    G[3] += ok ? a.y * b.y : zero;
+    G[4] += ok ? a.y * b.z + a.z * b.y : zero;
+    G[5] += ok ? a.z * b.z : zero;
+}
+
+inline vec8 comb8(real8 a, vec8 A, real8 b, vec8 B, real8 c, vec8 C)
+{
+    vec8 r;
+    r.x = a * A.x + b * B.x + c * C.x;
+    r.y = a * A.y + b * B.y + c * C.y;
+    r.z = a * A.z + b * B.z + c * C.z;
+    return r;
+}
+
+inline real8 dot8s(vec8 a, real3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+
+/* Affine backward of Gaussians [g0, g0 + 8), one per lane: per view the set-up (setup_affine8,
+ * the very code the forward ran, so it matches the forward's records bit for bit), then each
+ * Gaussian's pixel moments (conic_moments), then the chain rule for all 8 at once in real8:
+ * back through C = S2^-1, mu = sqrt(2 pi det S3 / det S2), S3 = T Sigma T^T and T(p). */
+inline void backward8(const int g0, const int N, const int nviews, const int U, const int V, const real scale,
+                      __global const real *means, __global const real *mats, __global const real *rho,
+                      __global const real *vparams, __global const real *gimg,
+                      __global real *g_means, __global real *g_mats, __global real *g_rho)
+{
+    const real8 zero = (real8)(RC(0.0));
+    real8 in[10];
+    gather8(g0, N, means, mats, rho, in);
+    vec8 p;
+    p.x = in[0]; p.y = in[1]; p.z = in[2];
+    const real8 *S = in + 3, rh = in[9];
+    vec8 gp;
+    gp.x = zero; gp.y = zero; gp.z = zero;
+    real8 gM[6] = {zero, zero, zero, zero, zero, zero};
+    real8 grho = zero;
+    const int nlanes = N - g0 < 8 ? N - g0 : 8;
+    for (int view = 0; view < nviews; view++) {
+        const View Vw = load_view(vparams, view);
+        Frame8 f;
+        const Splat8 sp = setup_affine8(p, S, Vw, scale, U, V, &f);
+        const mask8 ok = sp.ok;
+        __global const real *gi = gimg + (size_t)view * V * U;
+        real8 mo[6] = {zero, zero, zero, zero, zero, zero}; /* pixel moments, lane j: Gaussian g0 + j */
+        for (int j = 0; j < nlanes; j++) {
+            if (!((const mask1 *)&ok)[j]) continue;
+            real m[6];
+            const int4 b = (int4)(((const int *)&sp.u0)[j], ((const int *)&sp.u1)[j], ((const int *)&sp.v0)[j],
+                                  ((const int *)&sp.v1)[j]);
+            conic_moments(gi, U, b, ((const real *)&sp.uc)[j], ((const real *)&sp.vc)[j], ((const real *)&sp.k0)[j],
+                          ((const real *)&sp.k1)[j], ((const real *)&sp.k2)[j], m);
+            for (int k = 0; k < 6; k++) ((real *)&mo[k])[j] = m[k];
+        }
+        const real8 s0_ = mo[0], su = mo[1], sv = mo[2], suu = mo[3], suv = mo[4], svv = mo[5];
+        const real8 amp = rh * sp.amp0;
+        grho += ok ? sp.amp0 * s0_ : zero;
+        const real8 k0 = sp.k0, k1 = sp.k1, k2 = sp.k2;
+        const real8 gc00 = RC(-0.5) * amp * suu, gc01 = RC(-0.5) * amp * suv, gc11 = RC(-0.5) * amp * svv;
+        const real8 X00 = gc00 * k0 + gc01 * k1, X01 = gc00 * k1 + gc01 * k2;
+        const real8 X10 = gc01 * k0 + gc11 * k1, X11 = gc01 * k1 + gc11 * k2;
+        const real8 G00 = -(k0 * X00 + k1 * X10), G01 = -(k0 * X01 + k1 * X11), G11 = -(k1 * X01 + k2 * X11);
+        const real8 Guc = amp * (k0 * su + k1 * sv), Gvc = amp * (k1 * su + k2 * sv);
+        const real8 s00 = f.s00, s01 = f.s01, s02 = f.s02, s11 = f.s11, s12 = f.s12, s22 = f.s22;
+        const real8 mu = sp.amp0 * scale;
+        const real8 hm = RC(0.5) * (rh / scale) * s0_ * mu;
+        const real8 id3 = hm / f.det3;
+        /* G3 = hm S3^-1 (adjugate / det) + top-left (G2 - hm C) */
+        real8 g3[6];
+        g3[0] = (s11 * s22 - s12 * s12) * id3 + G00 - hm * k0;
+        g3[1] = (s02 * s12 - s01 * s22) * id3 + G01 - hm * k1;
+        g3[2] = (s01 * s12 - s02 * s11) * id3;
+        g3[3] = (s00 * s22 - s02 * s02) * id3 + G11 - hm * k2;
+        g3[4] = (s01 * s02 - s00 * s12) * id3;
+        g3[5] = f.det2 * id3;
+        /* dL/dSigma = T^T G3 T */
+        add_sym_outer8(gM, f.T1, comb8(g3[0], f.T1, g3[1], f.T2, g3[2], f.T3), ok);
+        add_sym_outer8(gM, f.T2, comb8(g3[1], f.T1, g3[3], f.T2, g3[4], f.T3), ok);
+        add_sym_outer8(gM, f.T3, comb8(g3[2], f.T1, g3[4], f.T2, g3[5], f.T3), ok);
+#ifdef CONE
+        /* dL/dT = 2 G3 T Sigma, then T(t) and (uc, vc)(t) */
+        const vec8 GT1 = comb8(RC(2.0) * g3[0], f.ST1, RC(2.0) * g3[1], f.ST2, RC(2.0) * g3[2], f.ST3);
+        const vec8 GT2 = comb8(RC(2.0) * g3[1], f.ST1, RC(2.0) * g3[3], f.ST2, RC(2.0) * g3[4], f.ST3);
+        const vec8 GT3 = comb8(RC(2.0) * g3[2], f.ST1, RC(2.0) * g3[4], f.ST2, RC(2.0) * g3[5], f.ST3);
+        const real8 iz = f.iz, tx = f.tx, ty = f.ty;
+        const real8 fxz2 = Vw.fx * iz * iz, fyz2 = Vw.fy * iz * iz;
+        const real8 g1w = dot8s(GT1, Vw.w), g2w = dot8s(GT2, Vw.w);
+        const real8 gtx = Guc * Vw.fx * iz - fxz2 * g1w;
+        const real8 gty = Gvc * Vw.fy * iz - fyz2 * g2w;
+        const real8 gtz = -Guc * fxz2 * tx - Gvc * fyz2 * ty
+                          - fxz2 * dot8s(GT1, Vw.eu) + RC(2.0) * fxz2 * tx * iz * g1w
+                          - fyz2 * dot8s(GT2, Vw.ev) + RC(2.0) * fyz2 * ty * iz * g2w;
+        const real8 g3t = GT3.x * f.T3.x + GT3.y * f.T3.y + GT3.z * f.T3.z;
+        gp.x += ok ? gtx * Vw.eu.x + gty * Vw.ev.x + gtz * Vw.w.x + (GT3.x - g3t * f.T3.x) * f.il : zero;
+        gp.y += ok ? gtx * Vw.eu.y + gty * Vw.ev.y + gtz * Vw.w.y + (GT3.y - g3t * f.T3.y) * f.il : zero;
+        gp.z += ok ? gtx * Vw.eu.z + gty * Vw.ev.z + gtz * Vw.w.z + (GT3.z - g3t * f.T3.z) * f.il : zero;
+#else
+        gp.x += ok ? Guc * Vw.fx * Vw.eu.x + Gvc * Vw.fy * Vw.ev.x : zero;
+        gp.y += ok ? Guc * Vw.fx * Vw.eu.y + Gvc * Vw.fy * Vw.ev.y : zero;
+        gp.z += ok ? Guc * Vw.fx * Vw.eu.z + Gvc * Vw.fy * Vw.ev.z : zero;
+#endif
+    }
+    for (int j = 0; j < nlanes; j++) {
+        const int g = g0 + j;
+#ifndef NO_GRAD_MEAN
+        g_means[3 * g] = ((real *)&gp.x)[j]; g_means[3 * g + 1] = ((real *)&gp.y)[j];
+        g_means[3 * g + 2] = ((real *)&gp.z)[j];
+#endif
+#ifndef NO_GRAD_COV
+        for (int k = 0; k < 6; k++) g_mats[6 * g + k] = ((real *)&gM[k])[j];
+#endif
+#ifndef NO_GRAD_DENSITY
+        g_rho[g] = ((real *)&grho)[j];
+#endif
+    }
+}
+#endif
+
+/* work-item i handles Gaussians [i per, (i + 1) per), each over every view. Exact: cached != 0
+ * reuses the set-up the forward left in rec and box (same inputs and views), else recomputes
+ * it. Affine (per a multiple of 8): the set-up is recomputed 8 Gaussians at a time, which costs
+ * about what reading the records back would, and gives the same bits. */
 __kernel void backward(const int N, const int per, const int nviews, const int U, const int V, const real scale,
                        const int cached, __global const real *rec, __global const int4 *box,
                        __global const real *means, __global const real *mats, __global const real *rho,
@@ -467,9 +600,14 @@ __kernel void backward(const int N, const int per, const int nviews, const int U
                        __global real *g_means, __global real *g_mats, __global real *g_rho)
 {
     const int g1 = min(N, (int)(get_global_id(0) + 1) * per);
+#ifndef EXACT
+    for (int g = get_global_id(0) * per; g < g1; g += 8)
+        backward8(g, N, nviews, U, V, scale, means, mats, rho, vparams, gimg, g_means, g_mats, g_rho);
+#else
     for (int g = get_global_id(0) * per; g < g1; g++)
         backward_one(g, N, nviews, U, V, scale, cached, rec, box, means, mats, rho, vparams, gimg, g_means, g_mats,
                      g_rho);
+#endif
 }
 
 /* ------------------------------------------------------------------ exp throughput probe */

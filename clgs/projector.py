@@ -66,7 +66,7 @@ import torch
 from .gaussian_math import covariance, precision
 
 MODES = ("affine", "exact")
-TW, TH = 8, 16
+TW, TH = 8, 64
 VP = 20
 _HIST_BUDGET = 1 << 24  # ints in the binning histogram (views x chunks x tiles)
 
@@ -142,11 +142,13 @@ class GaussianProjector:
         self._rec_token = None
         self.last_token = None
         self.extra_defines: dict = {}  # tuning experiments only
+        self.tile = (TW, TH)  # forward tile (width a multiple of 8); an attribute for tuning
         self._lock = threading.Lock()
 
     # ----------------------------------------------------------------------------- plumbing
     def program(self, beam: str, mode: str, real: str, grads=(True, True, True)):
-        defines = {"REAL": real, "CONE": beam == "cone", "EXACT": mode == "exact", "TW": TW, "TH": TH}
+        defines = {"REAL": real, "CONE": beam == "cone", "EXACT": mode == "exact", "TW": self.tile[0],
+                   "TH": self.tile[1]}
         defines["NO_GRAD_MEAN"] = not grads[0]
         defines["NO_GRAD_COV"] = not grads[1]
         defines["NO_GRAD_DENSITY"] = not grads[2]
@@ -154,7 +156,7 @@ class GaussianProjector:
         return self._runtime.get_program("gaussian_project.cl", defines, self.ctx)
 
     def _binning(self):
-        return self._runtime.get_program("binning.cl", {"TW": TW, "TH": TH}, self.ctx)
+        return self._runtime.get_program("binning.cl", {"TW": self.tile[0], "TH": self.tile[1]}, self.ctx)
 
     def _pooled(self, name: str, nbytes: int):
         import pyopencl as cl
@@ -261,9 +263,11 @@ class GaussianProjector:
             b_rec = self._pooled(f"rec{dt.itemsize}", nv * N * rec_len * dt.itemsize)
             b_box = self._pooled("box", nv * N * 16)
             LG = self.LOCAL_G
-            nitems = -(-N // self.PER)
-            prog.kernel("preprocess")(q, (_round_up(nitems, LG), nv), (LG, 1), i32(N), i32(self.PER), i32(U), i32(V),
+            per = self.PER if mode == "exact" else _round_up(self.PER, 8)  # affine: 8 Gaussians per vector
+            nitems = -(-N // per)
+            prog.kernel("preprocess")(q, (_round_up(nitems, LG), nv), (LG, 1), i32(N), i32(per), i32(U), i32(V),
                                       rl(geometry.scale), b_means, b_mats, b_rho, b_vp, b_rec, b_box)
+            TW, TH = self.tile
             ntx, nty = -(-U // TW), -(-V // TH)
             ntiles = ntx * nty
             nchunks = max(1, min(-(-N // 128), 256, _HIST_BUDGET // (nv * ntiles)))
@@ -319,12 +323,13 @@ class GaussianProjector:
             q = self.queue
             b = [self._out(f"grad{k}", o) for k, o in enumerate(outs)]
             LG = self.LOCAL_G
-            nitems = -(-N // self.PER)
+            per = self.PER if mode == "exact" else _round_up(self.PER, 8)  # affine: 8 Gaussians per vector
+            nitems = -(-N // per)
             cached = token is not None and token == self._rec_token
             rec_len = 20 if (mode == "exact" and geometry.mode == "cone") else 8
             b_rec = self._pooled(f"rec{dt.itemsize}", nv * N * rec_len * dt.itemsize)
             b_box = self._pooled("box", nv * N * 16)
-            prog.kernel("backward")(q, (_round_up(nitems, LG),), (LG,), np.int32(N), np.int32(self.PER),
+            prog.kernel("backward")(q, (_round_up(nitems, LG),), (LG,), np.int32(N), np.int32(per),
                                     np.int32(nv), np.int32(U), np.int32(V), dt.type(geometry.scale),
                                     np.int32(cached), b_rec, b_box, self._in("means", means),
                                     self._in("mats", mats), self._in("rho", densities), self._in("vp", vp),

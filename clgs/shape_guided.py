@@ -107,6 +107,8 @@ class ShapeGuidedSet(GaussianSet):
 
     Leaves: ``alpha`` (M,), raw scales, quaternions, raw densities. ``p_ref`` is fixed."""
 
+    MIN_SQUARINGS = 2
+
     def __init__(self, p_ref_mm, scales, quats, densities, *, shape_model, geometry, box, scale_bounds,
                  schedules, alpha=None, name: str = "shape", raw: bool = False):
         dt = torch.float32
@@ -130,7 +132,14 @@ class ShapeGuidedSet(GaussianSet):
         return self.params["alpha"]
 
     def displacement(self) -> torch.Tensor:
-        u = self.shape_model.displacement(self.alpha)
+        """u(alpha) on the model grid. Squarings follow the half-cell rule with a floor of
+        ``MIN_SQUARINGS`` (2, not the model's default 4): on the femur model at alpha = 3 sigma
+        the map then differs from a 12-squaring one by 0.64 mm (0.2 voxel) and costs half as much,
+        which matters since this runs, forward and backward, every iteration."""
+        from clgs.shape_model import exp_velocity
+
+        u = exp_velocity(self.shape_model.velocity(self.alpha), self.shape_model.spacing,
+                         min_squarings=self.MIN_SQUARINGS)
         self.last_u = u.detach()
         return u
 

@@ -6,10 +6,9 @@
 ``surface_distance`` compares two triangle meshes symmetrically. Each surface is represented by
 ``n_samples`` points drawn uniformly by area (seeded, so the result is reproducible) plus all
 its vertices; from every point the *exact* distance to the other surface (to its nearest
-triangle, not its nearest sample) is computed, so no sampling bias enters the distances. The
-candidates for the nearest triangle come from a SciPy cKDTree over triangle centroids; a
-candidate set is accepted only when the bound ``|p - c| - r_max`` (r_max the largest
-centroid-to-corner distance) proves no other triangle can be closer, otherwise it is widened.
+triangle, not its nearest sample) is computed, so no sampling bias enters the distances
+(:func:`clgs.meshvol.point_mesh_distance`: nearest-centroid candidates, then a bounding-box
+hierarchy proves that no other triangle is closer, which keeps far-away points cheap).
 Reported: ``mean`` (the mean over the area-uniform samples of both directions, i.e. the average
 symmetric surface distance), ``p95`` (95th percentile over the same), ``hausdorff`` (maximum over
 samples and vertices of both directions), and the two directed means ``mean_ab``, ``mean_ba``.
@@ -69,11 +68,16 @@ def surface_from_volume(volume, level=None, spacing=(1.0, 1.0, 1.0), origin=(0.0
     return Mesh(*_check(verts, faces))
 
 
-def _triangles(mesh) -> np.ndarray:
+def _checked(mesh) -> Mesh:
     v, f = mesh if isinstance(mesh, tuple) else (mesh.vertices, mesh.faces)
     m = _check(v, f)
     if len(m.faces) == 0:
         raise SurfaceError("the mesh has no triangles")
+    return m
+
+
+def _triangles(mesh) -> np.ndarray:
+    m = _checked(mesh)
     return m.vertices[m.faces]  # (M, 3, 3)
 
 
@@ -92,79 +96,13 @@ def sample_surface(mesh, n: int, seed: int = 0) -> np.ndarray:
     return t[:, 0] + r1[:, None] * (t[:, 1] - t[:, 0]) + r2[:, None] * (t[:, 2] - t[:, 0])
 
 
-def _triangle_table(tri: np.ndarray) -> dict:
-    """Per-triangle constants for :func:`_point_triangle_distance`."""
-    a = tri[:, 0]
-    e0, e1, e2 = tri[:, 1] - a, tri[:, 2] - a, tri[:, 2] - tri[:, 1]
-    d00, d01, d11 = (e0 * e0).sum(1), (e0 * e1).sum(1), (e1 * e1).sum(1)
-    n = np.cross(e0, e1)
-    nn = np.linalg.norm(n, axis=1)
-    denom = d00 * d11 - d01 ** 2
-    ok = (nn > 0) & (denom > 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        n = np.where(ok[:, None], n / np.where(nn > 0, nn, 1.0)[:, None], 0.0)
-        inv = np.where(ok, 1.0 / np.where(denom > 0, denom, 1.0), 0.0)
-    return {"a": a, "b": tri[:, 1], "e0": e0, "e1": e1, "e2": e2, "d00": d00, "d01": d01, "d11": d11,
-            "n": n, "inv": inv, "ok": ok}
+def point_to_mesh_distance(points, mesh, k: int = 8) -> np.ndarray:
+    """Exact distance (mm) from each point (N, 3) to the nearest triangle of ``mesh``
+    (:func:`clgs.meshvol.point_mesh_distance`: fast also for points far from the mesh)."""
+    from clgs.meshvol import point_mesh_distance
 
-
-def _dot(x, y):
-    return np.einsum("...i,...i->...", x, y)
-
-
-def _segment_distance(p, a, e):
-    ee = _dot(e, e)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(ee > 0, _dot(p - a, e) / np.where(ee > 0, ee, 1.0), 0.0)
-    t = np.clip(t, 0.0, 1.0)
-    r = p - a - t[..., None] * e
-    return np.sqrt(_dot(r, r))
-
-
-def _point_triangle_distance(p, tab: dict, idx: np.ndarray) -> np.ndarray:
-    """Exact distances from points ``p`` (n, 1, 3) to triangles ``idx`` (n, k): the distance to the
-    plane when the point projects inside the triangle, else the nearest of the three edges."""
-    a, e0, e1 = tab["a"][idx], tab["e0"][idx], tab["e1"][idx]
-    v2 = p - a
-    d20, d21 = _dot(v2, e0), _dot(v2, e1)
-    inv = tab["inv"][idx]
-    v = (tab["d11"][idx] * d20 - tab["d01"][idx] * d21) * inv
-    w = (tab["d00"][idx] * d21 - tab["d01"][idx] * d20) * inv
-    inside = tab["ok"][idx] & (v >= 0) & (w >= 0) & (v + w <= 1)
-    plane = np.abs(_dot(v2, tab["n"][idx]))
-    edges = np.minimum(np.minimum(_segment_distance(p, a, e0), _segment_distance(p, a, e1)),
-                       _segment_distance(p, tab["b"][idx], tab["e2"][idx]))
-    return np.where(inside, plane, edges)
-
-
-def point_to_mesh_distance(points, mesh, k: int = 8, chunk_elements: int = 400_000) -> np.ndarray:
-    """Exact distance (mm) from each point (N, 3) to the nearest triangle of ``mesh``."""
-    from scipy.spatial import cKDTree
-
-    tri = _triangles(mesh)
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    cent = tri.mean(axis=1)
-    rmax = float(np.linalg.norm(tri - cent[:, None, :], axis=-1).max())
-    tree = cKDTree(cent)
-    tab = _triangle_table(tri)
-    out = np.empty(len(pts))
-    todo = np.arange(len(pts))
-    k = min(k, len(tri))
-    while todo.size:
-        unresolved = []
-        chunk = max(64, chunk_elements // k)  # bounds the (points x candidates) temporaries
-        for s in range(0, todo.size, chunk):
-            ids = todo[s:s + chunk]
-            dc, ic = tree.query(pts[ids], k=k)
-            dc, ic = dc.reshape(len(ids), -1), ic.reshape(len(ids), -1)
-            d = _point_triangle_distance(pts[ids][:, None, :], tab, ic).min(axis=1)
-            out[ids] = d
-            # any triangle beyond the k-th centroid is at least dc[:, -1] - rmax away
-            if k < len(tri):
-                unresolved.append(ids[dc[:, -1] - rmax < d])
-        todo = np.concatenate(unresolved) if unresolved else np.empty(0, int)
-        k = min(4 * k, len(tri))
-    return out
+    m = _checked(mesh)
+    return point_mesh_distance(points, m.vertices, m.faces, k=k)
 
 
 def surface_distance(mesh_a, mesh_b, n_samples: int = 20000, seed: int = 0) -> dict:

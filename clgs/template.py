@@ -21,6 +21,9 @@ from typing import Optional
 
 import numpy as np
 
+from clgs import meshvol
+from clgs.meshvol import check_mesh
+
 TEMPLATE_FORMAT = "clgs.template"
 TEMPLATE_VERSION = 1
 
@@ -77,160 +80,31 @@ def sample_volume(volume, spacing, origin, points, fill: Optional[float] = 0.0, 
 
 # --------------------------------------------------------------------------------------- meshes
 def _check_mesh(vertices, faces):
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    if v.ndim != 2 or v.shape[1] != 3 or len(v) < 4:
-        raise ValueError(f"mesh vertices must be (V>=4, 3) in mm, got shape {v.shape}")
-    if f.ndim != 2 or f.shape[1] != 3 or len(f) < 4:
-        raise ValueError(f"mesh faces must be (F>=4, 3) vertex indices, got shape {f.shape}")
-    if f.min() < 0 or f.max() >= len(v):
-        raise ValueError(f"mesh faces index vertices 0..{len(v) - 1}, found {f.min()}..{f.max()}")
-    if not np.all(np.isfinite(v)):
-        raise ValueError("mesh vertices contain NaN or Inf")
-    return v, f
+    """(float64 vertices, int64 faces); open meshes are accepted here (a template's surface from
+    marching cubes may touch its grid's border), closedness is checked where an inside is needed."""
+    return check_mesh(vertices, faces, closed=False)
+
+
+def _grid(shape, spacing, origin):
+    """This module's (Z, Y, X) shape/spacing/origin as a :class:`clgs.geometry.Grid` (x, y, z)."""
+    from clgs.geometry import Grid
+
+    shape, spacing, origin = _triple("shape", shape, int), _triple("spacing", spacing), _triple("origin", origin)
+    return Grid(shape, origin[::-1], spacing[::-1])
 
 
 def mesh_to_label(vertices, faces, shape, spacing, origin) -> np.ndarray:
-    """Inside/outside (bool, Z, Y, X) of a closed triangle mesh, by ray parity along +x.
-
-    Each voxel column (fixed y, z) is intersected with every triangle whose y-z bounding box
-    it crosses; a voxel is inside when an odd number of crossings lie before its centre. The
-    columns are nudged by an irrational fraction of a cell so that meshes whose vertices sit on
-    grid lines (e.g. from marching cubes) do not hit edges exactly."""
-    v, f = _check_mesh(vertices, faces)
-    shape, spacing, origin = _triple("shape", shape, int), _triple("spacing", spacing), _triple("origin", origin)
-    Z, Y, X = shape
-    dz, dy, dx = spacing
-    oz, oy, ox = origin
-    tri = v[f]  # (F, 3 corners, xyz)
-    jf = (tri[..., 1] - oy) / dy - 1.37e-4 * np.sqrt(2.0)
-    kf = (tri[..., 2] - oz) / dz - 2.11e-4 * np.sqrt(3.0)
-    j0 = np.clip(np.ceil(jf.min(1)), 0, Y).astype(np.int64)
-    j1 = np.clip(np.floor(jf.max(1)), -1, Y - 1).astype(np.int64)
-    k0 = np.clip(np.ceil(kf.min(1)), 0, Z).astype(np.int64)
-    k1 = np.clip(np.floor(kf.max(1)), -1, Z - 1).astype(np.int64)
-    nj = np.maximum(j1 - j0 + 1, 0)
-    nk = np.maximum(k1 - k0 + 1, 0)
-    count = nj * nk
-    toggles = np.zeros((Z, Y, X + 1), np.int32)
-    if count.sum() == 0:
-        return np.zeros(shape, bool)
-    t = np.repeat(np.arange(len(f)), count)
-    start = np.repeat(np.cumsum(count) - count, count)
-    local = np.arange(t.size) - start
-    j = j0[t] + local % nj[t]
-    k = k0[t] + local // nj[t]
-    # barycentric coordinates of the column point in the triangle's y-z projection
-    py, pz = j.astype(np.float64), k.astype(np.float64)
-    ay, az = jf[t, 0], kf[t, 0]
-    by, bz = jf[t, 1], kf[t, 1]
-    cy, cz = jf[t, 2], kf[t, 2]
-    w0 = (by - py) * (cz - pz) - (bz - pz) * (cy - py)
-    w1 = (cy - py) * (az - pz) - (cz - pz) * (ay - py)
-    w2 = (ay - py) * (bz - pz) - (az - pz) * (by - py)
-    area = w0 + w1 + w2
-    hit = (np.abs(area) > 1e-12) & (((w0 >= 0) & (w1 >= 0) & (w2 >= 0)) | ((w0 <= 0) & (w1 <= 0) & (w2 <= 0)))
-    t, j, k = t[hit], j[hit], k[hit]
-    w0, w1, w2, area = w0[hit] / area[hit], w1[hit] / area[hit], w2[hit] / area[hit], area[hit]
-    xs = w0 * tri[t, 0, 0] + w1 * tri[t, 1, 0] + w2 * tri[t, 2, 0]
-    ic = np.clip(np.ceil((xs - ox) / dx), 0, X).astype(np.int64)
-    np.add.at(toggles, (k, j, ic), 1)
-    return (np.cumsum(toggles, axis=2)[..., :X] % 2) == 1
-
-
-def sample_surface(vertices, faces, step: float, seed: int = 0, return_faces: bool = False):
-    """Points (N, 3) on the mesh surface, about one per ``step``^2 mm^2, plus every face centroid
-    (and, with ``return_faces``, the face each point lies on)."""
-    v, f = _check_mesh(vertices, faces)
-    tri = v[f]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    n = np.ceil(area / (step * step)).astype(np.int64)
-    rng = np.random.default_rng(seed)
-    t = np.repeat(np.arange(len(f)), n)
-    r1, r2 = rng.random(t.size), rng.random(t.size)
-    s = np.sqrt(r1)
-    a, b, c = 1 - s, s * (1 - r2), s * r2
-    pts = a[:, None] * tri[t, 0] + b[:, None] * tri[t, 1] + c[:, None] * tri[t, 2]
-    pts = np.concatenate([tri.mean(1), pts], 0)
-    ids = np.concatenate([np.arange(len(f)), t])
-    return (pts, ids) if return_faces else pts
-
-
-def point_triangle_distance(p, a, b, c) -> np.ndarray:
-    """Exact distance from points p (N, 3) to triangles (a, b, c) (N, 3 each), by the closest-point
-    regions (vertex, edge, face) of the triangle."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
-    bp = p - b
-    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
-    cp = p - c
-    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    denom = va + vb + vc
-    safe = np.where(np.abs(denom) > 1e-300, denom, 1.0)
-    v_, w_ = vb / safe, vc / safe
-    q = a + v_[:, None] * ab + w_[:, None] * ac  # inside the face
-    eps = 1e-300
-
-    def on_edge(mask, start, direction, t):
-        q[mask] = start[mask] + np.clip(t[mask], 0, 1)[:, None] * direction[mask]
-
-    bc = c - b
-    on_edge((vc <= 0) & (d1 >= 0) & (d3 <= 0), a, ab, d1 / np.where(np.abs(d1 - d3) > eps, d1 - d3, 1.0))
-    on_edge((vb <= 0) & (d2 >= 0) & (d6 <= 0), a, ac, d2 / np.where(np.abs(d2 - d6) > eps, d2 - d6, 1.0))
-    e = (d4 - d3) + (d5 - d6)
-    on_edge((va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0), b, bc, (d4 - d3) / np.where(np.abs(e) > eps, e, 1.0))
-    m = (d1 <= 0) & (d2 <= 0)
-    q[m] = a[m]
-    m = (d3 >= 0) & (d4 <= d3)
-    q[m] = b[m]
-    m = (d6 >= 0) & (d5 <= d6)
-    q[m] = c[m]
-    return np.linalg.norm(p - q, axis=1)
-
-
-def mesh_distance(points, vertices, faces, k: int = 8, step: float = None) -> np.ndarray:
-    """Exact unsigned distance (mm) from points (N, 3) to a triangle mesh: candidate faces from the
-    ``k`` nearest dense surface samples (KD-tree), then exact point-triangle distances."""
-    from scipy.spatial import cKDTree
-
-    v, f = _check_mesh(vertices, faces)
-    pts = np.asarray(points, np.float64).reshape(-1, 3)
-    if step is None:
-        edges = np.linalg.norm(v[f[:, 1]] - v[f[:, 0]], axis=1)
-        step = float(np.median(edges))
-    samples, ids = sample_surface(v, f, step, return_faces=True)
-    _, nn = cKDTree(samples).query(pts, k=min(k, len(samples)))
-    nn = nn.reshape(len(pts), -1)
-    tri = f[ids[nn.reshape(-1)]]
-    rep = np.repeat(pts, nn.shape[1], axis=0)
-    d = point_triangle_distance(rep, v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]])
-    return d.reshape(len(pts), -1).min(1)
+    """Inside/outside (bool, Z, Y, X) of a closed triangle mesh on a grid given as (Z, Y, X)
+    ``shape``/``spacing``/``origin``: :func:`clgs.meshvol.mesh_to_label` (exact ray parity)."""
+    return meshvol.mesh_to_label(vertices, faces, _grid(shape, spacing, origin))
 
 
 def mesh_to_sdf(vertices, faces, shape, spacing, origin, label=None, band_cells: float = 3.0) -> np.ndarray:
-    """Signed distance (float32 mm, negative inside) of a closed mesh on a grid.
-
-    Inside/outside from :func:`mesh_to_label`; the magnitude is the Euclidean distance
-    transform far from the surface (about half a voxel off), and within ``band_cells`` of it
-    the exact distance to the triangles (:func:`mesh_distance`)."""
-    from scipy.ndimage import distance_transform_edt
-
-    shape, spacing, origin = _triple("shape", shape, int), _triple("spacing", spacing), _triple("origin", origin)
-    if label is None:
-        label = mesh_to_label(vertices, faces, shape, spacing, origin)
-    label = np.asarray(label, bool)
-    h = min(spacing)
-    if not label.any():
-        raise ValueError("the mesh does not cover any voxel centre of the grid: is it inside the grid "
-                         "and larger than a voxel?")
-    d_out = distance_transform_edt(~label, sampling=spacing)
-    d_in = distance_transform_edt(label, sampling=spacing)
-    sdf = np.where(label, -(d_in - 0.5 * h), d_out - 0.5 * h)
-    band = np.abs(sdf) < band_cells * h
-    d = mesh_distance(grid_points(shape, spacing, origin)[band], vertices, faces)
-    sdf[band] = np.where(label[band], -d, d)
-    return sdf.astype(np.float32)
+    """Signed distance (float32 mm, negative inside) of a closed mesh on a (Z, Y, X) grid:
+    :func:`clgs.meshvol.signed_distance`, exact within ``band_cells`` voxels of the surface
+    (``label``: the mesh's inside on this grid, when already known)."""
+    return meshvol.signed_distance((vertices, faces), _grid(shape, spacing, origin), band_voxels=band_cells,
+                                   label=label)
 
 
 def vertex_normals(vertices, faces) -> np.ndarray:

@@ -63,6 +63,7 @@ class Backend:
         self.name, self.mode = name, mode
         if name == "cl":
             self._project, self._voxelize = self._cl_project, self._cl_voxelize
+            self._last_cov = None
         else:
             from clgs.reference import voxelization
 
@@ -70,23 +71,32 @@ class Backend:
             self._project = self._torch_project
 
     # The kernels take packed covariances / precisions; building them here with element-wise
-    # torch (gaussians.packed_covariance) rather than batched 3x3 products is what keeps the torch
-    # side of an OpenCL iteration small.
-    @staticmethod
-    def _cl_project(means, scales, quats, densities, geometry, views, mode):
-        from clgs.gaussians import packed_covariance
+    # torch (gaussians.packed_cov_prec) rather than batched 3x3 products is what keeps the torch
+    # side of an OpenCL iteration small. The detached covariance of the last projection is kept
+    # (with the tensors it came from) so a voxelisation of the same Gaussians reuses it for the
+    # boxes' half-widths.
+    def _cl_project(self, means, scales, quats, densities, geometry, views, mode):
+        from clgs.gaussians import packed_cov_prec
         from clgs.projector import project_packed
 
-        mats = packed_covariance(scales, quats, inverse=(mode == "exact"))
-        return project_packed(means, mats, densities, geometry, views, mode=mode)
+        cov, prec = packed_cov_prec(scales, quats, cov=(mode == "affine"), prec=(mode == "exact"))
+        if cov is not None:
+            self._last_cov = (scales, quats, cov.detach())
+        return project_packed(means, cov if cov is not None else prec, densities, geometry, views, mode=mode)
 
-    @staticmethod
-    def _cl_voxelize(means, scales, quats, densities, grid):
-        from clgs.gaussians import axis_half_widths, packed_covariance
+    def _cl_voxelize(self, means, scales, quats, densities, grid):
+        from clgs.gaussians import packed_cov_prec
         from clgs.voxelizer import voxelize_precision
 
-        prec = packed_covariance(scales, quats, inverse=True)
-        return voxelize_precision(means, prec, densities, axis_half_widths(scales, quats).to(means.dtype), grid)
+        last = getattr(self, "_last_cov", None)
+        if last is not None and last[0] is scales and last[1] is quats:
+            cov = last[2]
+        else:
+            with torch.no_grad():
+                cov = packed_cov_prec(scales.detach(), quats.detach(), prec=False)[0]
+        extent = 3.0 * torch.sqrt(cov[:, [0, 3, 5]].clamp_min(0))  # 3-sigma box half-widths
+        prec = packed_cov_prec(scales, quats, cov=False)[1]
+        return voxelize_precision(means, prec, densities, extent, grid)
 
     def _torch_project(self, means, scales, quats, densities, geometry, views, mode):
         from clgs import gaussian_math

@@ -8,6 +8,7 @@ import trimesh
 clgs_femur = pytest.importorskip("clgs_femur", reason="install with: pip install -e anatomies/femur")
 clgs_patella = pytest.importorskip("clgs_patella", reason="install with: pip install -e anatomies/patella")
 
+from clgs import meshvol as mv  # noqa: E402
 from clgs import phantom as ph  # noqa: E402
 
 HELD_OUT = [f"{i:02d}" for i in range(20, 26)]
@@ -102,7 +103,7 @@ def test_template_is_the_mean_of_the_model_subjects_only(femur):
 def test_mesh_to_label_keeps_the_volume_at_the_default_grid(which, sid, femur, patella):
     pop = {"femur": femur, "patella": patella}[which]
     v, f = pop.mesh(sid)
-    label = ph.mesh_to_label(v, f, pop.grid)
+    label = mv.mesh_to_label(v, f, pop.grid)
     voxel = float(np.prod(pop.grid.spacing))
     truth = trimesh.Trimesh(v, f, process=False).volume
     assert label.sum() * voxel == pytest.approx(truth, rel=0.02)
@@ -117,7 +118,7 @@ def test_subject_ct_is_plausible_and_deterministic(patella):
     assert not np.array_equal(other.volume, a.volume)
     p = patella.params
     assert a.volume.min() >= 0 and a.volume.max() <= p.cortical_range[1] + 1e-6
-    label = ph.mesh_to_label(a.vertices, a.faces, patella.grid)
+    label = mv.mesh_to_label(a.vertices, a.faces, patella.grid)
     inside = a.volume[label]
     assert p.trabecular_range[0] * 0.8 < np.median(inside) < p.cortical_range[1]
     # the subject's grid is the CT grid, centred on the rotation axis

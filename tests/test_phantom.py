@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from clgs import meshvol as mv
 from clgs import phantom as ph
 from clgs.geometry import Grid
 
@@ -25,7 +26,7 @@ def test_label_matches_analytic_torus():
     R, r = 20.0, 7.0
     mesh = trimesh.creation.torus(R, r, major_sections=96, minor_sections=48)
     grid = centred_grid((24, 40, 40), 1.5)
-    label = ph.mesh_to_label(mesh.vertices, mesh.faces, grid)
+    label = mv.mesh_to_label(mesh.vertices, mesh.faces, grid)
     p = grid.points()
     d = np.hypot(np.hypot(p[..., 0], p[..., 1]) - R, p[..., 2]) - r  # analytic SDF of the torus
     sure = np.abs(d) > 0.1  # polygonisation error of this mesh is < 0.05 mm
@@ -38,9 +39,9 @@ def test_label_grid_aligned_box_counts_each_boundary_once():
     voxel is counted once (half-open box), never twice or with a broken parity."""
     box = trimesh.creation.box((10.0, 10.0, 10.0))
     grid = centred_grid((11, 11, 11), 2.0)  # centres at -10, -8, ..., 10: the faces at +-5 are not on them
-    assert ph.mesh_to_label(box.vertices, box.faces, grid).sum() == 5**3
+    assert mv.mesh_to_label(box.vertices, box.faces, grid).sum() == 5**3
     grid = Grid((12, 12, 12), (-11.0, -11.0, -11.0), (2.0, 2.0, 2.0))  # centres at odd numbers: -5 and 5 on faces
-    lab = ph.mesh_to_label(box.vertices, box.faces, grid)
+    lab = mv.mesh_to_label(box.vertices, box.faces, grid)
     assert lab.sum() == 5**3  # of the 6 centre planes -5..5, one side is in, the other out
     k, j, i = np.nonzero(lab)
     assert (np.ptp(k), np.ptp(j), np.ptp(i)) == (4, 4, 4)  # a solid 5x5x5 block, no holes
@@ -50,16 +51,16 @@ def test_label_volume_of_rotated_ellipsoid_within_two_percent(rng):
     mesh = trimesh.creation.icosphere(4, radius=1.0)
     v = mesh.vertices * np.array([30.0, 18.0, 12.0]) @ rotation(rng).T + np.array([3.0, -2.0, 1.0])
     grid = centred_grid((36, 40, 40), 2.0)
-    vol = ph.mesh_to_label(v, mesh.faces, grid).sum() * 8.0
+    vol = mv.mesh_to_label(v, mesh.faces, grid).sum() * 8.0
     assert vol == pytest.approx(trimesh.Trimesh(v, mesh.faces).volume, rel=0.02)
 
 
 def test_label_rejects_open_mesh():
     mesh = trimesh.creation.icosphere(2, radius=5.0)
     with pytest.raises(ValueError, match="not watertight"):
-        ph.mesh_to_label(mesh.vertices, mesh.faces[:-3], centred_grid((8, 8, 8), 2.0))
+        mv.mesh_to_label(mesh.vertices, mesh.faces[:-3], centred_grid((8, 8, 8), 2.0))
     with pytest.raises(ValueError, match="vertices"):
-        ph.mesh_to_label(np.zeros((3, 3)), mesh.faces, centred_grid((8, 8, 8), 2.0))
+        mv.mesh_to_label(np.zeros((3, 3)), mesh.faces, centred_grid((8, 8, 8), 2.0))
 
 
 # --------------------------------------------------------------------------------------- distances
@@ -68,14 +69,14 @@ def test_signed_distance_sphere_sign_and_scale():
     mesh = trimesh.creation.icosphere(5, radius=R)
     grid = centred_grid((32, 32, 32), 2.0)
     true = np.linalg.norm(grid.points(), axis=-1) - R
-    sdf = ph.signed_distance((mesh.vertices, mesh.faces), grid)
+    sdf = mv.signed_distance((mesh.vertices, mesh.faces), grid)
     assert sdf.dtype == np.float32
     assert np.all(np.sign(sdf[np.abs(true) > 0.05]) == np.sign(true[np.abs(true) > 0.05]))
     near = np.abs(true) < 2.0
     assert np.abs(sdf - true)[near].max() < 0.05  # exact triangle distance in the band (mesh error ~0.01)
     assert np.abs(sdf - true).max() < 0.6 * 2.0  # distance transform elsewhere: within ~half a voxel
     assert sdf.min() == pytest.approx(true.min(), abs=1.0)  # the deepest voxel is about R - sqrt(3) deep
-    label_only = ph.signed_distance(true < 0, grid)
+    label_only = mv.signed_distance(true < 0, grid)
     assert np.abs(label_only - true).max() < 0.6 * 2.0
     assert np.all((label_only < 0) == (true < 0))
 
@@ -84,7 +85,7 @@ def test_point_mesh_distance_matches_brute_force(rng):
     mesh = trimesh.creation.icosphere(2, radius=10.0)
     v = mesh.vertices * np.array([1.0, 0.6, 1.4])
     pts = rng.uniform(-16, 16, size=(300, 3))
-    got = ph.point_mesh_distance(pts, v, mesh.faces)
+    got = mv.point_mesh_distance(pts, v, mesh.faces)
     # brute force: dense barycentric sampling of every triangle gives an upper bound close to the truth
     from scipy.spatial import cKDTree
 
@@ -99,18 +100,18 @@ def test_point_mesh_distance_matches_brute_force(rng):
     # long slivers (a capsule's sides) do not fool the candidate search
     cap = trimesh.creation.capsule(height=100.0, radius=5.0, count=[24, 24])
     q = np.array([[5.5, 0.0, -45.0], [0.0, -7.0, 40.0], [0.0, 0.0, 60.0]])
-    assert np.allclose(ph.point_mesh_distance(q, cap.vertices, cap.faces), [0.5 + 5 * (1 - np.cos(np.pi / 24)) * 0,
+    assert np.allclose(mv.point_mesh_distance(q, cap.vertices, cap.faces), [0.5 + 5 * (1 - np.cos(np.pi / 24)) * 0,
                        2.0, 5.0], atol=0.05)
 
 
 def test_signed_distance_errors():
     grid = centred_grid((8, 8, 8), 1.0)
     with pytest.raises(ValueError, match="nothing is inside"):
-        ph.signed_distance(np.zeros(grid.shape, bool), grid)
+        mv.signed_distance(np.zeros(grid.shape, bool), grid)
     with pytest.raises(ValueError, match="everything is inside"):
-        ph.signed_distance(np.ones(grid.shape, bool), grid)
+        mv.signed_distance(np.ones(grid.shape, bool), grid)
     with pytest.raises(ValueError, match="does not match"):
-        ph.signed_distance(np.zeros((3, 3, 3), bool), grid)
+        mv.signed_distance(np.zeros((3, 3, 3), bool), grid)
 
 
 # --------------------------------------------------------------------------------------- density
@@ -126,8 +127,8 @@ def long_bone():
     mesh = trimesh.Trimesh(verts[:, ::-1] - np.array([16.0, 16.0, 84.0]), faces[:, ::-1])
     assert mesh.is_watertight and mesh.volume > 0
     grid = centred_grid((168, 72, 72), 1.0)
-    label = ph.mesh_to_label(mesh.vertices, mesh.faces, grid)
-    sdf = ph.signed_distance((mesh.vertices, mesh.faces), grid)
+    label = mv.mesh_to_label(mesh.vertices, mesh.faces, grid)
+    sdf = mv.signed_distance((mesh.vertices, mesh.faces), grid)
     params = ph.DensityParams(soft_tissue=ph.SoftTissue(min_semi_axes_mm=(28.0, 26.0), margin_mm=8.0, fat_mm=5.0,
                                                         skin_mm=2.0))
     vol, tissue, frac = ph.density_volume(label, sdf, grid, params, seed=5, return_fractions=True)
@@ -233,17 +234,21 @@ def test_align_rigid_recovers_pose_and_mirror(rng):
 
 
 def test_load_mesh_formats(tmp_path):
+    """The loader the phantom's mesh import uses gives closed meshes back (STL corners merged)."""
+    from clgs.io.mesh import MeshError, load_mesh
+
     mesh = trimesh.creation.icosphere(2, radius=7.0)
     mesh.export(tmp_path / "m.stl")
     np.savez(tmp_path / "m.npz", vertices=mesh.vertices, faces=mesh.faces)
     for name in ("m.stl", "m.npz"):
-        v, f = ph.load_mesh(tmp_path / name)
-        assert abs(ph.mesh_volume(v, f) - mesh.volume) < 1e-3 * mesh.volume
-    with pytest.raises(FileNotFoundError):
-        ph.load_mesh(tmp_path / "missing.stl")
+        v, f = load_mesh(tmp_path / name)
+        mv.check_mesh(v, f)  # watertight
+        assert abs(mv.mesh_volume(v, f) - mesh.volume) < 1e-3 * mesh.volume
+    with pytest.raises(MeshError, match="no such file"):
+        load_mesh(tmp_path / "missing.stl")
     np.savez(tmp_path / "bad.npz", points=mesh.vertices)
     with pytest.raises(ValueError, match="vertices"):
-        ph.load_mesh(tmp_path / "bad.npz")
+        load_mesh(tmp_path / "bad.npz")
 
 
 def test_scan_geometry_sees_the_whole_volume():

@@ -213,3 +213,30 @@ def test_variants_train(scene, kw):
     t = _trainer(scene, 40, log_every=0, **kw)
     l1 = [t.step()["l1"] for _ in range(40)]
     assert np.isfinite(l1).all() and np.mean(l1[-5:]) < np.mean(l1[:5])
+
+
+def test_two_sets_only_the_free_one_densifies(scene, tmp_path):
+    """The shape-guided method's layout: a second, non-densified set with its own schedules
+    (one parameter frozen), rendered together with the free set; checkpoints hold both."""
+    from clgs.gaussians import GaussianSet, Schedule, r2gs_schedules
+
+    t = _trainer(scene, 30, tmp_path, densify_start=5, densify_interval=5)
+    rng = np.random.default_rng(1)
+    sched = {**r2gs_schedules(30), "means": Schedule(0.1, 0.001, 10, start=10, frozen_before_start=True)}
+    fixed = GaussianSet(rng.uniform(-0.3, 0.3, (40, 3)), np.full((40, 3), 0.1), np.tile([1.0, 0, 0, 0], (40, 1)),
+                        np.full(40, 0.2), box=t.sets[0].box, schedules=sched, densify=False, name="shape")
+    t.sets.append(fixed)
+    t._build_optimizer()
+    m0 = fixed.params["means"].detach().clone()
+    seen = []
+    t.hooks.append(type("H", (), {"on_iteration": lambda self, tr: seen.append(
+        (len(tr.sets[0]), len(tr.sets[1]), torch.equal(tr.sets[1].params["means"], m0)))})())
+    t.fit()
+    assert all(n == 40 for _, n, _ in seen) and seen[-1][0] != 150  # only the free set changed size
+    assert all(same for _, _, same in seen[:10]) and not seen[-1][2]  # frozen for 10 iterations
+    assert t.scene_tensors()[0].shape[0] == len(t.sets[0]) + 40
+    back = _trainer(scene, 30, tmp_path)
+    back.sets.append(GaussianSet(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros(0), raw=True,
+                                 box=t.sets[0].box, schedules=sched, densify=False, name="shape"))
+    back.load_state_dict(ckpt.load(tmp_path / "checkpoint.pt"))
+    _same_state(t, back)

@@ -12,10 +12,12 @@ it includes the held-out subjects and is not used for the model (kept for refere
 Frame: LLP26's frame shifted by ``FRAME_OFFSET`` so that the CT grid is centred on the scanner's
 rotation axis (x, y in the axial plane, z along the leg; -y is anterior).
 
-CT grid: 80 (x) x 72 (y) x 160 (z) voxels of 3 mm: 240 x 216 x 480 mm, 0.92 M voxels. It holds
-the longest femur of the cohort (466 mm) and a thigh-like limb around it with air on the sides.
-3 mm keeps simulation, model building (20 registrations) and reconstruction comfortable on two
-CPU cores while the shaft (about 25-30 mm across) still spans 8-10 voxels.
+CT grid: 92 (x) x 80 (y) x 160 (z) voxels of 3 mm: 276 x 240 x 480 mm, 1.18 M voxels. It holds
+the longest femur of the cohort (466 mm) and, for all 26 subjects with their own soft-tissue
+variation, a thigh-like limb around it with air on the sides. 3 mm keeps simulation, model
+building (20 registrations) and reconstruction comfortable on two CPU cores while the shaft
+(about 25-30 mm across) still spans 8-10 voxels. The scanner: DSO 1000 mm, DSD 1500 mm, a flat
+detector of 200 x 312 pixels of 3 mm that sees the whole volume from every angle, 0-180 degrees.
 """
 from __future__ import annotations
 
@@ -30,8 +32,8 @@ __version__ = "0.1.0"
 DATA_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data")
 SUBJECTS = [f"{i:02d}" for i in range(26)]
 TEST_SUBJECTS = SUBJECTS[20:]
-FRAME_OFFSET = (105.0, 23.0, 1010.0)  # LLP26 mm (x, y, z) -> grid centre
-SHAPE = (160, 80, 88)  # (Z, Y, X)
+FRAME_OFFSET = (100.5, 30.5, 1010.0)  # LLP26 mm (x, y, z) -> grid centre
+SHAPE = (160, 80, 92)  # (Z, Y, X)
 SPACING_MM = 3.0
 
 _population = None
