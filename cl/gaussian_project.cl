@@ -3,10 +3,11 @@
  *
  * Forward: one work-item owns a TW x TH tile (TW = 8 pixels = one real8 row) of one view and
  * walks the tile's Gaussian list (built on the device by binning.cl, in index order), touching
- * only the rows inside each Gaussian's box. Backward: one work-item per Gaussian (a run of them
- * on CPUs) walks its own box in every view, in 8-pixel segments from the box's left edge
- * (segments outer, rows inner), gathers dL/dI into moment sums, then applies the chain rule once
- * per view. Neither needs atomics; both are reproducible. */
+ * only the rows inside each Gaussian's box. Backward: one work-item per run of Gaussians walks
+ * each one's own box in every view, in 8-pixel segments from the box's left edge (segments
+ * outer, rows inner), gathers dL/dI into moment sums, then applies the chain rule once per view
+ * (affine: for 8 Gaussians at once, one per lane). Neither needs atomics; both are
+ * reproducible. */
 #include "project_setup.h"
 
 #ifndef TW
@@ -97,8 +98,9 @@ inline void preprocess8(const int g0, const int view, const int N, const int U, 
     p.x = in[0]; p.y = in[1]; p.z = in[2];
     Frame8 f;
     const Splat8 sp = setup_affine8(p, in + 3, load_view(vparams, view), scale, U, V, &f);
+    /* the record: centre, amplitude, straddle flag (0), -q/2 coefficients, amplitude per density */
     const real8 out[REC] = {sp.uc, sp.vc, in[9] * sp.amp0, (real8)(RC(0.0)),
-                            RC(-0.5) * sp.k0, -sp.k1, RC(-0.5) * sp.k2, sp.amp0}; /* record, as preprocess_one */
+                            RC(-0.5) * sp.k0, -sp.k1, RC(-0.5) * sp.k2, sp.amp0};
     const int8 bx[4] = {sp.u0, sp.u1, sp.v0, sp.v1};
     const mask8 ok = sp.ok;
     for (int j = 0; j < 8 && g0 + j < N; j++) {
@@ -158,11 +160,9 @@ __kernel void fill(const int N, const int chunk, const int nchunks, const int nt
                 h[t] += 1;
                 list[pos] = g;
                 prow[pos] = b.zw;
-#if REC == 8
-                ST8G(prec + (size_t)pos * REC) = LD8G(rec + idx * REC);
-#else
-                for (int i = 0; i < REC; i++) prec[(size_t)pos * REC + i] = rec[idx * REC + i];
-#endif
+                for (int i = 0; i + 8 <= REC; i += 8)
+                    ST8G(prec + (size_t)pos * REC + i) = LD8G(rec + idx * REC + i);
+                for (int i = REC / 8 * 8; i < REC; i++) prec[(size_t)pos * REC + i] = rec[idx * REC + i];
             }
     }
 }
@@ -220,10 +220,10 @@ __kernel void render(const int U, const int V, const int ntx, const int ntiles,
             acc[r] += (x >= RC(-0.5 * QCUT) ? val : (real8)(RC(0.0)));
         }
 #else
+        const real8 P = nk0 * du * du, Q = nk1 * du; /* -q/2 = P + dv (Q + nk2 dv): the du parts once */
         for (int r = r0; r <= r1; r++) {
             const real dv = (real)(v0 + r) - vc;
-            const real nB = nk1 * dv, nC = nk2 * dv * dv;
-            const real8 x = (nk0 * du + nB) * du + nC; /* -q/2 */
+            const real8 x = P + dv * (Q + nk2 * dv);
             acc[r] += (x >= RC(-0.5 * QCUT) ? amp * splat_exp8(x) : (real8)(RC(0.0)));
         }
 #endif
@@ -374,8 +374,10 @@ inline void backward_one(const int g, const int N, const int nviews, const int U
             const real3 e = Vw.s - p;
             const real ik = RC(1.0) / sp.kap;
             const real nk0 = RC(-0.5) * sp.k0, nk1 = -sp.k1, nk2 = RC(-0.5) * sp.k2;
-            real8 Sw0 = zero, Sw1 = zero, Sw2 = zero, S0 = zero;
-            real8 W0 = zero, W1 = zero, W2 = zero, W3 = zero, W4 = zero, W5 = zero;
+            /* w = al e + (be du) gu + (be dv) gv: sum g I w and g I w w^T from nine moments of
+             * al and be (fewer operations per pixel than forming w) */
+            real8 S0 = zero, Ma = zero, Mbu = zero, Mbv = zero, Maa = zero, Mabu = zero, Mabv = zero;
+            real8 Mbbuu = zero, Mbbuv = zero, Mbbvv = zero;
             real8 Q0 = zero, Qu = zero, Qv = zero, Quu = zero, Quv = zero, Qvv = zero;
             for (int s = s0; s <= b.y; s += 8) {
                 /* 8-pixel segment outer, rows inner: the du parts of every polynomial once */
@@ -386,8 +388,7 @@ inline void backward_one(const int g, const int N, const int nviews, const int U
                 const real8 Adu = RC(1.0) + (RC(2.0) * sp.a1 + sp.a3 * du) * du, AB = RC(2.0) * (sp.a4 * du + sp.a2);
                 const real8 Ddu = sp.d0 + (RC(2.0) * sp.d1 + sp.d3 * du) * du, DB = RC(2.0) * (sp.d4 * du + sp.d2);
                 const real8 alDu = (sp.a3 * du + sp.a1) * du, alB = RC(2.0) * sp.a4 * du + sp.a2;
-                const real8 beDu = RC(1.0) + sp.a1 * du;
-                const real8 gx = du * gu.x, gy = du * gu.y, gz = du * gu.z;
+                const real8 beDu = (RC(1.0) + sp.a1 * du) * ik, beB = sp.a2 * ik;
                 real8 c0 = zero, cv = zero, cvv = zero;
                 for (int v = b.z; v <= b.w; v++) {
                     const real dv = (real)v - sp.vc;
@@ -398,22 +399,20 @@ inline void backward_one(const int g, const int N, const int nviews, const int U
                     const real8 DD = Ddu + dv * (DB + sp.d5 * dv);
                     const real8 gI = ((lm & (x >= RC(-0.5 * QCUT))) ? gg * sp.amp0 * sqrt8(DD * ia) * splat_exp8(x) : zero);
                     const real8 al = (alDu + dv * (alB + sp.a5 * dv)) * ia;
-                    const real8 be = (beDu + sp.a2 * dv) * ia * ik;
-                    const real8 w0 = al * e.x + be * (gx + dv * gv.x);
-                    const real8 w1 = al * e.y + be * (gy + dv * gv.y);
-                    const real8 w2 = al * e.z + be * (gz + dv * gv.z);
+                    const real8 be = (beDu + beB * dv) * ia;
+                    const real8 bu = be * du, bv = be * dv;
+                    const real8 ga = gI * al, gbu = gI * bu, gbv = gI * bv;
                     S0 += gI;
-                    const real8 gw0 = gI * w0, gw1 = gI * w1, gw2 = gI * w2;
-                    Sw0 += gw0; Sw1 += gw1; Sw2 += gw2;
-                    W0 += gw0 * w0; W1 += gw0 * w1; W2 += gw0 * w2;
-                    W3 += gw1 * w1; W4 += gw1 * w2; W5 += gw2 * w2;
+                    Ma += ga; Mbu += gbu; Mbv += gbv;
+                    Maa += ga * al; Mabu += ga * bu; Mabv += ga * bv;
+                    Mbbuu += gbu * bu; Mbbuv += gbu * bv; Mbbvv += gbv * bv;
                     const real8 gIa = gI * ia;
                     c0 += gIa; cv += gIa * dv; cvv += gIa * (dv * dv);
                 }
                 Q0 += c0; Qu += du * c0; Quu += du * du * c0;
                 Qv += cv; Quv += du * cv; Qvv += cvv;
             }
-            const real3 Sw = (real3)(hsum8(Sw0), hsum8(Sw1), hsum8(Sw2));
+            const real3 Sw = hsum8(Ma) * e + hsum8(Mbu) * gu + hsum8(Mbv) * gv;
             gp += rh * symv(S, Sw);
             /* sum g I d d^T / a with d = -kap e + G du, a = kap^2 c a' */
             const real c = dot3(e, symv(S, e));
@@ -421,7 +420,13 @@ inline void backward_one(const int g, const int N, const int nviews, const int U
             const real q0 = hsum8(Q0), qu = hsum8(Qu), qv = hsum8(Qv);
             const real quu = hsum8(Quu), quv = hsum8(Quv), qvv = hsum8(Qvv);
             const real3 m = qu * gu + qv * gv;
-            real G[6] = {hsum8(W0), RC(2.0) * hsum8(W1), RC(2.0) * hsum8(W2), hsum8(W3), RC(2.0) * hsum8(W4), hsum8(W5)};
+            real G[6] = {RC(0.0), RC(0.0), RC(0.0), RC(0.0), RC(0.0), RC(0.0)};
+            add_sym_outer(G, hsum8(Maa), e, e);
+            add_sym_outer(G, RC(2.0) * hsum8(Mabu), e, gu);
+            add_sym_outer(G, RC(2.0) * hsum8(Mabv), e, gv);
+            add_sym_outer(G, hsum8(Mbbuu), gu, gu);
+            add_sym_outer(G, RC(2.0) * hsum8(Mbbuv), gu, gv);
+            add_sym_outer(G, hsum8(Mbbvv), gv, gv);
             add_sym_outer(G, f * sp.kap * sp.kap * q0, e, e);
             add_sym_outer(G, RC(-2.0) * f * sp.kap, e, m);
             add_sym_outer(G, f * quu, gu, gu);

@@ -31,25 +31,17 @@
 #define FINITE(x) ((x) - (x) == RC(0.0))
 /* Square roots without calls: the OpenCL builtins are function calls on PoCL, and a call in a
  * loop also makes the compiler spill every live vector register around it. SQ (scalar) is the
- * compiler's own square-root instruction; sqrt8 (float8, arguments >= 0) is 1/sqrt from the
- * integer estimate refined by three Newton steps (relative error a few float ulps), times y. */
+ * compiler's own square-root instruction; sqrt8 applies it lane by lane, which the compiler
+ * turns into one vector square root (correctly rounded, like the builtin). */
 #ifdef REAL_DOUBLE
 #define SQ(x) __builtin_sqrt(x)
-#define sqrt8(x) sqrt(x)
 #else
 #define SQ(x) __builtin_sqrtf(x)
-inline float8 sqrt8(float8 y)
-{
-    const int8 tiny = y < 0x1p-100f; /* the integer estimate needs normal numbers: scale those up */
-    y = tiny ? y * 0x1p100f : y;
-    const float8 h = 0.5f * y;
-    float8 r = as_float8((int8)(0x5f3759df) - (as_int8(y) >> 1));
-    r = r * (1.5f - h * r * r);
-    r = r * (1.5f - h * r * r);
-    r = r * (1.5f - h * r * r);
-    return (tiny ? (float8)(0x1p-50f) : (float8)(1.0f)) * (y * r);
-}
 #endif
+inline real8 sqrt8(real8 y)
+{
+    return (real8)(SQ(y.s0), SQ(y.s1), SQ(y.s2), SQ(y.s3), SQ(y.s4), SQ(y.s5), SQ(y.s6), SQ(y.s7));
+}
 #define VP 20
 #define QCUT 9.0
 #define TWO_PI 6.283185307179586

@@ -65,10 +65,11 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
                    ablation_views: int | None = 5, methods=("fdk", "r2gs", "shape"), seed: int = 0,
                    progress: bool = True, settings: dict | None = None, echo=print) -> dict:
     """Run (or resume) the experiment; returns the summary dict also written to ``summary.json``."""
-    from clgs.commands.anatomy_group import evaluate_volume, simulate_subject
+    from clgs.evaluation import bone_mask, evaluate_volume, surface_level
     from clgs.io import atomic
     from clgs.io.mesh import save_mesh
     from clgs.shape_guided import load_anatomy_parts
+    from clgs.simulation import simulate_subject
 
     out = Path(out_dir)
     (out / "runs").mkdir(parents=True, exist_ok=True)
@@ -104,7 +105,6 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
                 metrics = evaluate_volume(anatomy, scan, run["volume"])
                 surf = None
                 try:
-                    from clgs.commands.anatomy_group import bone_mask, surface_level
                     from clgs.surface import surface_from_volume
 
                     mesh = surface_from_volume(bone_mask(run["volume"], surface_level(anatomy, scan.truth)),

@@ -8,7 +8,6 @@ of an 11x11 convolution.
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 
 _windows: dict = {}
 

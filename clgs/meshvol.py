@@ -33,14 +33,12 @@ def _as_grid(grid):
     return grid
 
 
-
 def grid_axes(grid):
     """The voxel-centre coordinates along x, y and z (three 1-D arrays, mm)."""
     nz, ny, nx = grid.shape
     ox, oy, oz = grid.origin
     dx, dy, dz = grid.spacing
     return ox + dx * np.arange(nx), oy + dy * np.arange(ny), oz + dz * np.arange(nz)
-
 
 
 # --------------------------------------------------------------------------------------- meshes
@@ -164,10 +162,10 @@ def point_mesh_distance(points, vertices, faces, k: int = 16, chunk: int = 1024)
     triangle is closer: triangles sorted along a Morton (Z-order) curve of their centroids form
     blocks of 8, 64, 512, ... consecutive triangles, each with its axis-aligned bounding box; a
     block is opened only while its box is within U of the point. A far point (from a streaky
-    surface, say) then opens the few blocks that face it instead of every triangle, and long
-    slivers only widen their own boxes. The distance to each candidate is exact (the plane when
-    the foot is inside the triangle, else the nearest edge); the result does not depend on the
-    search, only on which triangle is nearest."""
+    surface, say) then opens the few blocks that face it instead of every triangle. The distance
+    to each candidate is exact (the plane when the foot is inside the triangle, else the nearest
+    edge). Edges longer than 4 times the median are split first (the surface is the same), so
+    that a few long slivers do not widen the boxes."""
     from scipy.spatial import cKDTree
 
     v, f = np.asarray(vertices, float), np.asarray(faces, np.int64)
@@ -177,6 +175,14 @@ def point_mesh_distance(points, vertices, faces, k: int = 16, chunk: int = 1024)
     if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
         raise ValueError(f"point_mesh_distance needs faces (F>=1, 3), got shape {f.shape}")
     tri = v[f]
+    edges = np.linalg.norm(tri - np.roll(tri, -1, axis=1), axis=-1)
+    limit = 4.0 * float(np.median(edges))
+    if limit > 0 and edges.max() > limit:
+        import trimesh
+
+        # split long slivers (same surface, same distances) so that their boxes stay small
+        v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=limit, max_iter=16)[:2]
+        tri = v[f]
     centroid = tri.mean(1)
     levels = _box_levels(tri, centroid)
     tree = cKDTree(centroid)

@@ -126,8 +126,6 @@ def get(name: str) -> Method:
         mod = importlib.import_module(module)
         if name not in _REGISTRY and isinstance(getattr(mod, "METHOD", None), Method):
             register(mod.METHOD)
-        if name not in _REGISTRY and name in _ADAPTERS:
-            register(_ADAPTERS[name](mod))
         if name not in _REGISTRY:
             raise MethodError(f"{module} was expected to provide the reconstruction method {name!r} "
                               "(register it, or define METHOD = clgs.methods.Method(...))")
@@ -184,24 +182,6 @@ register(Method(
                      default=None, help="relaxation factor of each update, in (0, 2)"),
     ],
 ))
-def _r2gs_adapter(mod) -> Method:
-    """Used only while :mod:`clgs.r2gs` defines no ``METHOD`` of its own: its
-    ``reconstruct_r2gs(scan, out_dir, iterations, resume=...)`` with the two essential options."""
-
-    def run(scan, out_dir=None, **options):
-        result = mod.reconstruct_r2gs(scan, out_dir, **options)
-        return {"volume": result.volume, "info": {"summary": getattr(result, "summary", "")}}
-
-    return Method("r2gs", run, atomic_dir=False, help=_LAZY.get("r2gs", ("", ""))[1], options=[
-        click.Option(["--iterations", "iterations"], type=click.IntRange(min=1), default=None,
-                     help="training iterations [default: 30000]"),
-        click.Option(["--resume", "resume"], is_flag=True, default=None,
-                     help="continue the run in --out from its checkpoint"),
-    ])
-
-
-_ADAPTERS = {"r2gs": _r2gs_adapter}
-
 register_lazy("r2gs", "clgs.r2gs", help="R2-Gaussian: radiative Gaussian splatting (slow, best at few views)")
 register_lazy("shape", "clgs.shape_guided",
               help="shape-guided Gaussian splatting with an anatomy's shape model and density atlas")

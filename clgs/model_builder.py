@@ -30,7 +30,7 @@ import numpy as np
 from clgs.template import (Subject, Template, _atomic_save_npz, _json_array, _json_from_array, box_grid, grid_points,
                            mesh_to_sdf)
 
-BUILDER_VERSION = 1
+BUILDER_VERSION = 2  # 2: the atlas samples a CT with its border value past its grid (was air)
 
 
 def _hash(obj) -> str:
@@ -168,7 +168,10 @@ def build_model(template: Template, subjects: Union[Iterable[Subject], Mapping],
                     u = exp_velocity(torch.as_tensor(result.velocity), msp)
                     p = torch.as_tensor(tpoints, dtype=torch.float32)
                     mapped = (p + sample_field(u, p, msp, morg)).numpy()
-                record["warped_ct"] = subject.volume_at(mapped).reshape(template.shape)
+                # a CT grid ends where the scan did, not where the body does: points warped past
+                # its border take the border value (clamped), not air, which would inflate the
+                # atlas variance in the template's first and last slices
+                record["warped_ct"] = subject.volume_at(mapped, fill=None).reshape(template.shape)
             record["metadata"] = _json_array({"id": sid, "residuals": result.residuals,
                                               "subject_hash": subject.content_hash()})
             _atomic_save_npz(path, record)

@@ -36,7 +36,8 @@ on first use in a process and cached by ``clgs.runtime``):
 * ``NO_GRAD_MEAN`` / ``NO_GRAD_COV`` / ``NO_GRAD_DENSITY`` in the backward's program when the
   means / the covariance-or-precision / the densities need no gradient (the forward kernels are
   the same in every gradient variant; in practice the forward program is the all-gradients one);
-* ``TW=8``, ``TH=16``: the forward's tile (fixed; ``cl/binning.cl`` gets the same).
+* ``TW=8``, ``TH=64`` (CPU; ``TH=16`` on GPUs): the forward's tile (``cl/binning.cl`` gets
+  the same; the render needs ``TW=8``, one ``real8`` per tile row).
 
 The splat loops use ``splat_exp8`` (``cl/project_setup.h``): ``fastexp.h``'s method with a
 degree-5 fitted polynomial and no range handling, valid on the kept range ``-4.5 <= x <= 0``.
@@ -45,12 +46,20 @@ degree-5 fitted polynomial and no range handling, valid on the kept range ``-4.5
 
 Pipeline of one forward call (all on the device, one read-back of the list length):
 ``preprocess`` (per view and Gaussian: centre, conic or exact-cone polynomials, amplitude,
-footprint box, culling) -> ``bin_hist`` / ``bin_totals`` / ``bin_scan`` (deterministic counting
-sort into 8 x 16 tiles) -> ``fill`` (lists in Gaussian index order, each entry with a copy of its
-record so the render streams them) -> ``render`` (a work-item per tile, real8 rows). The
-backward is one kernel, a work-item per Gaussian run of 16 (CPU) gathering over its own box in
-every view; when it directly follows the forward of the same inputs (the autograd op passes the
-forward's token) it reuses the forward's per-(view, Gaussian) set-up instead of recomputing it.
+footprint box, culling; affine: 8 Gaussians per ``real8``, ``setup_affine8``) -> ``bin_hist`` /
+``bin_totals`` / ``bin_scan`` (deterministic counting sort into the tiles) -> ``fill`` (lists in
+Gaussian index order, each entry with a copy of its record so the render streams them) ->
+``render`` (a work-item per tile, ``real8`` rows). The backward is one kernel, a work-item per
+run of Gaussians (16 on CPUs) gathering over each Gaussian's own box in every view. Affine: 8
+Gaussians at a time, the set-up recomputed by the forward's own ``setup_affine8`` (same bits,
+about the cost of reading the records back) and the chain rule done for all 8 in ``real8``.
+Exact: one Gaussian at a time; when the backward directly follows the forward of the same
+inputs (the autograd op passes the forward's token) it reuses the forward's per-(view,
+Gaussian) set-up instead of recomputing it.
+
+Kernels avoid OpenCL builtins that PoCL compiles to calls (``select``, ``vload8``, vector
+``sqrt``, ``min``) inside loops: a call there also makes the compiler spill every live vector
+register around it. ``cl/project_setup.h`` has the call-free replacements.
 
 Conventions: the detector's u and v axes are perpendicular to each other and to the central
 ray (as every ``clgs.geometry.Geometry`` is). Forward and backward are gathers: every output is
@@ -66,7 +75,6 @@ import torch
 from .gaussian_math import covariance, precision
 
 MODES = ("affine", "exact")
-TW, TH = 8, 64
 VP = 20
 _HIST_BUDGET = 1 << 24  # ints in the binning histogram (views x chunks x tiles)
 
@@ -125,6 +133,11 @@ class GaussianProjector:
     # Per-Gaussian kernels: on CPUs each work-item takes PER consecutive Gaussians.
     LOCAL_G_CPU, LOCAL_TILE_CPU, PER_CPU = 1, (1, 1, 1), 16
     LOCAL_G_GPU, LOCAL_TILE_GPU, PER_GPU = 64, (8, 8, 1), 1
+    # Forward tile (TW, TH): one real8 row wide. Tall tiles on CPUs: a 2-8 pixel Gaussian then
+    # mostly falls in one tile row, so there are fewer (tile, Gaussian) pairs to bin, copy and
+    # loop over (8 x 64 ran binning + fill + render about 20% faster than 8 x 16); GPUs keep the
+    # accumulator small.
+    TILE_CPU, TILE_GPU = (8, 64), (8, 16)
 
     def __init__(self):
         from . import runtime
@@ -142,7 +155,8 @@ class GaussianProjector:
         self._rec_token = None
         self.last_token = None
         self.extra_defines: dict = {}  # tuning experiments only
-        self.tile = (TW, TH)  # forward tile (width a multiple of 8); an attribute for tuning
+        self.tile = self.TILE_CPU if self.cpu else self.TILE_GPU
+        self.on_launch = None  # profiling hook: called with (kernel name, event) for every launch
         self._lock = threading.Lock()
 
     # ----------------------------------------------------------------------------- plumbing
@@ -157,6 +171,12 @@ class GaussianProjector:
 
     def _binning(self):
         return self._runtime.get_program("binning.cl", {"TW": self.tile[0], "TH": self.tile[1]}, self.ctx)
+
+    def _launch(self, prog, name: str, gsize, lsize, *args):
+        event = prog.kernel(name)(self.queue, gsize, lsize, *args)
+        if self.on_launch is not None:
+            self.on_launch(name, event)
+        return event
 
     def _pooled(self, name: str, nbytes: int):
         import pyopencl as cl
@@ -265,8 +285,8 @@ class GaussianProjector:
             LG = self.LOCAL_G
             per = self.PER if mode == "exact" else _round_up(self.PER, 8)  # affine: 8 Gaussians per vector
             nitems = -(-N // per)
-            prog.kernel("preprocess")(q, (_round_up(nitems, LG), nv), (LG, 1), i32(N), i32(per), i32(U), i32(V),
-                                      rl(geometry.scale), b_means, b_mats, b_rho, b_vp, b_rec, b_box)
+            self._launch(prog, "preprocess", (_round_up(nitems, LG), nv), (LG, 1), i32(N), i32(per), i32(U), i32(V),
+                         rl(geometry.scale), b_means, b_mats, b_rho, b_vp, b_rec, b_box)
             TW, TH = self.tile
             ntx, nty = -(-U // TW), -(-V // TH)
             ntiles = ntx * nty
@@ -276,11 +296,11 @@ class GaussianProjector:
             b_hist = self._pooled("hist", nv * nchunks * ntiles * 4)
             b_tot = self._pooled("totals", nv * ntiles * 4)
             b_starts = self._pooled("starts", (nv * ntiles + 1) * 4)
-            binp.kernel("bin_hist")(q, (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks), i32(ntx),
-                                    i32(ntiles), b_box, b_hist)
-            binp.kernel("bin_totals")(q, (_round_up(ntiles, LG), nv), (LG, 1), i32(nchunks), i32(ntiles),
-                                      b_hist, b_tot)
-            binp.kernel("bin_scan")(q, (1,), (1,), i32(nv * ntiles), b_tot, b_starts)
+            self._launch(binp, "bin_hist", (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks), i32(ntx),
+                         i32(ntiles), b_box, b_hist)
+            self._launch(binp, "bin_totals", (_round_up(ntiles, LG), nv), (LG, 1), i32(nchunks), i32(ntiles),
+                         b_hist, b_tot)
+            self._launch(binp, "bin_scan", (1,), (1,), i32(nv * ntiles), b_tot, b_starts)
             total = np.zeros(1, np.int32)
             cl.enqueue_copy(q, total, b_starts, src_offset=nv * ntiles * 4, is_blocking=True)
             total = int(total[0])
@@ -289,13 +309,13 @@ class GaussianProjector:
             b_list = self._pooled("list", max(total, 1) * 4)
             b_prec = self._pooled(f"prec{dt.itemsize}", max(total, 1) * rec_len * dt.itemsize)
             b_prow = self._pooled("prow", max(total, 1) * 8)
-            prog.kernel("fill")(q, (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks), i32(ntx),
-                                i32(ntiles), b_box, b_rec, b_hist, b_starts, b_list, b_prec, b_prow)
+            self._launch(prog, "fill", (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks), i32(ntx),
+                         i32(ntiles), b_box, b_rec, b_hist, b_starts, b_list, b_prec, b_prow)
             b_out = self._out("out", out)
             lt = self.LOCAL_TILE
-            prog.kernel("render")(q, (_round_up(ntx, lt[0]), _round_up(nty, lt[1]), nv), lt, i32(U),
-                                  i32(V), i32(ntx), i32(ntiles), b_prec, b_prow, b_starts, b_list, b_means,
-                                  b_mats, b_rho, b_vp, rl(geometry.scale), b_out)
+            self._launch(prog, "render", (_round_up(ntx, lt[0]), _round_up(nty, lt[1]), nv), lt, i32(U),
+                         i32(V), i32(ntx), i32(ntiles), b_prec, b_prow, b_starts, b_list, b_means,
+                         b_mats, b_rho, b_vp, rl(geometry.scale), b_out)
             self._fetch(b_out, out)
             self._keep.clear()
             self.last_pairs = total
@@ -329,11 +349,11 @@ class GaussianProjector:
             rec_len = 20 if (mode == "exact" and geometry.mode == "cone") else 8
             b_rec = self._pooled(f"rec{dt.itemsize}", nv * N * rec_len * dt.itemsize)
             b_box = self._pooled("box", nv * N * 16)
-            prog.kernel("backward")(q, (_round_up(nitems, LG),), (LG,), np.int32(N), np.int32(per),
-                                    np.int32(nv), np.int32(U), np.int32(V), dt.type(geometry.scale),
-                                    np.int32(cached), b_rec, b_box, self._in("means", means),
-                                    self._in("mats", mats), self._in("rho", densities), self._in("vp", vp),
-                                    self._in("gimg", grad_out), *b)
+            self._launch(prog, "backward", (_round_up(nitems, LG),), (LG,), np.int32(N), np.int32(per),
+                         np.int32(nv), np.int32(U), np.int32(V), dt.type(geometry.scale),
+                         np.int32(cached), b_rec, b_box, self._in("means", means),
+                         self._in("mats", mats), self._in("rho", densities), self._in("vp", vp),
+                         self._in("gimg", grad_out), *b)
             res = []
             for k, (buf, o) in enumerate(zip(b, outs)):
                 if needs[k]:

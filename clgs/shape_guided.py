@@ -35,6 +35,7 @@ import torch
 import torch.nn.functional as F
 
 from clgs import losses as L
+from clgs.evaluation import bone_surface  # the outer bone surface written with the outputs
 from clgs.gaussians import Densifier, GaussianSet, Schedule, init_from_volume, r2gs_schedules
 from clgs.r2gs import (fdk_volume, gaussians_in_scan_units, make_evaluator, r2gs_losses, value_scale_from,
                        volume_box, voxelize_volume)
@@ -450,33 +451,6 @@ def write_outputs(trainer, out_dir, value_scale, volume, template, alpha, level=
     if surf is not None:
         paths["surface"] = save_mesh(out_dir / "surface.stl", *surf)
     return paths
-
-
-def bone_surface(volume, geometry, level: float | None = None):
-    """The outer bone surface of a volume (mm): threshold at ``level`` (1/mm; default half way
-    between the volume's median and its 99.5th percentile), fill cavities, keep the largest
-    component, marching cubes. None when nothing passes the threshold."""
-    from scipy import ndimage
-    from skimage.measure import marching_cubes
-
-    vol = np.asarray(volume, np.float32)
-    if level is None:
-        level = 0.5 * (float(np.median(vol)) + float(np.percentile(vol, 99.5)))
-    mask = vol > level
-    if not mask.any():
-        return None
-    lab, n = ndimage.label(mask)
-    if n > 1:
-        sizes = ndimage.sum(mask, lab, index=np.arange(1, n + 1))
-        mask = lab == (1 + int(np.argmax(sizes)))
-    mask = ndimage.binary_fill_holes(mask)
-    padded = np.pad(mask.astype(np.float32), 1)
-    spacing = tuple(float(s) for s in geometry.dVoxel)
-    verts, faces, _, _ = marching_cubes(padded, 0.5, spacing=spacing)
-    grid = geometry.volume_grid(scene=False)
-    origin_zyx = np.asarray(grid.origin[::-1]) - np.asarray(spacing)  # the pad shifts by one voxel
-    verts_xyz = (verts + origin_zyx)[:, ::-1]
-    return verts_xyz.astype(np.float64), faces.astype(np.int64)
 
 
 # ---------------------------------------------------------------------- `--method shape`

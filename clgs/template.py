@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import tempfile
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -142,18 +140,10 @@ def mesh_from_sdf(sdf, spacing, origin, level: float = 0.0):
 
 
 def _atomic_save_npz(path, arrays: dict):
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-", suffix=".npz")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """Compressed npz, written atomically (:func:`clgs.io.atomic.save_npz`)."""
+    from clgs.io import atomic
+
+    atomic.save_npz(path, compressed=True, **arrays)
 
 
 def _json_array(obj) -> np.ndarray:
@@ -339,11 +329,12 @@ class Subject:
         """Signed distance (mm) of the subject's surface on a grid."""
         return mesh_to_sdf(self.vertices, self.faces, shape, spacing, origin)
 
-    def volume_at(self, points) -> np.ndarray:
-        """CT values at points (..., 3) (x, y, z mm), trilinear, 0 (air) outside the volume."""
+    def volume_at(self, points, fill: Optional[float] = 0.0) -> np.ndarray:
+        """CT values at points (..., 3) (x, y, z mm), trilinear; ``fill`` (default 0, air) outside
+        the volume, or the nearest border value when ``fill`` is None."""
         if self.volume is None:
             raise ValueError(f"subject {self.id} has no CT volume")
-        return sample_volume(self.volume, self.spacing, self.origin, points, fill=0.0)
+        return sample_volume(self.volume, self.spacing, self.origin, points, fill=fill)
 
     def volume_on(self, shape, spacing, origin) -> np.ndarray:
         return self.volume_at(grid_points(shape, spacing, origin))

@@ -63,7 +63,6 @@ class Backend:
         self.name, self.mode = name, mode
         if name == "cl":
             self._project, self._voxelize = self._cl_project, self._cl_voxelize
-            self._last_cov = None
         else:
             from clgs.reference import voxelization
 
@@ -72,28 +71,29 @@ class Backend:
 
     # The kernels take packed covariances / precisions; building them here with element-wise
     # torch (gaussians.packed_cov_prec) rather than batched 3x3 products is what keeps the torch
-    # side of an OpenCL iteration small. The detached covariance of the last projection is kept
-    # (with the tensors it came from) so a voxelisation of the same Gaussians reuses it for the
-    # boxes' half-widths.
+    # side of an OpenCL iteration small.
     def _cl_project(self, means, scales, quats, densities, geometry, views, mode):
         from clgs.gaussians import packed_cov_prec
         from clgs.projector import project_packed
 
         cov, prec = packed_cov_prec(scales, quats, cov=(mode == "affine"), prec=(mode == "exact"))
-        if cov is not None:
-            self._last_cov = (scales, quats, cov.detach())
         return project_packed(means, cov if cov is not None else prec, densities, geometry, views, mode=mode)
 
     def _cl_voxelize(self, means, scales, quats, densities, grid):
+        from clgs.geometry import Grid
         from clgs.gaussians import packed_cov_prec
-        from clgs.voxelizer import voxelize_precision
+        from clgs.voxelizer import grid_candidates, voxelize_precision
 
-        last = getattr(self, "_last_cov", None)
-        if last is not None and last[0] is scales and last[1] is quats:
-            cov = last[2]
-        else:
-            with torch.no_grad():
-                cov = packed_cov_prec(scales.detach(), quats.detach(), prec=False)[0]
+        if isinstance(grid, Grid):
+            # Only the Gaussians that can reach the grid (a 3-sigma box is at most 3 max(scale)
+            # wide on any axis): for a 32^3 patch that is a few percent of them, and their
+            # precisions are all that needs building. index_select keeps autograd exact (the
+            # others' gradients are 0, as they were).
+            idx = grid_candidates(means, scales.detach().amax(1, keepdim=True) * 3.003, grid)
+            if idx is not None:
+                means, scales, quats, densities = (t.index_select(0, idx) for t in (means, scales, quats, densities))
+        with torch.no_grad():
+            cov = packed_cov_prec(scales.detach(), quats.detach(), prec=False)[0]
         extent = 3.0 * torch.sqrt(cov[:, [0, 3, 5]].clamp_min(0))  # 3-sigma box half-widths
         prec = packed_cov_prec(scales, quats, cov=False)[1]
         return voxelize_precision(means, prec, densities, extent, grid)
@@ -191,7 +191,7 @@ class Trainer:
         self.iteration = 0
         self.view_stack: list = []
         self.log = TrainingLog()
-        self.seconds = 0.0  # training time so far (all sessions)
+        self.seconds = 0.0  # training time so far, over every run resumed from this one
         self.wall_offset = 0.0
         self.interrupted = False
         self._sums: dict = {}

@@ -96,6 +96,28 @@ def pack_gaussians(means, prec, densities, extent) -> torch.Tensor:
     return torch.cat([means, densities.reshape(n, 1), prec, extent, pad], 1).contiguous()
 
 
+def grid_candidates(means: torch.Tensor, half_widths: torch.Tensor, grid: Grid):
+    """Indices (ascending) of the Gaussians whose box ``mean +- half_widths`` ((N, 3), or (N, 1)
+    for a cube) can meet ``grid``'s samples, or None when that is all of them.
+
+    The field on the grid and every gradient are the same with only these Gaussians: the others
+    contribute exactly 0, and the order is kept, so every sum runs in the same order. A voxel of
+    margin covers rounding. For a 32^3 block of a 50k-Gaussian scene this leaves a few percent of
+    the Gaussians, so packing, binning (and, with a cheap bound such as ``3 max(scales)``, the
+    precisions of the caller) cost a few percent too."""
+    with torch.no_grad():
+        n = means.shape[0]
+        if n == 0:
+            return None
+        h = np.asarray(grid.spacing, np.float64)
+        size = np.asarray(grid.shape[::-1], np.float64)  # (x, y, z)
+        centre = torch.as_tensor(np.asarray(grid.origin, np.float64) + 0.5 * (size - 1) * h, dtype=means.dtype)
+        reach = torch.as_tensor(0.5 * (size + 1) * h, dtype=means.dtype)  # half the samples' span + a voxel
+        gap = (means.detach() - centre).abs_().sub_(half_widths.detach()).sub_(reach).amax(1)
+        idx = (gap <= 0).nonzero().squeeze(1)
+        return None if idx.numel() == n else idx
+
+
 class _PointBins:
     """Points sorted by a coarse cell grid, each cell padded to a multiple of 8.
 
@@ -523,6 +545,9 @@ def voxelize_precision(means, prec, densities, extent, where, voxelizer: Voxeliz
     extent = extent.detach()
     if isinstance(where, Grid):
         Voxelizer._check_grid(where)
+        idx = grid_candidates(means, extent, where)  # same field and gradients, less to pack and bin
+        if idx is not None:
+            means, prec, densities, extent = (t.index_select(0, idx) for t in (means, prec, densities, extent))
         return _GridField.apply(means, prec, densities, extent, where, vox)
     pts = where.detach().cpu().numpy() if isinstance(where, torch.Tensor) else np.asarray(where)
     if pts.ndim != 2 or pts.shape[1] != 3:

@@ -164,6 +164,38 @@ def test_point_to_mesh_distance_is_exact(rng):
     assert np.allclose(ours, ref, atol=1e-9)
 
 
+def test_distances_from_far_away_streaks_are_exact(rng):
+    """A streaky few-view reconstruction's surface: small shards scattered up to ~250 mm from the
+    bone. Every point is far from every triangle, the case where a nearest-centroid search has
+    to prove a great many triangles farther away; the distances stay exact."""
+    import trimesh
+
+    bone = sphere(20.0, subdivisions=4)  # a convex polyhedron inscribed in a 20 mm sphere
+    centres = rng.uniform(-150, 150, (300, 3))
+    centres = centres[np.linalg.norm(centres, axis=1) > 45][:120]
+    shard = trimesh.creation.icosphere(subdivisions=1, radius=2.0)
+    sv = np.concatenate([shard.vertices + c for c in centres])
+    sf = np.concatenate([shard.faces + i * len(shard.vertices) for i in range(len(centres))])
+    streaks = (sv, sf)
+    n = 5000
+    pts = np.concatenate([sample_surface(streaks, n, 0), sv])
+    d = point_to_mesh_distance(pts, bone)
+    # between the circumscribed sphere (vertices) and the inscribed one (nearest face plane)
+    tri = bone[0][bone[1]]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    r_in = np.abs(np.einsum("ij,ij->i", normal, tri[:, 0]) / np.linalg.norm(normal, axis=1)).min()
+    r = np.linalg.norm(pts, axis=1)
+    assert 19.9 < r_in < 20.0 and r.min() > 40.0
+    assert np.all(d >= r - 20.0 - 1e-9) and np.all(d <= r - r_in + 1e-9)
+    some = rng.choice(len(pts), 60, replace=False)  # and exactly the brute-force minimum
+    ref = np.array([np.linalg.norm(trimesh.triangles.closest_point(tri, np.repeat(p[None], len(tri), 0)) - p,
+                                   axis=1).min() for p in pts[some]])
+    np.testing.assert_allclose(d[some], ref, atol=1e-9)
+    sd = surface_distance(streaks, bone, n_samples=n)
+    assert sd["mean_ab"] == pytest.approx(d[:n].mean(), rel=1e-12)
+    assert sd["hausdorff"] >= d.max() - 1e-9
+
+
 def test_concentric_spheres_distance():
     a, b = sphere(20.0, subdivisions=3), sphere(23.0)
     d = surface_distance(a, b, n_samples=5000)

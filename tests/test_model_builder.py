@@ -13,12 +13,7 @@ FAST = {"levels": [8, 0], "iterations": [15, 15]}
 MAX_CELLS = 14
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # grid of the CT volumes and the template
@@ -124,6 +119,31 @@ def test_atlas_of_identical_subjects_and_density_statistics(tmp_path):
     shape_map = atlas2.mean / dens.mean()  # the (common) warped bone indicator
     np.testing.assert_allclose(atlas2.var, dens.var() * shape_map ** 2, atol=1e-8)
     assert shape_map.max() == pytest.approx(1.0, abs=1e-4)
+
+
+def test_atlas_is_not_darkened_where_a_ct_grid_ends(tmp_path):
+    """The same limb scanned on grids shifted by one voxel along z: template points past a CT's
+    last slice take its border value, so the atlas stays the limb's value (0.02) with a small
+    variance in the border slices, instead of the average with air (mean 0.01, variance 1e-4)."""
+    template = _template()
+    q = grid_points(SHAPE, SP, ORG)
+    subjects = []
+    for i, dz in enumerate((-SP[0], 0.0, SP[0])):
+        org = (ORG[0] + dz, ORG[1], ORG[2])
+        p = grid_points(SHAPE, SP, org)
+        ct = (0.02 + 0.03 * (np.linalg.norm(p / np.array([20.0, 12.0, 10.0]), axis=-1) < 1)).astype(np.float32)
+        s = _ellipsoid((20, 12, 10), 0.03, f"shift{i}")
+        subjects.append(Subject(s.id, s.vertices, s.faces, volume=ct, spacing=SP, origin=org))
+    out = tmp_path / "shift.npz"
+    build_model(template, subjects, out, max_cells=MAX_CELLS, registration=FAST, progress=False)
+    _, atlas = load_model(out)
+    border = np.zeros(SHAPE, bool)
+    border[[0, -1]] = True  # first and last z slices: one subject's CT ends before them
+    assert np.abs(q[border][:, 2]).min() > 10.0 + SP[0]  # ... and they hold limb only, no bone
+    np.testing.assert_allclose(atlas.mean[border], 0.02, atol=1e-4)
+    assert atlas.var[border].max() < 1e-8
+    inside = np.linalg.norm(q / np.array([20.0, 12.0, 10.0]), axis=-1) < 0.8
+    np.testing.assert_allclose(atlas.mean[inside], 0.05, atol=1e-3)
 
 
 def test_build_is_cached_and_resumes_after_an_interruption(tmp_path):

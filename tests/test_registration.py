@@ -9,12 +9,7 @@ from clgs.template import (Subject, Template, box_grid, grid_points, mesh_from_s
                            vertex_normals)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _sphere_mesh(radius=10.0, centre=(1.0, -2.0, 3.0)):

@@ -192,3 +192,24 @@ def test_resume_is_bitwise(template, shape_model, atlas, tmp_path):
     np.testing.assert_array_equal(full.volume, resumed.volume)
     for name in ("alpha.json", "shape_surface.stl", "volume.nii.gz", "log.csv"):
         assert (tmp_path / "b" / name).is_file()
+
+
+def test_bone_surface_is_the_outer_surface_of_the_solid_bone():
+    """The surface written with the outputs (surface.stl): the outer surface of the bright
+    object with its hollow interior filled and small bright specks dropped; None without bone."""
+    import trimesh
+
+    from clgs.shape_guided import bone_surface
+
+    geo = Geometry.default(n_views=4, n_voxel=40, volume_mm=80.0)  # 2 mm voxels, centred on 0
+    z, y, x = (np.mgrid[:40, :40, :40] - 19.5) * 2.0
+    r = np.sqrt(x**2 + y**2 + z**2)
+    vol = np.where(r < 20.0, 0.05, 0.02).astype(np.float32)
+    vol[r < 14.0] = 0.02  # a hollow shell (a canal of marrow)
+    vol[2, 2, 2] = 0.05  # a speck: not part of the bone
+    mesh = bone_surface(vol, geo)  # default level: half way between median and 99.5th percentile
+    dist = np.linalg.norm(mesh.vertices, axis=1)
+    assert np.abs(dist - 20.0).max() < 2.0  # the outer sphere only (no inner one, no speck)
+    tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    assert tm.volume == pytest.approx(4 / 3 * np.pi * 20.0**3, rel=0.08)
+    assert bone_surface(np.zeros_like(vol), geo) is None

@@ -15,13 +15,7 @@ SHAPE, SP, ORG = (20, 22, 24), (2.0, 2.0, 2.0), (-19.0, -21.0, -23.0)
 SMALL = (12, 13, 14)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small tensors: one torch thread is faster (and steadier on a shared machine)."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _points():

@@ -24,6 +24,8 @@ For each detector (128^2, 256^2), beam (cone, parallel) and mode (affine, exact)
   (mean of forward and backward).
 * For exact rows: ``err vs exact`` is max |affine - exact| / max exact of the same view, and
   ``exact/affine`` the ratio of their fwd+bwd times.
+* ``--stages``: after each row, every kernel's device time (event profiling, median ms) and
+  the number of kernel launches per forward and per backward call, to see where time goes.
 
 The machine may be shared: compare ratios within a run, not across runs.
 """
@@ -122,6 +124,38 @@ def _time_kernels(projector, m, mats, rho, geometry, mode, repeat):
     return [_median(x) * 1e3 for x in (tf, tb, cf, cb)] + [out[0]]
 
 
+def _stages(projector, m, mats, rho, geometry, mode, repeat):
+    """Per-kernel device milliseconds (median) and launches per call, forward and backward."""
+    import numpy as np
+    import pyopencl as cl
+
+    mn, mt, rn = m.numpy(), mats.numpy(), rho.numpy()
+    queue = projector.queue
+    projector.queue = cl.CommandQueue(projector.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
+    events: list = []
+    projector.on_launch = lambda name, event: events.append((name, event))
+    gout = np.random.default_rng(0).random((1, *geometry.nDetector), dtype=np.float32)
+    times = {"fwd": {}, "bwd": {}}
+    launches = {"fwd": 0, "bwd": 0}
+    try:
+        for r in range(repeat):
+            for phase in ("fwd", "bwd"):
+                events.clear()
+                if phase == "fwd":
+                    projector.forward(mn, mt, rn, geometry, [r % geometry.n_views], mode)
+                else:
+                    projector.backward(mn, mt, rn, geometry, [r % geometry.n_views], mode, gout,
+                                       token=projector.last_token)
+                projector.queue.finish()
+                launches[phase] = len(events)
+                for name, ev in events:
+                    times[phase].setdefault(name, []).append((ev.profile.end - ev.profile.start) * 1e-6)
+    finally:
+        projector.queue = queue
+        projector.on_launch = None
+    return {ph: {k: _median(v) for k, v in t.items()} for ph, t in times.items()}, launches
+
+
 def _time_torch(m, mats, rho, geometry, mode, repeat):
     import torch
 
@@ -144,7 +178,8 @@ def _time_torch(m, mats, rho, geometry, mode, repeat):
 @click.option("--quick", is_flag=True, help="10k Gaussians only, fewer repeats")
 @click.option("--repeat", default=7, show_default=True, help="timed repeats per case (median)")
 @click.option("--torch-n", default=5000, show_default=True, help="largest N timed in torch (scaled above)")
-def main(quick, repeat, torch_n):
+@click.option("--stages", is_flag=True, help="also print each kernel's device time and launches per call")
+def main(quick, repeat, torch_n, stages):
     """Gaussian projector: ms, evaluations/s, fraction of the exp ceiling, speed-up over torch."""
     import torch
 
@@ -191,6 +226,12 @@ def main(quick, repeat, torch_n):
                         ratio = (fwd + bwd) / (res["affine"][0] + res["affine"][1])
                         line += f" {err:12.2e} {ratio:12.2f}"
                     click.echo(line)
+                    if stages:
+                        ms, launches = _stages(proj, m, mats, rho, g, mode, repeat)
+                        for ph in ("fwd", "bwd"):
+                            parts = ", ".join(f"{k} {v:.2f}" for k, v in ms[ph].items())
+                            click.echo(f"    {ph}: {launches[ph]} kernel launch(es); device ms: {parts} "
+                                       f"(sum {sum(ms[ph].values()):.2f})")
     scaled = " (torch on the first %d Gaussians, time scaled by N/%d)" % (torch_n, torch_n)
     click.echo(f"useful evaluations: pixels within 3 sigma, summed over Gaussians; torch = fwd + autograd bwd{scaled}")
     try:

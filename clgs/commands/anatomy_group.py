@@ -20,8 +20,6 @@ import time
 
 import click
 
-_GEOMETRY_KEYS = ("mode", "DSO", "DSD", "nDetector", "dDetector", "offDetector")
-
 
 def _need(anatomy, attr, what):
     fn = getattr(anatomy, attr, None)
@@ -31,91 +29,26 @@ def _need(anatomy, attr, what):
     return fn
 
 
-def _array(x):
-    import numpy as np
-
-    if hasattr(x, "detach"):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x, np.float32)
-
-
 # --------------------------------------------------------------------------------------- library
-def scan_geometry(anatomy, subject, n_views: int, arc: float):
-    """The anatomy's default scanner (``scene``) around the subject's CT grid.
+# (scan simulation and evaluation are library code: clgs.simulation and clgs.evaluation)
+def _simulate(anatomy, subject, *args, **kwargs):
+    """:func:`clgs.simulation.simulate_subject`, its input errors as command errors."""
+    from clgs.simulation import simulate_subject
 
-    The volume grid is the subject's own (nVoxel, dVoxel, and offOrigin = its centre); source,
-    detector and mode come from ``anatomy.scene`` (TIGRE names), or are sized to see the volume
-    whole (DSD/DSO = 1500/1000 mm) when the plugin gives none."""
-    import numpy as np
-
-    from clgs.geometry import Geometry
-
-    shape = np.asarray(subject.volume.shape)
-    spacing = np.asarray(subject.spacing, float)
-    centre = np.asarray(subject.origin, float) + 0.5 * (shape - 1) * spacing
-    angles = np.linspace(0.0, arc, int(n_views), endpoint=False)
-    scene = dict(anatomy.scene or {})
-    d = {k: scene[k] for k in _GEOMETRY_KEYS if k in scene}
-    d.update(nVoxel=tuple(int(s) for s in shape), dVoxel=tuple(spacing), offOrigin=tuple(centre), angles=angles)
-    if "nDetector" not in d or "dDetector" not in d:
-        size = float((shape * spacing).max())
-        d.setdefault("DSO", 1000.0)
-        d.setdefault("DSD", 1500.0)
-        mag = d["DSD"] / d["DSO"] if d.get("mode", "cone") == "cone" else 1.0
-        half = 0.5 * size * np.sqrt(2.0) * mag * 1.05 + np.linalg.norm(centre[1:]) * mag
-        n_det = int(scene.get("n_detector", 256))
-        d.update(nDetector=(n_det, n_det), dDetector=(2 * half / n_det,) * 2)
-    d.setdefault("DSO", 1000.0)
-    d.setdefault("DSD", 1500.0)
-    return Geometry(**d)
+    try:
+        return simulate_subject(anatomy, subject, *args, **kwargs)
+    except ValueError as exc:
+        raise click.ClickException(str(exc))
 
 
-def subject_from_mesh_file(anatomy, path, seed: int = 0):
-    """A Subject (with a CT volume) from a surface file: the plugin's ``subject_from_mesh`` when it
-    has one; otherwise the surface filled with a uniform bone attenuation ``scene['density']``
-    (1/mm, default 0.04) on a grid of the template's spacing with a 10 mm margin."""
-    if getattr(anatomy, "subject_from_mesh", None) is not None:
-        out = anatomy.subject_from_mesh(path, seed=seed)
-        return out[0] if isinstance(out, tuple) else out
-    import numpy as np
+def _evaluate(anatomy, scan, volume) -> dict:
+    """:func:`clgs.evaluation.evaluate_volume`, its input errors as command errors."""
+    from clgs.evaluation import evaluate_volume
 
-    from clgs.io.mesh import load_mesh
-    from clgs.template import Subject, box_grid, mesh_to_label
-
-    v, f = load_mesh(path)
-    v = np.asarray(v, float)
-    spacing = float(min(anatomy.load_template().spacing)) if anatomy.load_template is not None else 2.0
-    shape, sp, org = box_grid(v.min(0) - 10.0, v.max(0) + 10.0, spacing=spacing)
-    density = float((anatomy.scene or {}).get("density", 0.04))
-    vol = mesh_to_label(v, f, shape, sp, org).astype(np.float32) * density
-    sid = os.path.splitext(os.path.basename(os.fspath(path)))[0]
-    return Subject(sid, v, f, volume=vol, spacing=sp, origin=org,
-                   meta={"source": os.path.abspath(os.fspath(path)), "density_model": "uniform", "density": density})
-
-
-def simulate_subject(anatomy, subject, n_views: int = 50, arc: float = 3.141592653589793, noise: bool = True,
-                     seed: int = 0, noise_options: dict = None):
-    """Project a subject's CT with the anatomy's scanner, add noise: a :class:`clgs.io.scan.Scan`.
-
-    The truth volume and the true surface travel with the scan (for evaluation)."""
-    from clgs.ct.projector import CTProjector
-    from clgs.io.scan import Scan
-
-    if subject.volume is None:
-        raise click.ClickException(f"subject {subject.id} has no CT volume to simulate")
-    geo = scan_geometry(anatomy, subject, n_views, arc)
-    proj = _array(CTProjector(geo).forward(subject.volume))
-    acquisition = {"noise": bool(noise), "seed": int(seed)}
-    if noise:
-        from clgs.ct.noise import add_noise
-
-        opts = dict(noise_options or {})
-        proj = _array(add_noise(proj, seed=seed, **opts))
-        acquisition.update(opts)
-    meta = {"anatomy": anatomy.name, "subject": subject.id, "acquisition": acquisition,
-            "provenance": f"clgs {anatomy.name} simulate ({anatomy.package or 'plugin'} {anatomy.version})",
-            "subject_meta": subject.meta}
-    return Scan(geo, proj, truth=subject.volume, meta=meta, surface=(subject.vertices, subject.faces))
+    try:
+        return evaluate_volume(anatomy, scan, volume)
+    except ValueError as exc:
+        raise click.ClickException(str(exc))
 
 
 def default_method(anatomy) -> str:
@@ -166,65 +99,13 @@ def run_reconstruct(scan, anatomy, method: str, out=None, **options):
     result = run(scan, out, **options)
     if out is not None and "volume" in result:
         from clgs.io.volume import save_volume
+        from clgs.simulation import as_float32
 
         os.makedirs(out, exist_ok=True)
         target = os.path.join(out, "volume.npy")
         if not os.path.exists(target):
-            save_volume(target, _array(result["volume"]), scan.geometry)
+            save_volume(target, as_float32(result["volume"]), scan.geometry)
     return result
-
-
-def surface_level(anatomy, truth) -> float:
-    """The bone iso-level: ``scene['surface_level']`` or the upper of 3-class Otsu thresholds."""
-    level = (anatomy.scene or {}).get("surface_level")
-    if level is not None:
-        return float(level)
-    import numpy as np
-    from skimage.filters import threshold_multiotsu
-
-    t = np.asarray(truth, np.float32)
-    return float(threshold_multiotsu(t[:: max(1, t.shape[0] // 64)], classes=3)[-1])
-
-
-def bone_mask(volume, level: float):
-    """The solid bone: voxels above ``level``, enclosed cavities (medullary canal, cancellous
-    interior below the level) filled, only the largest connected piece kept; so the surface
-    compared is the outer bone surface, not every iso-contour."""
-    import numpy as np
-    from scipy import ndimage
-
-    mask = np.asarray(volume) > level
-    labels, n = ndimage.label(mask)
-    if n > 1:
-        sizes = ndimage.sum_labels(mask, labels, index=np.arange(1, n + 1))
-        mask = labels == (1 + int(np.argmax(sizes)))
-    return ndimage.binary_fill_holes(mask)
-
-
-def evaluate_volume(anatomy, scan, volume) -> dict:
-    """PSNR/SSIM against the scan's truth and, when the scan has the true surface, the surface
-    distance (mm) from the reconstruction's outer bone surface (:func:`bone_mask`) to it."""
-    import numpy as np
-
-    from clgs import metrics
-
-    if scan.truth is None:
-        raise click.ClickException("the scan has no truth volume to evaluate against (only simulated scans have one)")
-    vol = _array(volume)
-    if vol.shape != scan.truth.shape:
-        raise click.ClickException(f"reconstruction {vol.shape} and truth {scan.truth.shape} differ in shape")
-    out = metrics.evaluate_volume(vol, scan.truth)
-    if scan.surface is not None:
-        from clgs.surface import SurfaceError, surface_from_volume
-
-        level = surface_level(anatomy, scan.truth)
-        try:
-            mesh = surface_from_volume(bone_mask(vol, level), geometry=scan.geometry)
-            sd = metrics.surface_distance(mesh, scan.surface, n_samples=20000)
-            out.update({f"surface_{k}_mm": v for k, v in sd.items()}, surface_level=level)
-        except SurfaceError as exc:
-            out["surface_error"] = str(exc)
-    return out
 
 
 def _echo_metrics(m: dict):
@@ -276,6 +157,8 @@ def make_group(anatomy) -> click.Group:
         if subject_id and mesh:
             raise click.UsageError("give --subject or --mesh, not both")
         if mesh:
+            from clgs.simulation import subject_from_mesh_file
+
             subject = subject_from_mesh_file(anatomy, mesh, seed=seed)
         else:
             if not subject_id:
@@ -284,7 +167,7 @@ def make_group(anatomy) -> click.Group:
                     raise click.UsageError("the plugin has no held-out subjects: give --subject or --mesh")
                 subject_id = held[0]
             subject = _need(anatomy, "load_subject", "load a subject")(subject_id)
-        scan = simulate_subject(anatomy, subject, views, math.radians(arc), noise, seed)
+        scan = _simulate(anatomy, subject, views, math.radians(arc), noise, seed)
         try:
             scan.save(out, overwrite=overwrite)
         except FileExistsError:
@@ -312,7 +195,7 @@ def make_group(anatomy) -> click.Group:
         result = run_reconstruct(scan, anatomy, method, out=out, **_parse_options(settings))
         click.echo(f"{name}: {method} reconstruction of {scan.n_views} views in {time.perf_counter() - t0:.1f} s -> {out}")
         if scan.truth is not None and "volume" in result:
-            _echo_metrics(evaluate_volume(anatomy, scan, result["volume"]))
+            _echo_metrics(_evaluate(anatomy, scan, result["volume"]))
 
     @group.command("build-model")
     @click.option("--out", "out_path", type=click.Path(dir_okay=False), help="model file (default: the plugin's)")
@@ -356,7 +239,7 @@ def make_group(anatomy) -> click.Group:
             volume = os.path.join(volume, "volume.npy")
         scan = Scan.load(scan_dir)
         loaded = load_volume(volume)
-        _echo_metrics(evaluate_volume(anatomy, scan, loaded[0]))
+        _echo_metrics(_evaluate(anatomy, scan, loaded[0]))
 
     @group.command()
     @click.option("--subject", "subject_id", default=None, help="held-out subject (default: the first)")
@@ -379,7 +262,7 @@ def make_group(anatomy) -> click.Group:
         method = method or default_method(anatomy)
         t0 = time.perf_counter()
         subject = _need(anatomy, "load_subject", "load a subject")(subject_id)
-        scan = simulate_subject(anatomy, subject, views, math.radians(float(scene.get("arc_deg", 180.0))), True, seed)
+        scan = _simulate(anatomy, subject, views, math.radians(float(scene.get("arc_deg", 180.0))), True, seed)
         click.echo(f"{name} demo: subject {subject_id}, {views} views, method {method} "
                    f"(simulated in {time.perf_counter() - t0:.1f} s)")
         work = out or tempfile.mkdtemp(prefix=f"clgs-{name}-demo-")
@@ -399,7 +282,7 @@ def make_group(anatomy) -> click.Group:
                 click.echo(f"  {it!s:>9} {tt:10.1f}   " + "  ".join(
                     f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
         click.echo(f"reconstructed in {elapsed:.1f} s; final error:")
-        _echo_metrics(evaluate_volume(anatomy, scan, result["volume"]))
+        _echo_metrics(_evaluate(anatomy, scan, result["volume"]))
         click.echo(f"outputs in {work}")
 
     @group.command()
