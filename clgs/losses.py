@@ -3,7 +3,8 @@
 The SSIM follows 3DGS / R2-Gaussian: an 11x11 Gaussian window (sigma 1.5), ``C1 = 0.01^2``,
 ``C2 = 0.03^2`` (projections are in training units of order 1, see ``clgs.r2gs``), zero padding.
 The window is separable and applied as two 1D passes: the same filter at a fraction of the cost
-of an 11x11 convolution.
+of an 11x11 convolution. Against a fixed target (training) the SSIM's backward is written out
+(the filter is self-adjoint), a few passes over the image instead of autograd's dozens.
 """
 from __future__ import annotations
 
@@ -22,27 +23,48 @@ def _window(size: int, sigma: float, dtype) -> torch.Tensor:
     return w
 
 
-def _band(n: int, w: torch.Tensor) -> torch.Tensor:
-    """(n, n) matrix applying the 1D filter ``w`` with zero padding: ``(B x)[i] = sum_k w[k] x[i+k-r]``."""
-    key = ("band", n, w.numel(), w.dtype, tuple(w.tolist()))
-    m = _windows.get(key)
-    if m is None:
-        r = w.numel() // 2
-        i = torch.arange(n)
-        off = i[None, :] - i[:, None] + r  # column - row + r
-        ok = (off >= 0) & (off < w.numel())
-        m = _windows[key] = torch.where(ok, w[off.clamp(0, w.numel() - 1)], torch.zeros((), dtype=w.dtype))
-    return m
+def _shift_blur(x: torch.Tensor, w) -> torch.Tensor:
+    """Zero-padded separable filter with a symmetric window ``w`` (a list), as shifted in-place
+    adds along the last two axes: 2 x 11 passes over the image, ~1.5x faster on a CPU than the
+    dense banded products for 256^2 projections."""
+    r = len(w) // 2
+    y = x * w[r]
+    for k in range(r):
+        o = r - k
+        y[..., o:, :].add_(x[..., :-o, :], alpha=w[k])
+        y[..., :-o, :].add_(x[..., o:, :], alpha=w[k])
+    z = y * w[r]
+    for k in range(r):
+        o = r - k
+        z[..., o:].add_(y[..., :-o], alpha=w[k])
+        z[..., :-o].add_(y[..., o:], alpha=w[k])
+    return z
+
+
+class _Blur(torch.autograd.Function):
+    """The filter as an autograd op: with a symmetric window and zero padding it is self-adjoint,
+    so its backward is the same filter applied to the incoming gradient."""
+
+    @staticmethod
+    def forward(ctx, x, w):
+        ctx.w = w
+        return _shift_blur(x, w)
+
+    @staticmethod
+    def backward(ctx, g):
+        return _shift_blur(g, ctx.w), None
 
 
 def _blur(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """Separable Gaussian filter of (B, 1, H, W) with zero padding ('same' size).
 
-    Written as two products with banded matrices, ``Bv @ x @ Bu^T``: on CPUs these run at matrix-
-    multiply speed forward and backward, where a single-channel convolution with a thin kernel (or
-    shifted slices, whose backward allocates a full image per tap) is several times slower."""
-    h, wd = x.shape[-2:]
-    return _band(h, w) @ x @ _band(wd, w).t()
+    Shifted adds (see :func:`_shift_blur`) with a hand-written backward, which is the filter
+    itself; a single-channel convolution with a thin kernel is several times slower on CPUs, and
+    dense banded matrix products do ~20x the needed arithmetic."""
+    wl = w.tolist()
+    if wl != wl[::-1]:
+        raise ValueError("the SSIM window must be symmetric")
+    return _Blur.apply(x, wl)
 
 
 def target_maps(b: torch.Tensor, window: int = 11, sigma: float = 1.5):
@@ -54,6 +76,45 @@ def target_maps(b: torch.Tensor, window: int = 11, sigma: float = 1.5):
     return maps[:n], maps[n:]
 
 
+def _ssim_terms(a, b, mu_b, bb, wl, c1, c2):
+    """The SSIM map's factors (numerator ``a1 a2``, denominator ``b1 b2``) and ``mu_a``."""
+    n = a.shape[0]
+    maps = _Blur.apply(torch.cat([a, a * a, a * b], 0), wl)  # one batched filter pass for the rest
+    mu_a, aa, ab = maps[:n], maps[n:2 * n], maps[2 * n:]
+    va, vb, cov = aa - mu_a * mu_a, bb - mu_b * mu_b, ab - mu_a * mu_b
+    return mu_a, (2 * mu_a * mu_b + c1), (2 * cov + c2), (mu_a * mu_a + mu_b * mu_b + c1), (va + vb + c2)
+
+
+class _SSIMMap(torch.autograd.Function):
+    """The SSIM map of ``a`` against a fixed ``b`` with its chain rule written out: the gradients
+    of the three filtered maps come from the factors the forward keeps, and one batched (self-
+    adjoint) filter pass carries them back to ``a``; several times fewer passes over the image
+    than autograd through the same formula."""
+
+    @staticmethod
+    def forward(ctx, a, b, mu_b, bb, wl, c1, c2):
+        mu_a, a1, a2, b1, b2 = _ssim_terms(a, b, mu_b, bb, wl, c1, c2)
+        num, den = a1 * a2, b1 * b2
+        s = num / den
+        ctx.save_for_backward(a, b, mu_a, mu_b, a1, a2, b1, b2, den, s)
+        ctx.wl = wl
+        return s
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, gs):
+        a, b, mu_a, mu_b, a1, a2, b1, b2, den, s = ctx.saved_tensors
+        q = gs / den
+        d_a1, d_a2 = q * a2, q * a1  # dS/d(a1 a2) = 1 / den
+        d_den = -(q * s)
+        d_b1, d_b2 = d_den * b2, d_den * b1
+        # a1 = 2 mu_a mu_b + c1, a2 = 2 (ab - mu_a mu_b) + c2, b1 = mu_a^2 + ..., b2 = aa - mu_a^2 + ...
+        g_mu = 2 * (mu_b * (d_a1 - d_a2) + mu_a * (d_b1 - d_b2))
+        g = _shift_blur(torch.cat([g_mu, d_b2, 2 * d_a2], 0), ctx.wl)
+        n = a.shape[0]
+        return g[:n] + 2 * a * g[n:2 * n] + b * g[2 * n:], None, None, None, None, None, None
+
+
 def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5,
          c1: float = 0.01 ** 2, c2: float = 0.03 ** 2, b_maps=None) -> torch.Tensor:
     """Mean SSIM of images ``a``, ``b`` shaped (H, W) or (B, H, W); ``b_maps`` = ``target_maps(b)``
@@ -63,16 +124,15 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5,
     a = a.reshape(-1, 1, *a.shape[-2:])
     b = b.reshape(-1, 1, *b.shape[-2:])
     w = _window(window, sigma, a.dtype)
-    n = a.shape[0]
     if b_maps is None:
         mu_b, bb = target_maps(b, window, sigma)
     else:
         mu_b, bb = b_maps
-    maps = _blur(torch.cat([a, a * a, a * b], 0), w)  # one batched filter pass for the rest
-    mu_a, aa, ab = maps[:n], maps[n:2 * n], maps[2 * n:]
-    va, vb, cov = aa - mu_a * mu_a, bb - mu_b * mu_b, ab - mu_a * mu_b
-    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a * mu_a + mu_b * mu_b + c1) * (va + vb + c2))
-    return s.mean()
+    wl = w.tolist()
+    if torch.is_grad_enabled() and not any(t.requires_grad for t in (b, mu_b, bb)):
+        return _SSIMMap.apply(a, b, mu_b, bb, wl, c1, c2).mean()  # the usual case: b is measured data
+    _, a1, a2, b1, b2 = _ssim_terms(a, b, mu_b, bb, wl, c1, c2)
+    return ((a1 * a2) / (b1 * b2)).mean()
 
 
 def dssim(a: torch.Tensor, b: torch.Tensor, b_maps=None) -> torch.Tensor:

@@ -82,14 +82,14 @@ class Backend:
     def _cl_voxelize(self, means, scales, quats, densities, grid):
         from clgs.geometry import Grid
         from clgs.gaussians import packed_cov_prec
-        from clgs.voxelizer import grid_candidates, voxelize_precision
+        from clgs.voxelizer import _columns, grid_candidates, voxelize_precision
 
         if isinstance(grid, Grid):
             # Only the Gaussians that can reach the grid (a 3-sigma box is at most 3 max(scale)
             # wide on any axis): for a 32^3 patch that is a few percent of them, and their
             # precisions are all that needs building. index_select keeps autograd exact (the
             # others' gradients are 0, as they were).
-            idx = grid_candidates(means, scales.detach().amax(1, keepdim=True) * 3.003, grid)
+            idx = grid_candidates(means, _columns(scales.detach()).amax(0) * 3.003, grid)
             if idx is not None:
                 means, scales, quats, densities = (t.index_select(0, idx) for t in (means, scales, quats, densities))
         with torch.no_grad():

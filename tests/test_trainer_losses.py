@@ -42,6 +42,43 @@ def test_ssim_matches_the_2d_window_formula_and_bounds():
         L.ssim(a, b[:-1])
 
 
+def test_ssim_gradient_matches_autograd_through_the_direct_formula():
+    """The hand-written SSIM backward (fixed target, cached maps or not) against autograd through
+    the 2D-window formula, float64; and a gradient check on a small image."""
+    g = torch.Generator().manual_seed(2)
+    a = torch.rand(40, 33, generator=g, dtype=torch.float64, requires_grad=True)
+    b = (a.detach() + 0.3 * torch.rand(40, 33, generator=g, dtype=torch.float64)).clamp(0, 1)
+    ref, = torch.autograd.grad(_ssim_direct(a, b), a)
+    for maps in (None, L.target_maps(b)):
+        got, = torch.autograd.grad(L.ssim(a, b, b_maps=maps), a)
+        torch.testing.assert_close(got, ref, rtol=1e-9, atol=1e-14)
+    # a target that needs a gradient too takes plain autograd: same values for a
+    b2 = b.clone().requires_grad_(True)
+    got, gb = torch.autograd.grad(L.ssim(a, b2), (a, b2))
+    torch.testing.assert_close(got, ref, rtol=1e-9, atol=1e-14)
+    assert torch.isfinite(gb).all() and gb.abs().sum() > 0
+    small = a.detach()[:6, :7].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: L.ssim(t, b[:6, :7]), (small,))
+
+
+@pytest.mark.parametrize("shape", [(2, 1, 40, 33), (1, 1, 4, 7)])
+def test_blur_is_the_zero_padded_window_and_its_gradient(shape):
+    """The shifted-add filter against one 2D convolution (values and gradient, float64); images
+    smaller than the window included. Its backward is the filter itself (self-adjoint)."""
+    g = torch.Generator().manual_seed(1)
+    x = torch.rand(shape, generator=g, dtype=torch.float64, requires_grad=True)
+    w1 = L._window(11, 1.5, torch.float64)
+    w2 = (w1[:, None] * w1[None, :])[None, None]
+    ref = F.conv2d(x, w2, padding=5)
+    got = L._blur(x, w1)
+    torch.testing.assert_close(got, ref, rtol=1e-12, atol=1e-15)
+    v = torch.rand(shape, generator=g, dtype=torch.float64)
+    ga, = torch.autograd.grad((got * v).sum(), x)
+    gb, = torch.autograd.grad((ref * v).sum(), x)
+    torch.testing.assert_close(ga, gb, rtol=1e-12, atol=1e-15)
+    assert torch.autograd.gradcheck(lambda t: L._blur(t, w1), (x[:1, :, :6, :5].detach().requires_grad_(True),))
+
+
 def test_l1_and_tv():
     a = torch.tensor([[1.0, 2.0], [3.0, 4.0]])
     assert float(L.l1(a, torch.zeros(2, 2))) == 2.5

@@ -281,3 +281,34 @@ def test_precision_entry_point_matches_and_differentiates():
         torch.testing.assert_close(x, y, rtol=1e-12, atol=1e-15)
     with pytest.raises(ValueError, match="prec"):
         voxelize_precision(params[0], prec[:, :3], params[3], extent, block)
+
+
+def test_grid_candidates_keep_every_gaussian_that_reaches_the_block_and_change_nothing():
+    """The culling before packing: every Gaussian with a non-zero value on the block is kept (each
+    checked alone), at least one is dropped, and the field and gradients through the culled op
+    equal, bitwise, those of the op fed all Gaussians."""
+    from clgs.voxelizer import _GridField, default_voxelizer, grid_candidates
+
+    params = _requires_grad(scene(300, dtype=torch.float64))
+    prec, extent = precision(params[1], params[2]), axis_extent(params[1], params[2])
+    block = GRID.block((3, 5, 7), (6, 5, 4))
+    idx = grid_candidates(params[0], extent, block)
+    assert idx is not None and 0 < idx.numel() < 300
+    assert torch.equal(idx, torch.sort(idx).values)
+    kept = set(idx.tolist())
+    for i in range(300):
+        alone = voxelize_precision(params[0][i:i + 1].detach(), prec[i:i + 1].detach(), params[3][i:i + 1].detach(),
+                                   extent[i:i + 1], block)
+        if float(alone.abs().max()) > 0:
+            assert i in kept
+    # the cube bound used by the trainer (3 max(scale)) keeps a superset
+    cube = grid_candidates(params[0], params[1].detach().amax(1) * 3.003, block)
+    assert kept <= set(cube.tolist())
+    culled = voxelize_precision(params[0], prec, params[3], extent, block)
+    whole = _GridField.apply(params[0], prec, params[3], extent, block, default_voxelizer())
+    assert torch.equal(culled, whole)
+    w = torch.rand(block.shape, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    g1 = torch.autograd.grad((culled * w).sum(), params, retain_graph=True)
+    g2 = torch.autograd.grad((whole * w).sum(), params)
+    for a, b in zip(g1, g2):
+        assert torch.equal(a, b)
