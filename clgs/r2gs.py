@@ -44,8 +44,31 @@ from clgs.training_log import TrainingLog
 CHECKPOINT = "checkpoint.pt"
 
 
+class JsonConfig:
+    """JSON round trip of a method's settings (a dataclass); unknown keys are a clear error."""
+
+    KIND = "method"
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        if d.get("scale_bounds") is not None:
+            d["scale_bounds"] = list(d["scale_bounds"])
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict):
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"unknown {cls.KIND} settings: {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+        d = dict(d)
+        if d.get("scale_bounds") is not None:
+            d["scale_bounds"] = tuple(d["scale_bounds"])
+        return cls(**d)
+
+
 @dataclass
-class R2GSConfig:
+class R2GSConfig(JsonConfig):
     """R2-Gaussian's defaults (iterations, initialisation, loss weights, densification)."""
 
     iterations: int = 30_000
@@ -72,21 +95,7 @@ class R2GSConfig:
     checkpoint_every: int = 1000
     schedule_iterations: int | None = None  # length of the lr decays (default: iterations)
 
-    def to_json(self) -> dict:
-        d = asdict(self)
-        d["scale_bounds"] = None if self.scale_bounds is None else list(self.scale_bounds)
-        return d
-
-    @classmethod
-    def from_json(cls, d: dict) -> "R2GSConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"unknown r2gs settings: {', '.join(unknown)}; known: {', '.join(sorted(known))}")
-        d = dict(d)
-        if d.get("scale_bounds") is not None:
-            d["scale_bounds"] = tuple(d["scale_bounds"])
-        return cls(**d)
+    KIND = "r2gs"
 
 
 @dataclass
@@ -221,19 +230,57 @@ def build_trainer(scan, cfg: R2GSConfig, out_dir=None, *, progress=False, fdk=No
         gset = init_random(cfg.n_gaussians, seed=cfg.seed, **kw)
     else:
         raise ValueError(f"init must be 'fdk' or 'random', got {cfg.init!r}")
+    return make_trainer(scan, cfg, [gset], r2gs_losses(cfg), out_dir, progress)
+
+
+def make_trainer(scan, cfg, sets, losses, out_dir=None, progress=False) -> Trainer:
+    """The trainer of a Gaussian method: training-unit projections, the densifier (it edits only
+    sets marked ``densify``), the evaluator and checkpoints in ``out_dir``. ``cfg`` holds the
+    shared settings (R2GSConfig's names); ``cfg.value_scale`` must be set."""
+    geo = scan.geometry
     densifier = Densifier(geo, start=cfg.densify_start, until=cfg.densify_until, interval=cfg.densify_interval,
                           grad_threshold=cfg.grad_threshold, scale_threshold=cfg.densify_scale_threshold,
                           min_density=cfg.min_density, max_gaussians=cfg.max_gaussians)
     projections = np.asarray(scan.projections, np.float32) * np.float32(geo.scale * cfg.value_scale)
     out_dir = None if out_dir is None else Path(out_dir)
     return Trainer(
-        [gset], geo, projections, r2gs_losses(cfg), iterations=cfg.iterations,
+        sets, geo, projections, losses, iterations=cfg.iterations,
         backend=Backend(cfg.backend, cfg.projector_mode), render_scale=geo.scale, seed=cfg.seed,
         hooks=[densifier], evaluate=make_evaluator(scan, cfg.value_scale), log_every=cfg.log_every,
         checkpoint_every=cfg.checkpoint_every if out_dir is not None else 0,
         checkpoint_path=None if out_dir is None else out_dir / CHECKPOINT, progress=progress,
         config=cfg.to_json(),
     )
+
+
+def run_config(config_cls, iterations: int, settings: dict, resume: bool, out_dir):
+    """(settings, checkpoint or None) of a new run, or of a run resumed from ``out_dir``: a resumed
+    run keeps its checkpoint's settings (only ``iterations`` may grow and ``backend`` change)."""
+    from clgs import checkpoint as ckpt
+
+    if iterations < 1:
+        raise ValueError(f"iterations must be at least 1, got {iterations}")
+    settings = dict(settings)
+    if not resume:
+        return config_cls.from_json({**config_cls().to_json(), **settings, "iterations": int(iterations)}), None
+    if out_dir is None:
+        raise ValueError("resume needs out_dir (the folder holding checkpoint.pt)")
+    state = ckpt.load(Path(out_dir) / CHECKPOINT)
+    cfg = config_cls.from_json(ckpt.loads(state["config"]))
+    cfg.schedule_iterations = cfg.schedule_iterations or cfg.iterations
+    cfg.iterations = max(int(iterations), int(state["iteration"]))
+    if "backend" in settings:  # where to compute does not change the run's meaning
+        cfg.backend = settings.pop("backend")
+    if settings:
+        raise ValueError(f"resume continues with the checkpoint's settings; drop {', '.join(sorted(settings))}")
+    return cfg, state
+
+
+def restore(trainer: Trainer, state, cfg) -> None:
+    """Load a checkpoint into a freshly built trainer (no-op without one)."""
+    if state is not None:
+        trainer.load_state_dict(state)
+        trainer.iterations = trainer.config["iterations"] = cfg.iterations
 
 
 def gaussians_in_scan_units(trainer: Trainer, value_scale: float) -> dict:
@@ -285,32 +332,13 @@ def reconstruct_r2gs(scan, out_dir=None, iterations: int = 30_000, *, resume: bo
     raised to train longer. ``fdk``: a ready FDK volume (else computed). Ctrl-C stops cleanly:
     outputs so far are written and ``result.interrupted`` is True.
     """
-    from clgs import checkpoint as ckpt
     from clgs.io.scan import Scan
 
     if not isinstance(scan, Scan):
         scan = Scan.load(scan)
-    if iterations < 1:
-        raise ValueError(f"iterations must be at least 1, got {iterations}")
-    state = None
-    if resume:
-        if out_dir is None:
-            raise ValueError("resume needs out_dir (the folder holding checkpoint.pt)")
-        state = ckpt.load(Path(out_dir) / CHECKPOINT)
-        cfg = R2GSConfig.from_json(ckpt.loads(state["config"]))
-        cfg.schedule_iterations = cfg.schedule_iterations or cfg.iterations
-        cfg.iterations = max(int(iterations), int(state["iteration"]))
-        for key in ("backend",):  # where to compute does not change the run's meaning
-            if key in settings:
-                setattr(cfg, key, settings.pop(key))
-        if settings:
-            raise ValueError(f"resume continues with the checkpoint's settings; drop {', '.join(sorted(settings))}")
-    else:
-        cfg = R2GSConfig.from_json({**R2GSConfig().to_json(), **settings, "iterations": int(iterations)})
+    cfg, state = run_config(R2GSConfig, iterations, settings, resume, out_dir)
     trainer = build_trainer(scan, cfg, out_dir, progress=progress, fdk=fdk, state=state)
-    if state is not None:
-        trainer.load_state_dict(state)
-        trainer.iterations = trainer.config["iterations"] = cfg.iterations
+    restore(trainer, state, cfg)
     trainer.fit()
     volume = voxelize_volume(trainer) / np.float32(cfg.value_scale)
     files = {}

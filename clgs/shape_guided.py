@@ -27,25 +27,24 @@ the atlas is converted the same way.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from clgs import losses as L
 from clgs.evaluation import bone_surface  # the outer bone surface written with the outputs
-from clgs.gaussians import Densifier, GaussianSet, Schedule, init_from_volume, r2gs_schedules
-from clgs.r2gs import (fdk_volume, gaussians_in_scan_units, make_evaluator, r2gs_losses, value_scale_from,
-                       volume_box, voxelize_volume)
-from clgs.trainer import Backend, LossTerm, Trainer
+from clgs.gaussians import GaussianSet, Schedule, init_from_volume, r2gs_schedules
+from clgs.r2gs import (JsonConfig, fdk_volume, gaussians_in_scan_units, make_trainer, r2gs_losses, restore,
+                       run_config, value_scale_from, volume_box, voxelize_volume)
+from clgs.trainer import LossTerm, Trainer
 
 CHECKPOINT = "checkpoint.pt"
 
 
 @dataclass
-class ShapeGuidedConfig:
+class ShapeGuidedConfig(JsonConfig):
     """The paper's defaults (35k shape-guided + 15k free Gaussians, 30k iterations)."""
 
     iterations: int = 30_000
@@ -85,21 +84,7 @@ class ShapeGuidedConfig:
     checkpoint_every: int = 1000
     schedule_iterations: int | None = None
 
-    def to_json(self) -> dict:
-        d = asdict(self)
-        d["scale_bounds"] = None if self.scale_bounds is None else list(self.scale_bounds)
-        return d
-
-    @classmethod
-    def from_json(cls, d: dict) -> "ShapeGuidedConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"unknown shape-guided settings: {', '.join(unknown)}; known: {', '.join(sorted(known))}")
-        d = dict(d)
-        if d.get("scale_bounds") is not None:
-            d["scale_bounds"] = tuple(d["scale_bounds"])
-        return cls(**d)
+    KIND = "shape-guided"
 
 
 # ---------------------------------------------------------------------- the shape-guided set
@@ -341,26 +326,13 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
             e = np.zeros((0, 3), np.float32)
             free = GaussianSet(e, e, np.zeros((0, 4), np.float32), np.zeros(0, np.float32), raw=True, **kw)
         sets.append(free)
-    r2 = type("C", (), {"lambda_dssim": cfg.lambda_dssim, "lambda_tv": cfg.lambda_tv, "tv_size": cfg.tv_size})
-    losses = r2gs_losses(r2)
+    losses = r2gs_losses(cfg)
     if bound:
         losses.append(LossTerm("shape", cfg.lambda_shape, shape_prior_term()))
     if cfg.density_prior and atlas is not None:
         losses.append(LossTerm("density", cfg.lambda_density,
                                DensityPrior(atlas, template, geo, cfg.value_scale, cfg.density_s, cfg.density_points)))
-    densifier = Densifier(geo, start=cfg.densify_start, until=cfg.densify_until, interval=cfg.densify_interval,
-                          grad_threshold=cfg.grad_threshold, scale_threshold=cfg.densify_scale_threshold,
-                          min_density=cfg.min_density, max_gaussians=cfg.max_gaussians)
-    projections = np.asarray(scan.projections, np.float32) * np.float32(geo.scale * cfg.value_scale)
-    out_dir = None if out_dir is None else Path(out_dir)
-    return Trainer(
-        sets, geo, projections, losses, iterations=cfg.iterations,
-        backend=Backend(cfg.backend, cfg.projector_mode), render_scale=geo.scale, seed=cfg.seed,
-        hooks=[densifier], evaluate=make_evaluator(scan, cfg.value_scale), log_every=cfg.log_every,
-        checkpoint_every=cfg.checkpoint_every if out_dir is not None else 0,
-        checkpoint_path=None if out_dir is None else out_dir / CHECKPOINT, progress=progress,
-        config=cfg.to_json(),
-    )
+    return make_trainer(scan, cfg, sets, losses, out_dir, progress)
 
 
 def deformed_template_surface(template, shape_set) -> tuple:
@@ -385,33 +357,15 @@ def reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int = 30_0
     surface.stl (the reconstruction's bone surface at ``level``, 1/mm) and shape_surface.stl (the
     template deformed by the fitted alpha); checkpoints allow ``resume``.
     """
-    from clgs import checkpoint as ckpt
     from clgs.io.scan import Scan
 
     if not isinstance(scan, Scan):
         scan = Scan.load(scan)
-    if iterations < 1:
-        raise ValueError(f"iterations must be at least 1, got {iterations}")
     parts = anatomy if isinstance(anatomy, tuple) else load_anatomy_parts(anatomy)
-    state = None
-    if resume:
-        if out_dir is None:
-            raise ValueError("resume needs out_dir (the folder holding checkpoint.pt)")
-        state = ckpt.load(Path(out_dir) / CHECKPOINT)
-        cfg = ShapeGuidedConfig.from_json(ckpt.loads(state["config"]))
-        cfg.schedule_iterations = cfg.schedule_iterations or cfg.iterations
-        cfg.iterations = max(int(iterations), int(state["iteration"]))
-        if "backend" in settings:
-            cfg.backend = settings.pop("backend")
-        if settings:
-            raise ValueError(f"resume continues with the checkpoint's settings; drop {', '.join(sorted(settings))}")
-    else:
-        cfg = ShapeGuidedConfig.from_json({**ShapeGuidedConfig().to_json(), **settings, "iterations": int(iterations)})
+    cfg, state = run_config(ShapeGuidedConfig, iterations, settings, resume, out_dir)
     t0 = time.perf_counter()
     trainer = build_trainer(scan, parts, cfg, out_dir, progress=progress, fdk=fdk, state=state)
-    if state is not None:
-        trainer.load_state_dict(state)
-        trainer.iterations = cfg.iterations
+    restore(trainer, state, cfg)
     trainer.fit()
     volume = voxelize_volume(trainer) / np.float32(cfg.value_scale)
     shape_set = trainer.sets[0]
