@@ -41,14 +41,24 @@ def _simulate(anatomy, subject, *args, **kwargs):
         raise click.ClickException(str(exc))
 
 
-def _evaluate(anatomy, scan, volume) -> dict:
-    """:func:`clgs.evaluation.evaluate_volume`, its input errors as command errors."""
+def _evaluate(anatomy, scan, volume, folder=None) -> dict:
+    """:func:`clgs.evaluation.evaluate_volume`, its input errors as command errors; plus, when
+    ``folder`` holds a shape-guided run's ``shape_surface.stl`` (the template moved by the fitted
+    shape coefficients), that surface's distance to the truth."""
     from clgs.evaluation import evaluate_volume
 
     try:
-        return evaluate_volume(anatomy, scan, volume)
+        out = evaluate_volume(anatomy, scan, volume)
     except ValueError as exc:
         raise click.ClickException(str(exc))
+    model = os.path.join(folder, "shape_surface.stl") if folder else None
+    if model and os.path.isfile(model) and scan.surface is not None:
+        from clgs.io.mesh import load_mesh
+        from clgs.metrics import surface_distance
+
+        sd = surface_distance(load_mesh(model), scan.surface)
+        out.update({f"model_surface_{k}_mm": v for k, v in sd.items() if k in ("mean", "p95", "hausdorff")})
+    return out
 
 
 def default_method(anatomy) -> str:
@@ -195,7 +205,7 @@ def make_group(anatomy) -> click.Group:
         result = run_reconstruct(scan, anatomy, method, out=out, **_parse_options(settings))
         click.echo(f"{name}: {method} reconstruction of {scan.n_views} views in {time.perf_counter() - t0:.1f} s -> {out}")
         if scan.truth is not None and "volume" in result:
-            _echo_metrics(_evaluate(anatomy, scan, result["volume"]))
+            _echo_metrics(_evaluate(anatomy, scan, result["volume"], out))
 
     @group.command("build-model")
     @click.option("--out", "out_path", type=click.Path(dir_okay=False), help="model file (default: the plugin's)")
@@ -239,7 +249,7 @@ def make_group(anatomy) -> click.Group:
             volume = os.path.join(volume, "volume.npy")
         scan = Scan.load(scan_dir)
         loaded = load_volume(volume)
-        _echo_metrics(_evaluate(anatomy, scan, loaded[0]))
+        _echo_metrics(_evaluate(anatomy, scan, loaded[0], os.path.dirname(volume)))
 
     @group.command()
     @click.option("--subject", "subject_id", default=None, help="held-out subject (default: the first)")
@@ -282,7 +292,7 @@ def make_group(anatomy) -> click.Group:
                 click.echo(f"  {it!s:>9} {tt:10.1f}   " + "  ".join(
                     f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
         click.echo(f"reconstructed in {elapsed:.1f} s; final error:")
-        _echo_metrics(_evaluate(anatomy, scan, result["volume"]))
+        _echo_metrics(_evaluate(anatomy, scan, result["volume"], os.path.join(work, "recon")))
         click.echo(f"outputs in {work}")
 
     @group.command()
