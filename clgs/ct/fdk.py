@@ -34,6 +34,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from clgs.ct import check_projections
+
 from clgs.geometry import Geometry
 
 FILTERS = ("ram-lak", "shepp-logan", "cosine", "hamming", "hann")
@@ -210,15 +212,7 @@ def fdk(projections, geometry: Geometry, filter: str = "ram-lak", short_scan="au
     (redundancy weights when the angles do not cover a full circle), ``True`` or ``False``.
     ``dtype=np.float64`` backprojects in double precision.
     """
-    if not isinstance(geometry, Geometry):
-        raise TypeError(f"fdk needs a clgs.geometry.Geometry, got {type(geometry).__name__}")
-    p = np.asarray(projections)
-    if p.ndim != 3 or p.shape[0] == 0:
-        raise ValueError(f"projections must be (n_views, V, U) with at least one view, got shape {p.shape}")
-    if p.shape != geometry.projection_shape:
-        raise ValueError(f"projections have shape {p.shape}, the geometry expects {geometry.projection_shape}")
-    if not np.all(np.isfinite(p)):
-        raise ValueError("projections contain NaN or Inf values; clean or mask them before reconstructing")
+    p = check_projections(projections, geometry, "fdk")
     name = str(filter).lower()
     if name not in FILTERS:
         raise ValueError(f"unknown filter {filter!r}; choose one of {', '.join(FILTERS)}")

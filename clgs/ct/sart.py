@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from clgs.ct import check_projections
+
 from clgs.geometry import Geometry
 
 _COLUMN_SUM_BUDGET = 1 << 30  # bytes of cached A_S^T 1 volumes; beyond it they are recomputed
@@ -44,15 +46,7 @@ def sart(projections, geometry: Geometry, n_iter: int = 10, subsets: int = 1, re
     """
     from clgs.ct.projector import CTProjector
 
-    if not isinstance(geometry, Geometry):
-        raise TypeError(f"sart needs a clgs.geometry.Geometry, got {type(geometry).__name__}")
-    b = np.asarray(projections)
-    if b.ndim != 3 or b.shape[0] == 0:
-        raise ValueError(f"projections must be (n_views, V, U) with at least one view, got shape {b.shape}")
-    if b.shape != geometry.projection_shape:
-        raise ValueError(f"projections have shape {b.shape}, the geometry expects {geometry.projection_shape}")
-    if not np.all(np.isfinite(b)):
-        raise ValueError("projections contain NaN or Inf values; clean or mask them before reconstructing")
+    b = check_projections(projections, geometry, "sart")
     if int(n_iter) < 0:
         raise ValueError(f"n_iter must be at least 0, got {n_iter}")
     if not np.isfinite(relaxation) or not 0 < relaxation < 2:
