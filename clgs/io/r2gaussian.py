@@ -35,14 +35,13 @@ y axis ``(0, 0, -1)``, so image rows run *down* the rotation axis):
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from clgs.geometry import Geometry, GeometryError
 from clgs.io import atomic
-from clgs.io.scan import NEG_TOLERANCE, Scan, ScanError, check_projections
+from clgs.io.scan import NEG_TOLERANCE, Scan, ScanError, check_projections, read_json, read_npy
 
 __all__ = ["is_r2gaussian_folder", "read_r2gaussian", "to_r2gaussian_folder", "geometry_from_scanner",
            "scanner_from_geometry", "META_DATA"]
@@ -133,25 +132,10 @@ def scanner_from_geometry(geometry: Geometry, acquisition: dict | None = None) -
 
 def _read_meta(folder: Path) -> dict:
     path = folder / META_DATA
-    try:
-        with open(path, "r", encoding="utf-8") as fh:
-            meta = json.load(fh)
-    except FileNotFoundError:
-        raise ScanError(f"{path}: missing") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ScanError(f"{path}: unreadable JSON ({exc})") from exc
+    meta = read_json(path)
     if not isinstance(meta, dict) or not isinstance(meta.get("scanner"), dict):
         raise ScanError(f"{path}: not an R2-Gaussian description (no 'scanner' section)")
     return meta
-
-
-def _load_array(path: Path, what: str) -> np.ndarray:
-    if not path.is_file():
-        raise ScanError(f"{path}: missing ({what} listed in {META_DATA})")
-    try:
-        return np.load(path, allow_pickle=False)
-    except Exception as exc:  # noqa: BLE001 - any failure means an unreadable file
-        raise ScanError(f"{path}: unreadable {what} ({exc})") from exc
 
 
 def read_r2gaussian(folder, split: str = "train", neg_tolerance: float = NEG_TOLERANCE) -> Scan:
@@ -178,7 +162,7 @@ def read_r2gaussian(folder, split: str = "train", neg_tolerance: float = NEG_TOL
     geometry = geometry_from_scanner(scanner, angles)
     views = []
     for f in files:
-        p = _load_array(folder / f, "projection")
+        p = read_npy(folder / f, "projection", META_DATA)
         if p.ndim != 2 or tuple(p.shape) != tuple(geometry.nDetector):
             raise ScanError(f"{folder / f}: projection of shape {p.shape} does not match the scanner's "
                             f"nDetector [V, U] = {list(geometry.nDetector)}")
@@ -187,7 +171,7 @@ def read_r2gaussian(folder, split: str = "train", neg_tolerance: float = NEG_TOL
     truth = None
     vol_key = "vol" if "vol" in meta else ("ct" if "ct" in meta else None)
     if vol_key is not None and meta[vol_key]:
-        vol = _load_array(folder / str(meta[vol_key]), "volume")
+        vol = read_npy(folder / str(meta[vol_key]), "volume", META_DATA)
         expected = tuple(geometry.nVoxel[::-1])
         if vol.ndim != 3 or tuple(vol.shape) != expected:
             raise ScanError(f"{folder / str(meta[vol_key])}: volume of shape {vol.shape} does not match the "

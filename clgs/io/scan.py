@@ -221,7 +221,7 @@ class Scan:
 
     @classmethod
     def _load_clgs(cls, folder: Path, neg_tolerance: float) -> "Scan":
-        doc = _read_json(folder / SCAN_JSON)
+        doc = read_json(folder / SCAN_JSON)
         if not isinstance(doc, dict) or doc.get("format") != FORMAT:
             raise ScanError(f"{folder / SCAN_JSON}: not a clgs scan description (format should be {FORMAT!r})")
         version = doc.get("version")
@@ -233,13 +233,13 @@ class Scan:
         except (KeyError, TypeError, GeometryError) as exc:
             raise ScanError(f"{folder / SCAN_JSON}: invalid geometry: {exc}") from exc
         files = doc.get("files", {})
-        proj = _read_npy(folder / files.get("projections", PROJECTIONS), "projections")
+        proj = read_npy(folder / files.get("projections", PROJECTIONS), "projections")
         with warnings.catch_warnings():
             warnings.simplefilter("always", ScanWarning)
             proj = check_projections(proj, geometry, neg_tolerance, source=str(folder / PROJECTIONS))
         truth = None
         if files.get("truth"):
-            truth = _check_truth(_read_npy(folder / files["truth"], "truth"), geometry, str(folder / files["truth"]))
+            truth = _check_truth(read_npy(folder / files["truth"], "truth"), geometry, str(folder / files["truth"]))
         surface = None
         if files.get("truth_surface"):
             from clgs.io.mesh import MeshError, load_mesh
@@ -252,7 +252,8 @@ class Scan:
         return cls(geometry, proj, truth, meta, surface)
 
 
-def _read_json(path: Path):
+def read_json(path: Path):
+    """A JSON file, or a ScanError saying it is missing or unreadable."""
     try:
         with open(path, "r", encoding="utf-8") as fh:
             return json.load(fh)
@@ -262,9 +263,10 @@ def _read_json(path: Path):
         raise ScanError(f"{path}: unreadable JSON ({exc})") from exc
 
 
-def _read_npy(path: Path, what: str) -> np.ndarray:
+def read_npy(path: Path, what: str, named_in: str = "the scan description") -> np.ndarray:
+    """An ``.npy`` array (no pickles), or a ScanError saying it is missing or unreadable."""
     if not path.is_file():
-        raise ScanError(f"{path}: missing ({what} file named in the scan description)")
+        raise ScanError(f"{path}: missing ({what} file named in {named_in})")
     try:
         return np.load(path, allow_pickle=False)
     except Exception as exc:  # noqa: BLE001 - any failure means an unreadable array
