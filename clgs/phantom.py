@@ -474,6 +474,20 @@ class SurfacePopulation:
     Coordinates: the files' frame shifted by ``-frame_offset`` (x, y, z mm), chosen so the CT grid
     is centred on the scanner's rotation axis (Geometry offOrigin = 0)."""
 
+    @classmethod
+    def centred(cls, *, shape, spacing_mm: float, pixel_mm: float, n_views: int = 50, arc_deg: float = 180.0,
+                DSO: float = 1000.0, DSD: float = 1500.0, **kwargs) -> "SurfacePopulation":
+        """A population on a grid of ``shape`` (Z, Y, X) isotropic ``spacing_mm`` voxels centred on the
+        rotation axis, scanned in cone beam (DSO/DSD mm) with ``pixel_mm`` detector pixels sized to
+        see it whole; ``kwargs`` are the remaining constructor arguments."""
+        from clgs.geometry import Grid
+
+        n = np.asarray(shape[::-1])
+        grid = Grid(tuple(shape), tuple(-0.5 * (n - 1) * spacing_mm), (float(spacing_mm),) * 3)
+        scene = scan_geometry_kwargs(grid, DSO=DSO, DSD=DSD, pixel_mm=pixel_mm)
+        scene.update(n_views=n_views, arc_deg=arc_deg)
+        return cls(grid=grid, scene=scene, **kwargs)
+
     def __init__(self, name: str, summary: str, version: str, data_dir, file_pattern: str, ids, test_ids,
                  grid, params: DensityParams, frame_offset, scene: dict, builder_settings: dict | None = None,
                  notice: str = ""):

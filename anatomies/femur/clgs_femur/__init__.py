@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import os
 
-import numpy as np
 
 from clgs.hookspecs import hookimpl
 
@@ -57,18 +56,13 @@ def population_model():
     """The femur's :class:`clgs.phantom.SurfacePopulation` (created once)."""
     global _population
     if _population is None:
-        from clgs.geometry import Grid
-        from clgs.phantom import SurfacePopulation, scan_geometry_kwargs
+        from clgs.phantom import SurfacePopulation
 
-        n = np.asarray(SHAPE[::-1])
-        grid = Grid(SHAPE, tuple(-0.5 * (n - 1) * SPACING_MM), (SPACING_MM,) * 3)
-        scene = scan_geometry_kwargs(grid, DSO=1000.0, DSD=1500.0, pixel_mm=3.0)
-        scene.update(n_views=50, arc_deg=180.0)
-        _population = SurfacePopulation(
-            name="femur", summary="left femur (LLP26 real surfaces: 20 model subjects, 6 held out)",
-            version=__version__, data_dir=DATA_DIR, file_pattern="femur_left_LLP26_subject{id}.npz",
-            ids=SUBJECTS, test_ids=TEST_SUBJECTS, grid=grid, params=params(), frame_offset=FRAME_OFFSET,
-            scene=scene)
+        _population = SurfacePopulation.centred(
+            shape=SHAPE, spacing_mm=SPACING_MM, pixel_mm=3.0, name="femur",
+            summary="left femur (LLP26 real surfaces: 20 model subjects, 6 held out)", version=__version__, data_dir=DATA_DIR,
+            file_pattern="femur_left_LLP26_subject{id}.npz", ids=SUBJECTS, test_ids=TEST_SUBJECTS, params=params(),
+            frame_offset=FRAME_OFFSET)
     return _population
 
 

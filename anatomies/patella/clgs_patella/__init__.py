@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import os
 
-import numpy as np
 
 from clgs.hookspecs import hookimpl
 
@@ -52,18 +51,13 @@ def population_model():
     """The patella's :class:`clgs.phantom.SurfacePopulation` (created once)."""
     global _population
     if _population is None:
-        from clgs.geometry import Grid
-        from clgs.phantom import SurfacePopulation, scan_geometry_kwargs
+        from clgs.phantom import SurfacePopulation
 
-        n = np.asarray(SHAPE[::-1])
-        grid = Grid(SHAPE, tuple(-0.5 * (n - 1) * SPACING_MM), (SPACING_MM,) * 3)
-        scene = scan_geometry_kwargs(grid, DSO=1000.0, DSD=1500.0, pixel_mm=2.0)
-        scene.update(n_views=50, arc_deg=180.0)
-        _population = SurfacePopulation(
-            name="patella", summary="left patella (LLP26 real surfaces: 20 model subjects, 6 held out)",
-            version=__version__, data_dir=DATA_DIR, file_pattern="patella_left_LLP26_subject{id}.npz",
-            ids=SUBJECTS, test_ids=TEST_SUBJECTS, grid=grid, params=params(), frame_offset=FRAME_OFFSET,
-            scene=scene)
+        _population = SurfacePopulation.centred(
+            shape=SHAPE, spacing_mm=SPACING_MM, pixel_mm=2.0, name="patella",
+            summary="left patella (LLP26 real surfaces: 20 model subjects, 6 held out)", version=__version__, data_dir=DATA_DIR,
+            file_pattern="patella_left_LLP26_subject{id}.npz", ids=SUBJECTS, test_ids=TEST_SUBJECTS, params=params(),
+            frame_offset=FRAME_OFFSET)
     return _population
 
 
