@@ -196,11 +196,47 @@ kernel void bin_fill(global const real *gs, int n, int chunk, int nchunks, int n
     }
 }
 
+/* Binning of a few Gaussians into a few cells (a TV patch's bricks) by a single work-item: counts,
+ * prefix sums and index lists in one launch, with no host round trip for the list length (the
+ * host provides room for n x ncells entries). Same lists, in Gaussian index order, as bin_count /
+ * bin_fill make. */
+kernel void bin_small(global const real *gs, int n, CELL_ARGS, global int *start, global int *list)
+{
+    if (get_global_id(0) != 0)
+        return;
+    int ncells = ncx * ncy * ncz;
+    for (int c = 0; c <= ncells; c++)
+        start[c] = 0;
+    for (int i = 0; i < n; i++) { /* counts in start[cell + 1] */
+        int x0, x1, y0, y1, z0, z1;
+        if (gauss_cells(load_gauss(gs, i), ox, oy, oz, isx, isy, isz, ncx, ncy, ncz, &x0, &x1, &y0, &y1, &z0, &z1))
+            for (int z = z0; z <= z1; z++)
+                for (int y = y0; y <= y1; y++)
+                    for (int x = x0; x <= x1; x++)
+                        start[(z * ncy + y) * ncx + x + 1] += 1;
+    }
+    for (int c = 1; c <= ncells; c++)
+        start[c] += start[c - 1];
+    for (int i = 0; i < n; i++) { /* start[cell] runs as the cell's cursor ... */
+        int x0, x1, y0, y1, z0, z1;
+        if (gauss_cells(load_gauss(gs, i), ox, oy, oz, isx, isy, isz, ncx, ncy, ncz, &x0, &x1, &y0, &y1, &z0, &z1))
+            for (int z = z0; z <= z1; z++)
+                for (int y = y0; y <= y1; y++)
+                    for (int x = x0; x <= x1; x++)
+                        list[start[(z * ncy + y) * ncx + x]++] = i;
+    }
+    for (int c = ncells; c > 0; c--) /* ... and ends at the next cell's start: shift back */
+        start[c] = start[c - 1];
+    start[0] = 0;
+}
+
 /* ------------------------------------------------------------------------------------------ */
 /* Grid forward: one work-item per brick (8 x BRICK_Y x BRICK_Z voxels), one real8 per x row.
- * xs/ys/zs are the sample coordinates; xs is padded to a multiple of 8 (pads are never stored). */
+ * xs/ys/zs are the sample coordinates; xs is padded to a multiple of 8 (pads are never stored).
+ * Brick b runs over entries start[b] .. start[b+1] of its list: the records themselves in
+ * packed (indexed == 0, bin_fill's copy) or indices into packed in list (indexed != 0, bin_small). */
 
-kernel void vox_grid(global const real *packed, global const int *start,
+kernel void vox_grid(global const real *packed, global const int *start, global const int *list, int indexed,
                      global const real *xs, global const real *ys, global const real *zs,
                      int nx, int ny, int nz, int nbx, int nby, int nbricks, global real *out)
 {
@@ -222,7 +258,7 @@ kernel void vox_grid(global const real *packed, global const int *start,
 
     int k1 = start[b + 1];
     for (int k = start[b]; k < k1; k++) {
-        gauss_t g = load_gauss(packed, k);
+        gauss_t g = load_gauss(packed, indexed ? list[k] : k);
         real8 dx = cx - g.px;
         real8 w = ((dx >= -g.ex) & (dx <= g.ex)) ? (real8)(g.rho) : (real8)(0);
         /* rows inside the box: coordinates increase, so they form one run; trim both ends */
@@ -308,16 +344,19 @@ inline real hsum8(real8 v)
     return u.x + u.y;
 }
 
-/* order lists the n Gaussians whose box meets the grid, sorted by place (see gauss_cells_mode):
- * neighbours in the queue then read neighbouring rows of gout, which keeps them in cache. */
-kernel void vox_grid_grad(global const real *gs, global const int *order, int n, global const real *xs,
+/* sorted != 0: order lists the n Gaussians whose box meets the grid, sorted by place (see
+ * gauss_cells_mode): neighbours in the queue then read neighbouring rows of gout, which keeps them
+ * in cache (large grids). sorted == 0: work-item k takes Gaussian k of all n (small grids, whose
+ * gout stays in cache anyway); a Gaussian that misses the grid gets zeros. Each Gaussian's sums
+ * are the same either way. */
+kernel void vox_grid_grad(global const real *gs, global const int *order, int sorted, int n, global const real *xs,
                           global const real *ys, global const real *zs, int nx, int ny, int nz,
                           global const real *gout, global real *grad)
 {
     int k = get_global_id(0);
     if (k >= n)
         return;
-    int i = order[k];
+    int i = sorted ? order[k] : k;
     gauss_t g = load_gauss(gs, i);
     moments_t m = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
     int x0, x1, y0, y1, z0, z1;
@@ -473,4 +512,161 @@ kernel void vox_points_grad(global const real *gs, int n, CELL_ARGS, global cons
         m.ayy = hsum8(syy); m.ayz = hsum8(syz); m.azz = hsum8(szz);
     }
     write_grad(grad, i, g, m);
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* The matrices every Gaussian kernel consumes, from activated scales s (N, 3) and raw quaternions
+ * q (N, 4, (w, x, y, z), any norm): covariance R diag(s^2) R^T, precision R diag(1/s^2) R^T (never
+ * an inverse), packed (xx, xy, xz, yy, yz, zz), and the 3-sigma box half-widths 3 sqrt(diag(cov)).
+ * Same maths as clgs.gaussian_math (covariance, precision, axis_extent), the tests' reference.
+ * One work-item per 8 Gaussians, one real8 lane each: builtins (sqrt) are calls on PoCL, so one
+ * call serves 8 Gaussians; the last group repeats Gaussian n-1 in its unused lanes (never stored). */
+
+/* lane l: p[min(i0 + l, n - 1) * stride + k] */
+inline real8 lane_load(global const real *p, int i0, int n, int stride, int k)
+{
+    if (i0 + 8 <= n) {
+        global const real *q = p + (size_t)i0 * stride + k;
+        return (real8)(q[0], q[stride], q[2 * stride], q[3 * stride], q[4 * stride], q[5 * stride],
+                       q[6 * stride], q[7 * stride]);
+    }
+    real t[8];
+    for (int l = 0; l < 8; l++)
+        t[l] = p[(size_t)min(i0 + l, n - 1) * stride + k];
+    return vload8(0, t);
+}
+
+inline void lane_store(global real *p, int i0, int n, int stride, int k, real8 v)
+{
+    real t[8];
+    vstore8(v, 0, t);
+    int m = min(8, n - i0);
+    global real *q = p + (size_t)i0 * stride + k;
+    for (int l = 0; l < m; l++)
+        q[l * stride] = t[l];
+}
+
+typedef struct {
+    real8 w, x, y, z; /* q / max(|q|, tiny) */
+    real8 norm;       /* |q| */
+    real8 r[9];       /* R, row-major */
+} rot8_t;
+
+inline rot8_t quat_rotation8(global const real *quats, int i0, int n, real tiny)
+{
+    rot8_t o;
+    real8 w = lane_load(quats, i0, n, 4, 0), x = lane_load(quats, i0, n, 4, 1),
+          y = lane_load(quats, i0, n, 4, 2), z = lane_load(quats, i0, n, 4, 3);
+    o.norm = sqrt(w * w + x * x + y * y + z * z);
+    real8 inv = (real)1 / (o.norm > tiny ? o.norm : (real8)(tiny));
+    w *= inv; x *= inv; y *= inv; z *= inv;
+    o.w = w; o.x = x; o.y = y; o.z = z;
+    o.r[0] = 1 - 2 * (y * y + z * z); o.r[1] = 2 * (x * y - w * z); o.r[2] = 2 * (x * z + w * y);
+    o.r[3] = 2 * (x * y + w * z); o.r[4] = 1 - 2 * (x * x + z * z); o.r[5] = 2 * (y * z - w * x);
+    o.r[6] = 2 * (x * z - w * y); o.r[7] = 2 * (y * z + w * x); o.r[8] = 1 - 2 * (x * x + y * y);
+    return o;
+}
+
+/* packed R diag(d) R^T, stored for Gaussians i0.. */
+inline void store_rdr(const real8 *r, real8 d0, real8 d1, real8 d2, global real *out, int i0, int n)
+{
+    real8 a0 = r[0] * d0, a1 = r[1] * d1, a2 = r[2] * d2;
+    real8 b0 = r[3] * d0, b1 = r[4] * d1, b2 = r[5] * d2;
+    lane_store(out, i0, n, 6, 0, a0 * r[0] + a1 * r[1] + a2 * r[2]);
+    lane_store(out, i0, n, 6, 1, a0 * r[3] + a1 * r[4] + a2 * r[5]);
+    lane_store(out, i0, n, 6, 2, a0 * r[6] + a1 * r[7] + a2 * r[8]);
+    lane_store(out, i0, n, 6, 3, b0 * r[3] + b1 * r[4] + b2 * r[5]);
+    lane_store(out, i0, n, 6, 4, b0 * r[6] + b1 * r[7] + b2 * r[8]);
+    lane_store(out, i0, n, 6, 5, (r[6] * d0) * r[6] + (r[7] * d1) * r[7] + (r[8] * d2) * r[8]);
+}
+
+/* want: bit 0 covariance, bit 1 precision, bit 2 half-widths (from the covariance's diagonal, as
+ * axis_extent); outputs not wanted are not touched (any buffer may be passed) */
+kernel void cov_prec(global const real *scales, global const real *quats, int n, int want, real tiny,
+                     global real *cov, global real *prec, global real *extent)
+{
+    int i0 = get_global_id(0) * 8;
+    if (i0 >= n)
+        return;
+    rot8_t q = quat_rotation8(quats, i0, n, tiny);
+    const real8 *r = q.r;
+    real8 s0 = lane_load(scales, i0, n, 3, 0), s1 = lane_load(scales, i0, n, 3, 1), s2 = lane_load(scales, i0, n, 3, 2);
+    real8 d0 = s0 * s0, d1 = s1 * s1, d2 = s2 * s2;
+    if (want & 1)
+        store_rdr(r, d0, d1, d2, cov, i0, n);
+    if (want & 4) {
+        real8 vx = (r[0] * d0) * r[0] + (r[1] * d1) * r[1] + (r[2] * d2) * r[2];
+        real8 vy = (r[3] * d0) * r[3] + (r[4] * d1) * r[4] + (r[5] * d2) * r[5];
+        real8 vz = (r[6] * d0) * r[6] + (r[7] * d1) * r[7] + (r[8] * d2) * r[8];
+        lane_store(extent, i0, n, 3, 0, 3 * sqrt(vx > 0 ? vx : (real8)(0)));
+        lane_store(extent, i0, n, 3, 1, 3 * sqrt(vy > 0 ? vy : (real8)(0)));
+        lane_store(extent, i0, n, 3, 2, 3 * sqrt(vz > 0 ? vz : (real8)(0)));
+    }
+    if (want & 2)
+        store_rdr(r, (real)1 / d0, (real)1 / d1, (real)1 / d2, prec, i0, n);
+}
+
+/* one packed gradient g of M = R D R^T: with F its symmetric matrix (off-diagonal entries halved),
+ * dL/dR += 2 F R D and dL/dD_k = (R^T F R)_kk, returned in dd */
+inline void rdr_grad(const real8 *r, global const real *g, int i0, int n, real8 d0, real8 d1, real8 d2,
+                     real8 *a, real8 *dd)
+{
+    real8 f00 = lane_load(g, i0, n, 6, 0), f01 = (real)0.5 * lane_load(g, i0, n, 6, 1),
+          f02 = (real)0.5 * lane_load(g, i0, n, 6, 2), f11 = lane_load(g, i0, n, 6, 3),
+          f12 = (real)0.5 * lane_load(g, i0, n, 6, 4), f22 = lane_load(g, i0, n, 6, 5);
+    real8 d[3] = {d0, d1, d2};
+    for (int k = 0; k < 3; k++) {
+        real8 t0 = f00 * r[k] + f01 * r[3 + k] + f02 * r[6 + k]; /* (F R)_0k */
+        real8 t1 = f01 * r[k] + f11 * r[3 + k] + f12 * r[6 + k];
+        real8 t2 = f02 * r[k] + f12 * r[3 + k] + f22 * r[6 + k];
+        dd[k] = r[k] * t0 + r[3 + k] * t1 + r[6 + k] * t2;
+        real8 d2k = 2 * d[k];
+        a[k] += t0 * d2k;
+        a[3 + k] += t1 * d2k;
+        a[6 + k] += t2 * d2k;
+    }
+}
+
+/* Gradients to scales and quaternions from the packed gradients of the covariance (has & 1) and
+ * of the precision (has & 2). */
+kernel void cov_prec_grad(global const real *scales, global const real *quats, int n, int has, real tiny,
+                          global const real *g_cov, global const real *g_prec, global real *d_scales,
+                          global real *d_quats)
+{
+    int i0 = get_global_id(0) * 8;
+    if (i0 >= n)
+        return;
+    rot8_t q = quat_rotation8(quats, i0, n, tiny);
+    const real8 *r = q.r;
+    real8 s0 = lane_load(scales, i0, n, 3, 0), s1 = lane_load(scales, i0, n, 3, 1), s2 = lane_load(scales, i0, n, 3, 2);
+    real8 a[9];
+    for (int k = 0; k < 9; k++)
+        a[k] = (real8)(0);
+    real8 ds0 = (real8)(0), ds1 = ds0, ds2 = ds0, dd[3];
+    if (has & 1) { /* D = s^2: dD/ds = 2 s */
+        rdr_grad(r, g_cov, i0, n, s0 * s0, s1 * s1, s2 * s2, a, dd);
+        ds0 += 2 * s0 * dd[0]; ds1 += 2 * s1 * dd[1]; ds2 += 2 * s2 * dd[2];
+    }
+    if (has & 2) { /* D = 1/s^2: dD/ds = -2 D / s */
+        real8 p0 = (real)1 / (s0 * s0), p1 = (real)1 / (s1 * s1), p2 = (real)1 / (s2 * s2);
+        rdr_grad(r, g_prec, i0, n, p0, p1, p2, a, dd);
+        ds0 -= 2 * p0 / s0 * dd[0]; ds1 -= 2 * p1 / s1 * dd[1]; ds2 -= 2 * p2 / s2 * dd[2];
+    }
+    lane_store(d_scales, i0, n, 3, 0, ds0);
+    lane_store(d_scales, i0, n, 3, 1, ds1);
+    lane_store(d_scales, i0, n, 3, 2, ds2);
+    /* through R(u), u = (w, x, y, z) */
+    real8 w = q.w, x = q.x, y = q.y, z = q.z;
+    real8 du0 = 2 * (-z * a[1] + y * a[2] + z * a[3] - x * a[5] - y * a[6] + x * a[7]);
+    real8 du1 = 2 * (y * a[1] + z * a[2] + y * a[3] - 2 * x * a[4] - w * a[5] + z * a[6] + w * a[7] - 2 * x * a[8]);
+    real8 du2 = 2 * (-2 * y * a[0] + x * a[1] + w * a[2] + x * a[3] + z * a[5] - w * a[6] + z * a[7] - 2 * y * a[8]);
+    real8 du3 = 2 * (-2 * z * a[0] - w * a[1] + x * a[2] + w * a[3] - 2 * z * a[4] + y * a[5] + x * a[6] + y * a[7]);
+    /* u = q / |q|: dq = (du - u (u . du)) / |q|; where the norm is clamped, u = q / tiny */
+    real8 big = q.norm > tiny ? (real8)(1) : (real8)(0);
+    real8 proj = big * (w * du0 + x * du1 + y * du2 + z * du3);
+    real8 inv = (real)1 / (q.norm > tiny ? q.norm : (real8)(tiny));
+    lane_store(d_quats, i0, n, 4, 0, (du0 - w * proj) * inv);
+    lane_store(d_quats, i0, n, 4, 1, (du1 - x * proj) * inv);
+    lane_store(d_quats, i0, n, 4, 2, (du2 - y * proj) * inv);
+    lane_store(d_quats, i0, n, 4, 3, (du3 - z * proj) * inv);
 }

@@ -61,6 +61,7 @@ class Backend:
         if mode not in ("affine", "exact"):
             raise ValueError(f"projector mode must be 'affine' or 'exact', got {mode!r}")
         self.name, self.mode = name, mode
+        self._last = None
         if name == "cl":
             self._project, self._voxelize = self._cl_project, self._cl_voxelize
         else:
@@ -69,34 +70,72 @@ class Backend:
             self._voxelize = getattr(voxelization, "voxelize_windowed", voxelization.voxelize)
             self._project = self._torch_project
 
-    # The kernels take packed covariances / precisions; building them here with element-wise
-    # torch (gaussians.packed_cov_prec) rather than batched 3x3 products is what keeps the torch
-    # side of an OpenCL iteration small.
-    def _cl_project(self, means, scales, quats, densities, geometry, views, mode):
-        from clgs.gaussians import packed_cov_prec
-        from clgs.projector import project_packed
+    # The kernels take packed covariances / precisions. One OpenCL kernel builds them for all N
+    # Gaussians with their 3-sigma half-widths (and one kernel runs the closed-form backward):
+    # element-wise torch on 50k Gaussians costs ~20x more on a CPU. During training the projection
+    # asks for covariance, precision and half-widths at once, and the TV patch reuses them for the
+    # same tensors (see _matrices): culling needs the half-widths of all N, the block only the
+    # precisions of the few Gaussians that reach it, and their gradient joins the covariance's in
+    # the one backward kernel.
+    def _matrices(self, scales, quats):
+        """(cov, prec, extent) for ``scales``/``quats``, from the last call when it was for the same
+        tensors (same objects, unmodified, same grad mode), else computed now."""
+        from clgs.voxelizer import cov_prec
 
-        cov, prec = packed_cov_prec(scales, quats, cov=(mode == "affine"), prec=(mode == "exact"))
-        return project_packed(means, cov if cov is not None else prec, densities, geometry, views, mode=mode)
+        grad = torch.is_grad_enabled()
+        key = (scales._version, quats._version, grad)
+        last = self._last
+        if last is not None and last[0] is scales and last[1] is quats and last[2] == key:
+            return last[3]
+        out = cov_prec(scales, quats, cov=True, prec=True, extent=True)
+        # kept for the voxelize call of the same step only when autograd records (training); the
+        # trainer drops it after each step
+        self._last = (scales, quats, key, out) if grad else None
+        return out
+
+    def forget(self) -> None:
+        """Drop the matrices kept from the last projection (and the graph they hold)."""
+        self._last = None
+
+    def _cl_project(self, means, scales, quats, densities, geometry, views, mode):
+        from clgs.projector import project_packed
+        from clgs.voxelizer import cov_prec
+
+        if torch.is_grad_enabled() and (scales.requires_grad or quats.requires_grad):
+            cov, prec, _ = self._matrices(scales, quats)
+        else:  # evaluation: only what the projector reads
+            cov, prec, _ = cov_prec(scales, quats, cov=(mode == "affine"), prec=(mode == "exact"))
+        return project_packed(means, cov if mode == "affine" else prec, densities, geometry, views, mode=mode)
 
     def _cl_voxelize(self, means, scales, quats, densities, grid):
         from clgs.geometry import Grid
-        from clgs.gaussians import packed_cov_prec
-        from clgs.voxelizer import _columns, grid_candidates, voxelize_precision
+        from clgs.voxelizer import _columns, cov_prec, grid_candidates, voxelize_precision
 
+        last = self._last
+        if (isinstance(grid, Grid) and last is not None and last[0] is scales and last[1] is quats
+                and last[2] == (scales._version, quats._version, torch.is_grad_enabled())):
+            return self.voxelize_shared(means, last[3][1], densities, last[3][2], grid)
         if isinstance(grid, Grid):
             # Only the Gaussians that can reach the grid (a 3-sigma box is at most 3 max(scale)
             # wide on any axis): for a 32^3 patch that is a few percent of them, and their
-            # precisions are all that needs building. index_select keeps autograd exact (the
-            # others' gradients are 0, as they were).
+            # precisions are all that needs building.
             idx = grid_candidates(means, _columns(scales.detach()).amax(0) * 3.003, grid)
             if idx is not None:
                 means, scales, quats, densities = (t.index_select(0, idx) for t in (means, scales, quats, densities))
-        with torch.no_grad():
-            cov = packed_cov_prec(scales.detach(), quats.detach(), prec=False)[0]
-        extent = 3.0 * torch.sqrt(cov[:, [0, 3, 5]].clamp_min(0))  # 3-sigma box half-widths
-        prec = packed_cov_prec(scales, quats, cov=False)[1]
+        _, prec, extent = cov_prec(scales, quats, cov=False, prec=True, extent=True)
         return voxelize_precision(means, prec, densities, extent, grid)
+
+    @staticmethod
+    def voxelize_shared(means, prec, densities, extent, grid):
+        """The field on ``grid`` from every Gaussian's precision and half-widths (N, 6), (N, 3):
+        culls by the exact 3-sigma boxes and hands the kernels only the rows that reach the grid
+        (index_select keeps autograd exact: the others' gradients are 0)."""
+        from clgs.voxelizer import grid_candidates, voxelize_precision
+
+        idx = grid_candidates(means, extent, grid)
+        if idx is not None:
+            means, prec, densities, extent = (t.index_select(0, idx) for t in (means, prec, densities, extent))
+        return voxelize_precision(means, prec, densities, extent, grid, cull=False)
 
     def _torch_project(self, means, scales, quats, densities, geometry, views, mode):
         from clgs import gaussian_math
@@ -256,6 +295,8 @@ class Trainer:
                 for p in group["params"]:
                     p.grad = None  # frozen: Adam's moments must not move either
         self.optimizer.step()
+        if hasattr(self.backend, "forget"):
+            self.backend.forget()
         self.iteration += 1
         out = {k: float(v) for k, v in values.items()}
         out["loss"] = float(total.detach()) if total is not None else 0.0

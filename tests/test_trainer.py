@@ -274,3 +274,44 @@ def test_cl_backend_voxelizes_only_the_gaussians_that_reach_a_block():
     for a, b in zip(torch.autograd.grad((part * w).sum(), params),
                     torch.autograd.grad((whole * w).sum(), params)):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
+
+
+def test_cl_backend_shares_the_projections_matrices_with_the_tv_patch():
+    """In a training step the projection builds covariance, precision and half-widths of every
+    Gaussian in one kernel and the patch reuses them (same tensors): the field is bitwise the one
+    built from scratch, the gradients through both paths agree (float64), and the kept matrices
+    are dropped by ``forget`` (or ignored once the tensors change)."""
+    from clgs.geometry import Geometry
+    from clgs.trainer import Backend
+
+    geo = Geometry.default(n_views=4, n_voxel=24, n_detector=32, volume_mm=64.0)
+    g = torch.Generator().manual_seed(5)
+    n = 300
+    means = ((torch.rand(n, 3, generator=g, dtype=torch.float64) * 2 - 1) * 0.8).requires_grad_(True)
+    scales = (torch.rand(n, 3, generator=g, dtype=torch.float64) * 0.05 + 0.02).requires_grad_(True)
+    quats = torch.randn(n, 4, generator=g, dtype=torch.float64).requires_grad_(True)
+    dens = (torch.rand(n, generator=g, dtype=torch.float64) + 0.1).requires_grad_(True)
+    params = (means, scales, quats, dens)
+    block = geo.volume_grid(scene=True).block((3, 5, 7), (10, 9, 8))
+    wb = torch.rand(block.shape, generator=g, dtype=torch.float64)
+
+    be = Backend("cl")
+    proj = be.project(*params, geo, [1])
+    assert be._last is not None
+    shared = be.voxelize(*params, block)
+    grads = torch.autograd.grad(proj.sum() + (shared * wb).sum(), params)
+    be.forget()
+    assert be._last is None
+    alone = Backend("cl")
+    proj2 = alone.project(*params, geo, [1])
+    alone.forget()
+    fresh = alone.voxelize(*params, block)  # culls by 3 max(scale), builds the precisions itself
+    assert float(fresh.detach().abs().max()) > 0
+    assert torch.equal(shared.detach(), fresh.detach())
+    for a, b in zip(grads, torch.autograd.grad(proj2.sum() + (fresh * wb).sum(), params)):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-13)
+    # changed in place: the kept matrices are stale and must not be used
+    be.project(*params, geo, [1])
+    with torch.no_grad():
+        scales.mul_(1.5)
+    torch.testing.assert_close(be.voxelize(*params, block), Backend("cl").voxelize(*params, block), rtol=0, atol=0)

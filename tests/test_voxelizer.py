@@ -267,12 +267,16 @@ def test_bad_grid_and_points_are_clear_errors():
 
 
 def test_precision_entry_point_matches_and_differentiates():
+    from clgs.voxelizer import cov_prec
+
     params = _requires_grad(scene(200, dtype=torch.float64))
-    prec = precision(params[1], params[2])
-    extent = axis_extent(params[1], params[2])
+    _, prec, extent = cov_prec(params[1], params[2], cov=False, extent=True)  # what voxelize builds
     block = GRID.block((2, 2, 2), (7, 8, 9))
     a = voxelize_precision(params[0], prec, params[3], extent, block)
     assert torch.equal(a, voxelize(*params, block))
+    # and the torch formulas give the same field to rounding
+    b = voxelize_precision(params[0], precision(params[1], params[2]), params[3], axis_extent(params[1], params[2]), block)
+    torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
     pts = torch.rand(50, 3, dtype=torch.float64) - 0.5
     assert torch.equal(voxelize_precision(params[0], prec, params[3], extent, pts), voxelize_points(*params, pts))
     g = torch.autograd.grad(a.sum(), params)
@@ -312,3 +316,73 @@ def test_grid_candidates_keep_every_gaussian_that_reaches_the_block_and_change_n
     g2 = torch.autograd.grad((whole * w).sum(), params)
     for a, b in zip(g1, g2):
         assert torch.equal(a, b)
+
+
+def test_small_grid_and_binned_paths_give_the_same_bits(monkeypatch):
+    """Small grids (a TV patch) are binned by one work-item and their backward runs unsorted; the
+    large-grid path (chunked counting sort, sorted backward) must give the very same bits."""
+    import clgs.voxelizer as vz
+
+    params = _requires_grad(scene(900, seed=4))
+    w = torch.randn(GRID.shape, generator=torch.Generator().manual_seed(5))
+    block = GRID.block((2, 3, 4), (11, 12, 13))
+    wb = w[2:13, 3:15, 4:17]
+
+    def run():
+        out, part = voxelize(*params, GRID), voxelize(*params, block)
+        return [out, part, *torch.autograd.grad((out * w).sum() + (part * wb).sum(), params)]
+
+    small = run()
+    monkeypatch.setattr(vz, "_SMALL_CELLS", 0)
+    monkeypatch.setattr(vz, "_UNSORTED_BYTES", 0)
+    binned = run()
+    assert float(small[0].detach().abs().max()) > 0 and all(float(g.abs().max()) > 0 for g in small[2:])
+    for a, b in zip(small, binned):
+        assert torch.equal(a, b)
+
+
+def test_cov_prec_matches_gaussian_math_and_differentiates():
+    """The OpenCL covariance / precision / half-widths kernel against clgs.gaussian_math (float32,
+    N not a multiple of 8 so the last group has idle lanes), gradcheck of its closed-form backward
+    (float64) for each output alone and for both together."""
+    from clgs.gaussian_math import covariance
+    from clgs.voxelizer import cov_prec
+
+    _, scales, quats, _ = scene(1003, seed=6)
+    quats[5] *= 1e-3  # any norm
+    cov, prec, ext = cov_prec(scales, quats, extent=True)
+    for out, expected in ((cov, covariance(scales, quats)), (prec, precision(scales, quats)),
+                          (ext, axis_extent(scales, quats))):
+        assert out.shape == expected.shape and out.dtype == torch.float32
+        torch.testing.assert_close(out, expected, rtol=2e-5, atol=1e-6 * float(expected.abs().max()))
+    assert cov_prec(scales, quats, cov=False, prec=False) == (None, None, None)
+    _, s, q, _ = scene(13, dtype=torch.float64, seed=7, log_scale=(-1.5, -0.5))
+    s, q = s.requires_grad_(True), q.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda a, b: cov_prec(a, b)[:2], (s, q))
+    assert torch.autograd.gradcheck(lambda a, b: cov_prec(a, b, cov=False)[1], (s, q))
+    assert torch.autograd.gradcheck(lambda a, b: cov_prec(a, b, prec=False, extent=True)[0], (s, q))
+    # and against autograd through the torch formulas, with a gradient on each output
+    g1, g2 = torch.randn(13, 6, dtype=torch.float64), torch.randn(13, 6, dtype=torch.float64)
+    c, p, _ = cov_prec(s, q)
+    got = torch.autograd.grad((c * g1).sum() + (p * g2).sum(), (s, q))
+    want = torch.autograd.grad((covariance(s, q) * g1).sum() + (precision(s, q) * g2).sum(), (s, q))
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_cov_prec_degenerate_inputs():
+    """A zero quaternion gives finite matrices (the identity rotation's limit is not defined, but
+    nothing becomes NaN), no Gaussians give empty outputs, bad shapes are clear errors."""
+    from clgs.voxelizer import cov_prec
+
+    s = torch.full((3, 3), 0.1, requires_grad=True)
+    q = torch.tensor([[0.0, 0, 0, 0], [1, 0, 0, 0], [0, 0, 0, 2]], requires_grad=True)
+    c, p, e = cov_prec(s, q, extent=True)
+    assert torch.isfinite(c).all() and torch.isfinite(p).all() and torch.isfinite(e).all()
+    torch.testing.assert_close(c[1], torch.tensor([0.01, 0, 0, 0.01, 0, 0.01]))
+    gs, gq = torch.autograd.grad(c.sum() + p.sum(), (s, q))
+    assert torch.isfinite(gs).all() and torch.isfinite(gq).all()
+    c0, p0, e0 = cov_prec(torch.zeros(0, 3), torch.zeros(0, 4), extent=True)
+    assert c0.shape == (0, 6) and p0.shape == (0, 6) and e0.shape == (0, 3)
+    with pytest.raises(ValueError, match="quats"):
+        cov_prec(torch.ones(4, 3), torch.ones(4, 3))

@@ -74,9 +74,9 @@ def _breakdown(trainer, n: int = 10) -> dict:
     import torch
 
     from clgs import losses as L
-    from clgs.gaussians import packed_cov_prec
     from clgs.projector import project_packed
-    from clgs.trainer import Context
+    from clgs.trainer import Backend, Context
+    from clgs.voxelizer import cov_prec
 
     geo = trainer.geometry
     view = trainer.views[0]
@@ -86,10 +86,10 @@ def _breakdown(trainer, n: int = 10) -> dict:
     leaf = lambda t: t.detach().clone().requires_grad_(True)  # noqa: E731
     with torch.no_grad():
         means, scales, quats, dens = (t.detach() for t in trainer.scene_tensors())
-        cov = packed_cov_prec(scales, quats, prec=False)[0]
+        cov, prec, extent = cov_prec(scales, quats, extent=True)
     ins = [leaf(means), leaf(cov), leaf(dens)]
     sq = [leaf(scales), leaf(quats)]
-    vox = [leaf(t) for t in (means, scales, quats, dens)]
+    vox = [leaf(means), leaf(prec), leaf(dens)]
     target = trainer.projections[view]
     maps = L.target_maps(target)
     render = leaf(trainer.backend.project(means, scales, quats, dens, geo, [view])[0] * trainer.render_scale)
@@ -112,11 +112,12 @@ def _breakdown(trainer, n: int = 10) -> dict:
 
     parts = {
         "activations": activations,
-        "covariance (N,6)": lambda: packed_cov_prec(*sq, prec=False)[0].sum().backward(),
+        # as trained: covariance, precision and half-widths in one pass, both gradients back
+        "covariance + precision (N,6)": lambda: sum(m.sum() for m in cov_prec(*sq)[:2]).backward(),
         "projection kernels": lambda: project_packed(*ins, geo, [view]).sum().backward(),
         "L1 + D-SSIM": lambda: (L.l1(render, target) + 0.25 * L.dssim(render, target, b_maps=maps)).backward(),
-        "TV 32^3 patch (cull, precisions, kernels)": lambda: L.tv3d(
-            trainer.backend.voxelize(*vox, L.random_block(grid, 32, trainer.generator))).backward(),
+        "TV 32^3 patch (cull, kernels)": lambda: L.tv3d(Backend.voxelize_shared(
+            vox[0], vox[1], vox[2], extent, L.random_block(grid, 32, trainer.generator))).backward(),
         "Adam": adam.step,
     }
     if densifier is not None:
