@@ -83,7 +83,7 @@ def r2gs_schedules(iterations: int) -> dict:
         "means": Schedule(2e-4, 2e-5, iterations),
         "densities": Schedule(1e-2, 1e-3, iterations),
         "scales": Schedule(5e-3, 5e-4, iterations),
-        "quats": Schedule(1e-2, 1e-3, iterations),
+        "quats": Schedule(1e-3, 1e-4, iterations),
     }
 
 
@@ -395,17 +395,20 @@ class Densifier:
     R2-Gaussian's defaults: every ``interval`` (100) iterations from ``start`` (500) to ``until``
     (15 000); ``grad_threshold`` 5e-5; a Gaussian is "small" (cloned) when its largest scale is at
     most ``scale_threshold`` (0.1) x the volume's extent, else split in 2 with scales / 1.6;
-    prune below ``min_density`` (1e-5) or outside the box; never more than ``max_gaussians``
+    a clone and its original share the density, each split child gets ``split_density`` (0.5) x
+    its parent's (so a split drops most of the parent's integral and the fit rebuilds it; keeping
+    the integral instead, 1.6^3 / 2, let dense children pile up and overfit the views); prune below ``min_density`` (1e-5) or outside the box; never more than ``max_gaussians``
     in a set (the candidates with the largest gradients go first).
     """
 
     def __init__(self, geometry, *, start=500, until=15_000, interval=100, grad_threshold=5e-5,
-                 scale_threshold=0.1, min_density=1e-5, max_gaussians=500_000, split_factor=1.6):
+                 scale_threshold=0.1, min_density=1e-5, max_gaussians=500_000, split_factor=1.6,
+                 split_density=0.5):
         self.geometry = geometry
         self.start, self.until, self.interval = int(start), int(until), int(interval)
         self.grad_threshold, self.scale_threshold = float(grad_threshold), float(scale_threshold)
         self.min_density, self.max_gaussians = float(min_density), int(max_gaussians)
-        self.split_factor = float(split_factor)
+        self.split_factor, self.split_density = float(split_factor), float(split_density)
         self.stats: dict = {}  # set name -> (grad_sum (N,), count (N,))
         vec = geometry.view_vectors(scene=True)
         self._vectors = torch.as_tensor(vec, dtype=torch.float64)
@@ -493,7 +496,8 @@ class Densifier:
             half_d = inverse_softplus(dens[clone] * 0.5)
             clone_raw = {k: raw[k].detach()[clone] for k in PARAM_NAMES}
             clone_raw["densities"] = half_d
-            # split: two children drawn from the parent, scales / 1.6, density kept
+            # split: two children drawn from the parent, scales / 1.6, each with split_density x
+            # the parent's density
             ns = int(split.sum())
             r = quaternion_to_rotation(quats[split])
             eps = torch.randn((2, ns, 3), generator=generator, dtype=means.dtype)
@@ -503,7 +507,7 @@ class Densifier:
                 "means": children.reshape(2 * ns, 3),
                 "scales": child_scales.repeat(2, 1),
                 "quats": raw["quats"].detach()[split].repeat(2, 1),
-                "densities": inverse_softplus(dens[split] * (self.split_factor ** 3 / 2)).repeat(2),
+                "densities": inverse_softplus(dens[split] * self.split_density).repeat(2),
             }
             # original of a clone keeps half its density; a split parent is removed
             new_dens_raw = raw["densities"].detach().clone()
