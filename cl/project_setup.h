@@ -66,6 +66,16 @@ inline real8 sqrt8(real8 y)
 #else
 #define REC 8
 #endif
+/* In the render's copies of the records (fill), two slots the render does not read carry the
+ * box's first and last row instead (integers, exact in a real): the kappa and amplitude-per-
+ * density slots (exact cone), the straddle flag and amplitude-per-density slots (otherwise). */
+#if defined(EXACT) && defined(CONE)
+#define ROW0_SLOT 18
+#define ROW1_SLOT 19
+#else
+#define ROW0_SLOT 3
+#define ROW1_SLOT 7
+#endif
 
 /* real8 at any real-aligned address as a plain vector access: PoCL's vload8 / vstore8 are
  * library calls, and a call in a loop makes the compiler spill every live vector around it */
@@ -76,22 +86,25 @@ typedef real8 real8u __attribute__((aligned(sizeof(real))));
 #ifdef REAL_DOUBLE
 typedef long mask1;
 typedef long8 mask8; /* what comparing two real8 gives */
+#define convert_mask8 convert_long8
 #else
 typedef int mask1;
 typedef int8 mask8;
+#define convert_mask8(x) (x)
 #endif
 
-/* exp(x) for the splat loops, where only x in [-QCUT/2, 0] is kept (other lanes are masked):
- * x is clamped at -8 (so no underflow handling is needed) and x <= 0 holds up to rounding
- * (q >= 0), where the integer split below stays exact. 2^f on [-1/2, 1/2] by a degree-5
- * polynomial fitted for minimal relative error (7.5e-8 in exact arithmetic, 2.4e-7 evaluated
- * in float), one multiply-add and four selects/compares fewer than fastexp.h's fast_exp8. */
+/* 2^t for the splat loops, which keep only lanes with t in [-QCUT/2 log2(e), 0] and select
+ * zero for every other lane: whatever comes out on the other lanes (t very negative, -Inf or
+ * NaN) is never used, so there is no range handling at all (t <= 0 up to rounding where it is
+ * used, and there the integer split below is exact). 2^f on [-1/2, 1/2] by a degree-5
+ * polynomial fitted for minimal relative error (7.5e-8 in exact arithmetic, 2.4e-7 evaluated in
+ * float); the loops fold log2(e) into their own coefficients. */
+#define LOG2E 1.4426950408889634
 #ifdef REAL_DOUBLE
-#define splat_exp8(x) exp(x)
+#define splat_exp2_8(t) exp2(t)
 #else
-inline float8 splat_exp8(float8 x)
+inline float8 splat_exp2_8(float8 t)
 {
-    const float8 t = (x < -8.0f ? (float8)(-8.0f) : x) * 1.4426950408889634f;
     const int8 n = convert_int8(t - 0.5f);
     const float8 f = t - convert_float8(n);
     float8 p = 0.00132764725f;
@@ -103,6 +116,8 @@ inline float8 splat_exp8(float8 x)
     return as_float8(as_int8(p) + (n << 23));
 }
 #endif
+/* the cut q <= QCUT as a bound on t = -q/2 log2(e) */
+#define TCUT RC(-0.5 * QCUT * LOG2E)
 
 typedef struct {
     real3 s, eu, ev, w;
@@ -159,6 +174,37 @@ inline int set_box(Splat *sp, real cu, real cv, real ru, real rv, int U, int V)
     const int2 a = pixel_range(cu, ru, U), b = pixel_range(cv, rv, V);
     sp->box = (int4)(a.x, a.y, b.x, b.y);
     return a.x <= a.y && b.x <= b.y;
+}
+
+/* 8 Gaussians at once (one per lane): the set-ups that run on real8 across Gaussians */
+#define convert_real8 CAT(convert_, CAT(REAL, 8))
+typedef struct { real8 x, y, z; } vec8;
+
+inline real8 dot8(vec8 a, vec8 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+inline vec8 symv8(const real8 *S, vec8 v)
+{
+    vec8 r;
+    r.x = S[0] * v.x + S[1] * v.y + S[2] * v.z;
+    r.y = S[1] * v.x + S[3] * v.y + S[4] * v.z;
+    r.z = S[2] * v.x + S[4] * v.y + S[5] * v.z;
+    return r;
+}
+
+/* pixel_range() on 8 lanes: .lo/.hi in *a / *b, returns the non-empty mask */
+inline mask8 pixel_range8(real8 c, real8 r, int n, int8 *a, int8 *b)
+{
+    const real8 m = RC(0.01) + RC(1e-4) * r;
+    real8 lo = c - r - m, hi = c + r + m;
+    const mask8 ok = (lo <= (real)(n - 1)) & (hi >= RC(0.0));
+    lo = lo < RC(0.0) ? (real8)(RC(0.0)) : lo;
+    hi = hi > (real)(n - 1) ? (real8)((real)(n - 1)) : hi;
+    lo = ok ? lo : (real8)(RC(0.0)); /* keeps NaN out of the conversions */
+    hi = ok ? hi : (real8)(RC(0.0));
+    int8 ia = convert_int8(lo);
+    ia -= convert_int8(convert_real8(ia) < lo); /* ceil, as in pixel_range */
+    *a = ia;
+    *b = convert_int8(hi);
+    return ok;
 }
 
 #ifdef EXACT
@@ -242,6 +288,85 @@ inline int setup(real3 p, const real *S, View V, real scale, int U, int NV, Spla
     return 1;
 #endif
 }
+
+#ifdef CONE
+/* setup() of the exact cone for 8 Gaussians (one per lane; p, S and rho per lane), straight into
+ * their records: out[0..REC) as preprocess_one writes them, the box in bx (u0, u1, v0, v1).
+ * Returns the lanes done here; *fb gets the lanes the scalar setup() must do (straddling the
+ * source plane or a degenerate footprint: rare), every other lane is culled. The same arithmetic
+ * as setup(), one vector instruction for 8 Gaussians instead of one scalar instruction each. */
+inline mask8 setup_exact_cone8(vec8 p, const real8 *S, real8 rh, View V, real scale, int U, int NV, real8 *out,
+                               int8 *bx, mask8 *fb)
+{
+    const real8 zero = (real8)(RC(0.0));
+    vec8 pm, e, Pgu, Pgv, Pe;
+    pm.x = p.x - V.s.x; pm.y = p.y - V.s.y; pm.z = p.z - V.s.z;
+    const real8 tx = V.eu.x * pm.x + V.eu.y * pm.y + V.eu.z * pm.z;
+    const real8 ty = V.ev.x * pm.x + V.ev.y * pm.y + V.ev.z * pm.z;
+    const real8 tz = V.w.x * pm.x + V.w.y * pm.y + V.w.z * pm.z;
+    const real3 gu = V.gul * V.eu, gv = V.gvl * V.ev;
+    Pgu.x = S[0] * gu.x + S[1] * gu.y + S[2] * gu.z;
+    Pgu.y = S[1] * gu.x + S[3] * gu.y + S[4] * gu.z;
+    Pgu.z = S[2] * gu.x + S[4] * gu.y + S[5] * gu.z;
+    Pgv.x = S[0] * gv.x + S[1] * gv.y + S[2] * gv.z;
+    Pgv.y = S[1] * gv.x + S[3] * gv.y + S[4] * gv.z;
+    Pgv.z = S[2] * gv.x + S[4] * gv.y + S[5] * gv.z;
+    const real8 H00 = gu.x * Pgu.x + gu.y * Pgu.y + gu.z * Pgu.z;
+    const real8 H01 = gu.x * Pgv.x + gu.y * Pgv.y + gu.z * Pgv.z;
+    const real8 H11 = gv.x * Pgv.x + gv.y * Pgv.y + gv.z * Pgv.z;
+    const real amp0 = SQ(RC(TWO_PI)) / scale;
+    const real8 A00 = S[3] * S[5] - S[4] * S[4], A01 = S[2] * S[4] - S[1] * S[5], A02 = S[1] * S[4] - S[2] * S[3];
+    const real8 A11 = S[0] * S[5] - S[2] * S[2], A12 = S[1] * S[2] - S[0] * S[4], A22 = S[0] * S[3] - S[1] * S[1];
+    const real8 detP = S[0] * A00 + S[1] * A01 + S[2] * A02;
+    const real3 w = V.w;
+    const real8 sw2 = (A00 * w.x * w.x + A11 * w.y * w.y + A22 * w.z * w.z
+                       + RC(2.0) * (A01 * w.x * w.y + A02 * w.x * w.z + A12 * w.y * w.z)) / detP;
+    const mask8 valid = (detP > RC(0.0)) & FINITE(sw2);
+    const mask8 clear = tz * tz > RC(KS * KS) * sw2;
+    /* not clear of the source plane but in front of it: the scalar path (straddle) */
+    mask8 keep = valid & clear & (tz >= RC(0.0));
+    mask8 back = valid & ~clear;
+    const real8 iz = RC(1.0) / tz;
+    const real8 kap = V.D * iz, ik = RC(1.0) / kap;
+    const real8 uc = V.fx * tx * iz + V.cx, vc = V.fy * ty * iz + V.cy;
+    e.x = -pm.x; e.y = -pm.y; e.z = -pm.z;
+    Pe.x = S[0] * e.x + S[1] * e.y + S[2] * e.z;
+    Pe.y = S[1] * e.x + S[3] * e.y + S[4] * e.z;
+    Pe.z = S[2] * e.x + S[4] * e.y + S[5] * e.z;
+    const real8 c = e.x * Pe.x + e.y * Pe.y + e.z * Pe.z;
+    const real8 hu = gu.x * Pe.x + gu.y * Pe.y + gu.z * Pe.z, hv = gv.x * Pe.x + gv.y * Pe.y + gv.z * Pe.z;
+    const real8 ic = RC(1.0) / c, ikc = ic * ik, ikkc = ikc * ik;
+    const real8 k0 = (H00 - hu * hu * ic) * ik * ik;
+    const real8 k1 = (H01 - hu * hv * ic) * ik * ik;
+    const real8 k2 = (H11 - hv * hv * ic) * ik * ik;
+    const real8 a1 = -hu * ikc, a2 = -hv * ikc;
+    const real8 a3 = H00 * ikkc, a4 = H01 * ikkc, a5 = H11 * ikkc;
+    const real8 M00 = k0 - RC(9.0) * a3, M01 = k1 - RC(9.0) * a4, M11 = k2 - RC(9.0) * a5;
+    const real8 m0 = RC(9.0) * a1, m1 = RC(9.0) * a2;
+    const real8 detM = M00 * M11 - M01 * M01;
+    const mask8 good = (detM > RC(0.0)) & (M00 > RC(0.0)) & FINITE(detM) & FINITE(k0) & FINITE(a3);
+    back |= keep & ~good; /* a degenerate footprint: the scalar path too */
+    keep &= good;
+    const real8 idm = RC(1.0) / detM;
+    const real8 x0 = (M11 * m0 - M01 * m1) * idm, y0 = (M00 * m1 - M01 * m0) * idm;
+    const real8 R = RC(9.0) + m0 * x0 + m1 * y0;
+    keep &= R > RC(0.0);
+    const real8 Rk = keep ? R : zero; /* keeps NaN out of the square roots of dropped lanes */
+    keep &= pixel_range8(uc + x0, sqrt8(Rk * M11 * idm), U, &bx[0], &bx[1]);
+    keep &= pixel_range8(vc + y0, sqrt8(Rk * M00 * idm), NV, &bx[2], &bx[3]);
+    keep &= convert_mask8((bx[0] <= bx[1]) & (bx[2] <= bx[3])); /* as set_box */
+    out[0] = uc; out[1] = vc; out[2] = rh * amp0; out[3] = zero;
+    out[4] = RC(-0.5) * k0; out[5] = -k1; out[6] = RC(-0.5) * k2;
+    out[7] = a1; out[8] = a2; out[9] = a3; out[10] = a4; out[11] = a5;
+    out[12] = (e.x * e.x + e.y * e.y + e.z * e.z) * ic;
+    out[13] = -(gu.x * e.x + gu.y * e.y + gu.z * e.z) * ikc;
+    out[14] = -(gv.x * e.x + gv.y * e.y + gv.z * e.z) * ikc;
+    out[15] = dot3(gu, gu) * ikkc; out[16] = dot3(gu, gv) * ikkc; out[17] = dot3(gv, gv) * ikkc;
+    out[18] = kap; out[19] = (real8)(amp0);
+    *fb = back;
+    return keep;
+}
+#endif
 #endif
 
 #ifndef EXACT
@@ -251,7 +376,6 @@ inline int setup(real3 p, const real *S, View V, real scale, int U, int NV, Spla
  * mu = sqrt(2 pi det S3 / det S2). Done on real8 across Gaussians because one Gaussian's
  * set-up is a few hundred scalar instructions: about 8x fewer this way. Lanes are independent;
  * culled ones get ok = 0 (their other fields are meaningless, possibly NaN). */
-#define convert_real8 CAT(convert_, CAT(REAL, 8))
 
 typedef struct {
     real8 uc, vc, amp0, k0, k1, k2;
@@ -259,7 +383,6 @@ typedef struct {
     mask8 ok;            /* -1: kept, 0: culled */
 } Splat8;
 
-typedef struct { real8 x, y, z; } vec8;
 
 /* What the affine backward needs besides the splat: ray-space Jacobian rows T1, T2, T3 (S3 =
  * T Sigma T^T), Sigma T_i, the entries and determinants of S3, camera coordinates. */
@@ -268,33 +391,6 @@ typedef struct {
     real8 s00, s01, s02, s11, s12, s22, det2, det3;
     real8 tx, ty, iz, il;
 } Frame8;
-
-inline real8 dot8(vec8 a, vec8 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
-inline vec8 symv8(const real8 *S, vec8 v)
-{
-    vec8 r;
-    r.x = S[0] * v.x + S[1] * v.y + S[2] * v.z;
-    r.y = S[1] * v.x + S[3] * v.y + S[4] * v.z;
-    r.z = S[2] * v.x + S[4] * v.y + S[5] * v.z;
-    return r;
-}
-
-/* pixel_range() on 8 lanes: .lo/.hi in *a / *b, returns the non-empty mask */
-inline mask8 pixel_range8(real8 c, real8 r, int n, int8 *a, int8 *b)
-{
-    const real8 m = RC(0.01) + RC(1e-4) * r;
-    real8 lo = c - r - m, hi = c + r + m;
-    const mask8 ok = (lo <= (real)(n - 1)) & (hi >= RC(0.0));
-    lo = lo < RC(0.0) ? (real8)(RC(0.0)) : lo;
-    hi = hi > (real)(n - 1) ? (real8)((real)(n - 1)) : hi;
-    lo = ok ? lo : (real8)(RC(0.0)); /* keeps NaN out of the conversions */
-    hi = ok ? hi : (real8)(RC(0.0));
-    int8 ia = convert_int8(lo);
-    ia -= convert_int8(convert_real8(ia) < lo); /* ceil, as in pixel_range */
-    *a = ia;
-    *b = convert_int8(hi);
-    return ok;
-}
 
 inline Splat8 setup_affine8(vec8 p, const real8 *S, View V, real scale, int U, int NV, Frame8 *f)
 {

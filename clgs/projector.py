@@ -39,23 +39,34 @@ on first use in a process and cached by ``clgs.runtime``):
 * ``TW=8``, ``TH=64`` (CPU; ``TH=16`` on GPUs): the forward's tile (``cl/binning.cl`` gets
   the same; the render needs ``TW=8``, one ``real8`` per tile row).
 
-The splat loops use ``splat_exp8`` (``cl/project_setup.h``): ``fastexp.h``'s method with a
-degree-5 fitted polynomial and no range handling, valid on the kept range ``-4.5 <= x <= 0``.
+The splat loops use ``splat_exp2_8`` (``cl/project_setup.h``): ``fastexp.h``'s method with a
+degree-5 fitted polynomial and no range handling at all (the loops fold ``log2(e)`` into their
+coefficients and select zero wherever ``q > 9``, the only lanes where the result is not valid).
 
-``cl/binning.cl`` (per-tile list counts, no atomics) is built once per tile size.
+``cl/binning.cl`` (``bin_offsets``: list positions from per-chunk tile counts, no atomics) is
+built once per tile size.
 
-Pipeline of one forward call (all on the device, one read-back of the list length):
-``preprocess`` (per view and Gaussian: centre, conic or exact-cone polynomials, amplitude,
-footprint box, culling; affine: 8 Gaussians per ``real8``, ``setup_affine8``) -> ``bin_hist`` /
-``bin_totals`` / ``bin_scan`` (deterministic counting sort into the tiles) -> ``fill`` (lists in
-Gaussian index order, each entry with a copy of its record so the render streams them) ->
-``render`` (a work-item per tile, ``real8`` rows). The backward is one kernel, a work-item per
-run of Gaussians (16 on CPUs) gathering over each Gaussian's own box in every view. Affine: 8
-Gaussians at a time, the set-up recomputed by the forward's own ``setup_affine8`` (same bits,
-about the cost of reading the records back) and the chain rule done for all 8 in ``real8``.
-Exact: one Gaussian at a time; when the backward directly follows the forward of the same
-inputs (the autograd op passes the forward's token) it reuses the forward's per-(view,
-Gaussian) set-up instead of recomputing it.
+Pipeline of one forward call: four launches and a single wait, at the end.
+``preprocess`` (a work-item per chunk of consecutive Gaussians and view: centre, conic or
+exact-cone polynomials, amplitude, footprint box, culling, 8 Gaussians per ``real8``
+(``setup_affine8``, ``setup_exact_cone8``; exact parallel one at a time); then the chunk's
+counts per tile, while its boxes are in cache) -> ``bin_offsets`` (deterministic counting sort
+into the tiles) -> ``fill`` (lists in Gaussian index order, each entry with a copy of its record
+so the render streams them) -> ``render`` (a work-item per tile, ``real8`` rows). The number of
+(tile, Gaussian) pairs is only known on the device: the lists get a capacity from the last
+call's pairs per Gaussian and view (plus 25%, at least what the pooled buffers hold), ``fill``
+and ``render`` never go past it, and the pair count comes back with the image; a call that
+needed more runs again with larger lists (the first call, or a scene that grew a lot). Waiting
+for that count between the launches, as an earlier version did, left the device idle while
+Python launched the rest.
+
+The backward is one kernel, a work-item per run of Gaussians (16 on CPUs) gathering over each
+Gaussian's own box in every view. Affine: 8 Gaussians at a time, the set-up recomputed by the
+forward's own ``setup_affine8`` (same bits, about the cost of reading the records back) and the
+chain rule done for all 8 in ``real8``. Exact: one Gaussian at a time; when the backward
+directly follows the forward of the same inputs (the autograd op passes the forward's token) it
+reuses the forward's per-(view, Gaussian) set-up instead of recomputing it. Its exact-cone pixel
+loop keeps only 8 moment sums per row (the rest is applied once per 8-pixel segment).
 
 Kernels avoid OpenCL builtins that PoCL compiles to calls (``select``, ``vload8``, vector
 ``sqrt``, ``min``) inside loops: a call there also makes the compiler spill every live vector
@@ -130,7 +141,9 @@ class GaussianProjector:
 
     # Work-group sizes. PoCL's CPU device runs these kernels fastest one work-item per group
     # (its work-group vectoriser only gets in the way of explicit real8 code); GPUs want groups.
-    # Per-Gaussian kernels: on CPUs each work-item takes PER consecutive Gaussians.
+    # Backward: on CPUs each work-item takes PER consecutive Gaussians. (The forward's set-up
+    # and binning kernels take a chunk of consecutive Gaussians per work-item and view, one
+    # histogram column each; see forward.)
     LOCAL_G_CPU, LOCAL_TILE_CPU, PER_CPU = 1, (1, 1, 1), 16
     LOCAL_G_GPU, LOCAL_TILE_GPU, PER_GPU = 64, (8, 8, 1), 1
     # Forward tile (TW, TH): one real8 row wide. Tall tiles on CPUs: a 2-8 pixel Gaussian then
@@ -156,6 +169,8 @@ class GaussianProjector:
         self.last_token = None
         self.extra_defines: dict = {}  # tuning experiments only
         self.tile = self.TILE_CPU if self.cpu else self.TILE_GPU
+        self._vp_cache: dict = {}
+        self._pair_ratio = 2.0  # Gaussian-tile pairs per Gaussian and view in the last forward
         self.on_launch = None  # profiling hook: called with (kernel name, event) for every launch
         self._lock = threading.Lock()
 
@@ -250,7 +265,17 @@ class GaussianProjector:
             raise ProjectorError("no views asked for: pass at least one view index")
         if views.min() < 0 or views.max() >= geometry.n_views:
             raise ProjectorError(f"view indices must lie in [0, {geometry.n_views - 1}], got {views.tolist()}")
+        # the view parameters of the last few (geometry, views): a training step asks for the same
+        # ones in its forward and backward (the angles are compared, in case they were edited)
+        key = (id(geometry), views.tobytes(), dt.str)
+        hit = self._vp_cache.get(key)
+        angles = np.asarray(geometry.angles)[views]
+        if hit is not None and hit[0] is geometry and np.array_equal(hit[1], angles):
+            return real, dt, views, hit[2]
         vp = view_params(geometry, views, dt)
+        if len(self._vp_cache) >= 8:
+            self._vp_cache.pop(next(iter(self._vp_cache)))
+        self._vp_cache[key] = (geometry, angles.copy(), vp)
         return real, dt, views, vp
 
     # ----------------------------------------------------------------------------- forward
@@ -273,50 +298,59 @@ class GaussianProjector:
                 return out
             prog = self.program(geometry.mode, mode, real)
             binp = self._binning()
-            q = self.queue
             i32, rl = np.int32, dt.type
             rec_len = 20 if (mode == "exact" and geometry.mode == "cone") else 8
+            uses_list = mode == "exact" and geometry.mode == "cone"
             b_means = self._in("means", means)
             b_mats = self._in("mats", mats)
             b_rho = self._in("rho", densities)
             b_vp = self._in("vp", vp)
             b_rec = self._pooled(f"rec{dt.itemsize}", nv * N * rec_len * dt.itemsize)
             b_box = self._pooled("box", nv * N * 16)
-            LG = self.LOCAL_G
-            per = self.PER if mode == "exact" else _round_up(self.PER, 8)  # affine: 8 Gaussians per vector
-            nitems = -(-N // per)
-            self._launch(prog, "preprocess", (_round_up(nitems, LG), nv), (LG, 1), i32(N), i32(per), i32(U), i32(V),
-                         rl(geometry.scale), b_means, b_mats, b_rho, b_vp, b_rec, b_box)
             TW, TH = self.tile
             ntx, nty = -(-U // TW), -(-V // TH)
             ntiles = ntx * nty
             nchunks = max(1, min(-(-N // 128), 256, _HIST_BUDGET // (nv * ntiles)))
-            chunk = -(-N // nchunks)
+            chunk = _round_up(-(-N // nchunks), 8)  # affine set-up: 8 Gaussians per vector
             nchunks = -(-N // chunk)
             b_hist = self._pooled("hist", nv * nchunks * ntiles * 4)
-            b_tot = self._pooled("totals", nv * ntiles * 4)
-            b_starts = self._pooled("starts", (nv * ntiles + 1) * 4)
-            self._launch(binp, "bin_hist", (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks), i32(ntx),
-                         i32(ntiles), b_box, b_hist)
-            self._launch(binp, "bin_totals", (_round_up(ntiles, LG), nv), (LG, 1), i32(nchunks), i32(ntiles),
-                         b_hist, b_tot)
-            self._launch(binp, "bin_scan", (1,), (1,), i32(nv * ntiles), b_tot, b_starts)
-            total = np.zeros(1, np.int32)
-            cl.enqueue_copy(q, total, b_starts, src_offset=nv * ntiles * 4, is_blocking=True)
-            total = int(total[0])
-            if total < 0:
-                raise ProjectorError("more Gaussian-tile pairs than 2^31: use fewer views per call")
-            b_list = self._pooled("list", max(total, 1) * 4)
-            b_prec = self._pooled(f"prec{dt.itemsize}", max(total, 1) * rec_len * dt.itemsize)
-            b_prow = self._pooled("prow", max(total, 1) * 8)
-            self._launch(prog, "fill", (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks), i32(ntx),
-                         i32(ntiles), b_box, b_rec, b_hist, b_starts, b_list, b_prec, b_prow)
+            b_starts = self._pooled("starts", nv * (ntiles + 1) * 4)
+            starts = np.empty((nv, ntiles + 1), np.int32)
             b_out = self._out("out", out)
             lt = self.LOCAL_TILE
-            self._launch(prog, "render", (_round_up(ntx, lt[0]), _round_up(nty, lt[1]), nv), lt, i32(U),
-                         i32(V), i32(ntx), i32(ntiles), b_prec, b_prow, b_starts, b_list, b_means,
-                         b_mats, b_rho, b_vp, rl(geometry.scale), b_out)
-            self._fetch(b_out, out)
+            # The pair count is only known on the device; rather than wait for it between the
+            # launches, the lists are sized from the last call's pairs per Gaussian and view (plus
+            # a margin, and whatever the pooled buffers already hold), the kernels never write past
+            # that capacity, and a call that needed more runs again with larger lists.
+            want = int(self._pair_ratio * 1.25 * N * nv) + 4096
+            while True:
+                # the lists proper (Gaussian indices) are only read for the exact cone's straddlers
+                b_list = self._pooled("list", want * 4 if uses_list else 16)
+                b_prec = self._pooled(f"prec{dt.itemsize}", want * rec_len * dt.itemsize)
+                cap = min(b_prec.size // (rec_len * dt.itemsize), 2**31 - 1)
+                if uses_list:
+                    cap = min(cap, b_list.size // 4)
+                self._launch(prog, "preprocess", (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks), i32(U),
+                             i32(V), rl(geometry.scale), i32(ntx), i32(ntiles), b_means, b_mats, b_rho, b_vp,
+                             b_rec, b_box, b_hist)
+                self._launch(binp, "bin_offsets", (nv,), (1,), i32(nv), i32(nchunks), i32(ntiles), b_hist,
+                             b_starts)
+                self._launch(prog, "fill", (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks), i32(ntx),
+                             i32(ntiles), np.int64(cap), b_box, b_rec, b_hist, b_starts, b_list, b_prec)
+                self._launch(prog, "render", (_round_up(ntx, lt[0]), _round_up(nty, lt[1]), nv), lt, i32(U),
+                             i32(V), i32(ntx), i32(ntiles), np.int64(cap), b_prec, b_starts, b_list,
+                             b_means, b_mats, b_rho, b_vp, rl(geometry.scale), b_out)
+                cl.enqueue_copy(self.queue, starts, b_starts, is_blocking=False)
+                self._fetch(b_out, out)  # waits for the copy too (in-order queue)
+                counts = starts[:, -1].astype(np.int64)
+                total = int(counts.sum())
+                if (counts < 0).any() or total >= 2**31:
+                    self._keep.clear()
+                    raise ProjectorError("more Gaussian-tile pairs than 2^31: use fewer views per call")
+                if total <= cap:
+                    break
+                want = total + total // 4
+            self._pair_ratio = total / (N * nv)
             self._keep.clear()
             self.last_pairs = total
             self._rec_token = self._token

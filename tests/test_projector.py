@@ -243,6 +243,29 @@ def test_tile_shape_does_not_change_the_image(mode):
     for im in images[1:]:
         np.testing.assert_array_equal(im, images[0])
 
+@pytest.mark.parametrize("mode", MODES)
+def test_tile_lists_grow_when_the_guess_is_too_small(mode):
+    """The tile lists are sized from the previous call's pairs per Gaussian (no wait for the
+    count between launches); a call that needs more runs again with larger lists, once, and
+    gives the same bits as a projector that never ran short."""
+    g = geom("cone", n_det=64, n_views=2)
+    m, s, q, d = scene(3000, dtype=torch.float32, lo=0.01, hi=0.05, spread=0.8, seed=8)
+    args = (m.numpy(), mats_for(mode, s, q).numpy(), d.numpy(), g, [0, 1], mode)
+    ref = GaussianProjector().forward(*args)
+    proj = GaussianProjector()
+    proj.tile = (8, 8)  # many (tile, Gaussian) pairs, so that a tiny guess cannot hold them
+    proj._pair_ratio = 1e-4
+    launches = []
+    proj.on_launch = lambda name, event: launches.append(name)
+    out = proj.forward(*args)
+    assert proj.last_pairs > 2 * 4096  # well past the smallest lists (4096 pairs, + 25%)
+    assert launches.count("preprocess") == 2 and launches.count("render") == 2
+    np.testing.assert_array_equal(out, ref)
+    launches.clear()
+    np.testing.assert_array_equal(proj.forward(*args), ref)
+    assert launches.count("preprocess") == 1  # sized right from then on
+
+
 # ----------------------------------------------------------------------------- extremes
 def _finite_fwd_bwd(m, s, q, d, g, mode, views=None):
     args = [t.clone().requires_grad_() for t in (m, s, q, d)]

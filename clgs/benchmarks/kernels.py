@@ -26,6 +26,8 @@ For each detector (128^2, 256^2), beam (cone, parallel) and mode (affine, exact)
   ``exact/affine`` the ratio of their fwd+bwd times.
 * ``--stages``: after each row, every kernel's device time (event profiling, median ms) and
   the number of kernel launches per forward and per backward call, to see where time goes.
+* ``--n``, ``--det``, ``--beam``: run only these cases (each may be repeated), e.g. the
+  reference case ``--n 50000 --det 256 --beam cone`` (the voxelizer rows are then left out).
 
 The machine may be shared: compare ratios within a run, not across runs.
 """
@@ -179,7 +181,11 @@ def _time_torch(m, mats, rho, geometry, mode, repeat):
 @click.option("--repeat", default=7, show_default=True, help="timed repeats per case (median)")
 @click.option("--torch-n", default=5000, show_default=True, help="largest N timed in torch (scaled above)")
 @click.option("--stages", is_flag=True, help="also print each kernel's device time and launches per call")
-def main(quick, repeat, torch_n, stages):
+@click.option("--n", "sizes_opt", type=int, multiple=True, help="numbers of Gaussians (default 10000 and 50000)")
+@click.option("--det", "dets_opt", type=click.Choice(["128", "256"]), multiple=True, help="detector sizes (default both)")
+@click.option("--beam", "beams_opt", type=click.Choice(["cone", "parallel"]), multiple=True,
+              help="beams (default both)")
+def main(quick, repeat, torch_n, stages, sizes_opt, dets_opt, beams_opt):
     """Gaussian projector: ms, evaluations/s, fraction of the exp ceiling, speed-up over torch."""
     import torch
 
@@ -200,12 +206,16 @@ def main(quick, repeat, torch_n, stages):
               f"{'torch ms':>9} {'x torch':>7} | {'err vs exact':>12} {'exact/affine':>12}")
     click.echo(header)
     click.echo("-" * len(header))
-    sizes = [10_000] if quick else [10_000, 50_000]
+    sizes = list(sizes_opt) or ([10_000] if quick else [10_000, 50_000])
+    if any(n <= 0 for n in sizes):
+        raise click.BadParameter("numbers of Gaussians must be positive", param_hint="--n")
+    dets = [int(d) for d in dets_opt] or [128, 256]
+    beams = list(beams_opt) or ["cone", "parallel"]
     for n in sizes:
         m, s, q, rho = _scene(n)
         cov, prec = covariance(s, q).detach(), precision(s, q).detach()
-        for det in (128, 256):
-            for beam in ("cone", "parallel"):
+        for det in dets:
+            for beam in beams:
                 g = Geometry.default(n_views=16, mode=beam, n_detector=det, n_voxel=128)
                 useful = _useful(m, cov, g, 0)
                 res = {}
@@ -234,6 +244,8 @@ def main(quick, repeat, torch_n, stages):
                                        f"(sum {sum(ms[ph].values()):.2f})")
     scaled = " (torch on the first %d Gaussians, time scaled by N/%d)" % (torch_n, torch_n)
     click.echo(f"useful evaluations: pixels within 3 sigma, summed over Gaussians; torch = fwd + autograd bwd{scaled}")
+    if sizes_opt or dets_opt or beams_opt:
+        return  # a restricted run: the projector cases only
     try:
         from . import voxelizer_rows
     except ImportError:
