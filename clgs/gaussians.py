@@ -446,8 +446,17 @@ class Densifier:
         it = trainer.iteration
         if it >= self.until:
             return
+        offsets, start = {}, 0
+        for s in trainer.sets:
+            offsets[s.name] = start
+            start += len(s)
+        render_grad = getattr(ctx, "render_means_grad", None)
         for s in self._sets(trainer):
-            g = s.params["means"].grad
+            if render_grad is not None and render_grad.shape[0] == start:
+                # the projection's share only, as R2-Gaussian's view-space gradient
+                g = render_grad[offsets[s.name]:offsets[s.name] + len(s)]
+            else:
+                g = s.params["means"].grad
             if g is None:
                 continue
             n = len(s)
@@ -456,7 +465,7 @@ class Densifier:
                 acc, cnt = torch.zeros(n, dtype=g.dtype), torch.zeros(n, dtype=g.dtype)
             gt = _transposed(g)
             seen = (gt[0] != 0) | (gt[1] != 0) | (gt[2] != 0)
-            if s.params["densities"].grad is not None:
+            if render_grad is None and s.params["densities"].grad is not None:
                 seen |= s.params["densities"].grad != 0
             # a Gaussian with a zero mean gradient adds exactly 0, so no mask is needed here
             acc = acc + self._view_space_grad(s.params["means"], gt, ctx.view)

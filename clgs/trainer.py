@@ -182,8 +182,20 @@ class Context:
         """The model's projection of this view (V, U), training units."""
         if self._render is None:
             t = self.trainer
-            self._render = t.backend.project(*self.tensors, t.geometry, [self.view])[0] * t.render_scale
+            means, *rest = self.tensors
+            if means.requires_grad:  # an alias whose gradient is the projection's share alone
+                means = means.view_as(means)
+                means.register_hook(self._keep_render_grad)
+            self._render = t.backend.project(means, *rest, t.geometry, [self.view])[0] * t.render_scale
         return self._render
+
+    def _keep_render_grad(self, grad: torch.Tensor) -> None:
+        self.render_means_grad = grad
+
+    render_means_grad = None
+    """dLoss/dmeans (all sets concatenated) through the projection only, after backward: what
+    densification looks at (other terms, e.g. TV, also move the means but say nothing about
+    under-fitted projections)."""
 
     def voxelize(self, grid, tensors=None) -> torch.Tensor:
         """The field of all sets (or of ``tensors``) on ``grid``, training units."""

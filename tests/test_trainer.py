@@ -133,6 +133,23 @@ def test_densification_respects_the_cap(scene):
     assert max(counts) == 200 and all(c <= 200 for c in counts)
 
 
+def test_densification_statistics_see_the_projection_gradient_only(scene):
+    """As R2-Gaussian's view-space gradient: the TV term moves the means but must not change
+    which Gaussians get densified."""
+    stats, moved = [], []
+    for tv in (0.0, 5.0):
+        t = _trainer(scene, 1, lambda_tv=tv, tv_size=8)
+        m0 = t.sets[0].params["means"].detach().clone()
+        t.fit()
+        dens = next(h for h in t.hooks if hasattr(h, "stats"))
+        stats.append(dens.stats["free"])
+        moved.append(t.sets[0].params["means"].detach() - m0)
+    assert not torch.equal(moved[0], moved[1])  # the TV term did act on the means
+    (acc0, cnt0), (acc1, cnt1) = stats
+    assert float(acc0.sum()) > 0 and int(cnt0.sum()) > 0
+    assert torch.equal(acc0, acc1) and torch.equal(cnt0, cnt1)
+
+
 def test_zero_weight_terms_are_never_computed(scene):
     def boom(ctx):
         raise AssertionError("a zero-weight term was evaluated")
