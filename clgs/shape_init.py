@@ -11,6 +11,14 @@ outline gets more and smaller Gaussians than its core. Each centre gets
   density evaluated at the centres (the point voxelizer): overlapping Gaussians share the
   atlas value instead of adding up to a multiple of it.
 
+With a density atlas the bone's surroundings (soft tissue) can be laid out too
+(:func:`initialise_surroundings`): centres drawn uniformly where the atlas mean is above a fraction
+of its maximum outside the template's bone, the same nearest-neighbour scales, and densities
+``atlas_mean(p) / max(n(p), 1)`` with ``n`` counting the bone's Gaussians as well, so the two
+sets together reproduce the atlas across the bone's surface. The shape-guided method starts its
+free Gaussians there instead of on a sparse-view FDK, whose streaks they would otherwise have to
+unlearn (at 5 views the atlas is ~25 dB from a subject's CT, the FDK ~18 dB).
+
 Everything here works in mm in the template's frame; callers map to the scene.
 """
 from __future__ import annotations
@@ -82,18 +90,7 @@ def nearest_neighbour_spacing(points: np.ndarray, k: int = 3) -> np.ndarray:
 
 def overlap_count(centres_mm, scales_mm, quats, to_scene, backend: str = "cl") -> np.ndarray:
     """n(p): the field of all Gaussians at unit density, evaluated at their own centres."""
-    import torch
-
-    means = torch.as_tensor(to_scene(centres_mm), dtype=torch.float32)
-    scales = torch.as_tensor(scales_mm * to_scene.scale, dtype=torch.float32)
-    q = torch.as_tensor(quats, dtype=torch.float32)
-    ones = torch.ones(len(means), dtype=torch.float32)
-    if backend == "cl":
-        from clgs.voxelizer import voxelize_points
-    else:
-        from clgs.reference.voxelization import voxelize_points
-    with torch.no_grad():
-        return voxelize_points(means, scales, q, ones, means).numpy().astype(np.float64)
+    return overlap_count_at(centres_mm, scales_mm, quats, centres_mm, to_scene, backend=backend)
 
 
 class SceneMap:
@@ -134,3 +131,69 @@ def initialise(template, atlas, geometry, n: int, *, tau: float = 0.5, boundary_
         base = np.full(n, 0.05)
     dens = np.maximum(base, 0.0) / np.maximum(overlap, 1.0)
     return ShapeInit(centres, scales, quats, dens, overlap, near)
+
+
+def sample_surrounding_centres(template, atlas, n: int, *, threshold: float = 0.05, seed: int = 0) -> np.ndarray:
+    """``n`` points (mm) outside the template's bone where the atlas mean exceeds ``threshold`` x
+    its maximum (the tissue around the bone), uniformly over those atlas voxels, jittered within
+    the voxel; seeded. Fewer when there are fewer voxels (drawn without replacement); none when
+    the atlas holds the bone alone."""
+    if n < 1:
+        raise ValueError(f"need at least one surrounding Gaussian, got {n}")
+    grid = atlas.grid()
+    pts = grid.points().reshape(-1, 3)
+    mean = atlas.mean.reshape(-1)
+    peak = float(mean.max())
+    if not peak > 0:
+        raise ValueError("the density atlas is zero everywhere: nothing to lay the surroundings out from")
+    spacing = np.asarray(atlas.spacing, float)  # (dz, dy, dx)
+    outside = template.sdf_at(pts) > 0.5 * float(min(template.spacing))
+    cand = np.flatnonzero(outside & (mean > threshold * peak))
+    if cand.size == 0:  # an atlas of the bone alone
+        return np.zeros((0, 3))
+    rng = np.random.default_rng(seed)
+    pick = np.sort(rng.choice(cand.size, size=min(n, cand.size), replace=False))
+    jitter = rng.uniform(-0.5, 0.5, (pick.size, 3)) * spacing[::-1]
+    return pts[cand[pick]] + jitter
+
+
+def initialise_surroundings(inside: ShapeInit, template, atlas, geometry, n: int, *, threshold: float = 0.05,
+                            seed: int = 0, backend: str = "cl") -> ShapeInit | None:
+    """Gaussians for the tissue around the bone (module doc), given the bone's own ``inside``.
+
+    Isotropic scales from the nearest-neighbour spacing among themselves; densities
+    ``atlas_mean / max(n, 1)`` where ``n`` is the field at unit density of these Gaussians and of
+    ``inside``'s, so the two sets share the atlas value where they meet. None when the atlas has
+    no tissue around the bone."""
+    centres = sample_surrounding_centres(template, atlas, n, threshold=threshold, seed=seed)
+    m = len(centres)
+    if m == 0:
+        return None
+    s = nearest_neighbour_spacing(centres)
+    scales = np.repeat(s[:, None], 3, 1)
+    quats = np.zeros((m, 4)); quats[:, 0] = 1.0
+    to_scene = SceneMap(geometry)
+    all_c = np.concatenate([centres, inside.centres])
+    all_s = np.concatenate([scales, inside.scales])
+    all_q = np.concatenate([quats, inside.quats])
+    overlap = overlap_count_at(all_c, all_s, all_q, centres, to_scene, backend=backend)
+    base = np.maximum(np.asarray(atlas.mean_at(centres), np.float64), 0.0)
+    dens = base / np.maximum(overlap, 1.0)
+    return ShapeInit(centres, scales, quats, dens, overlap, np.zeros(m, bool))
+
+
+def overlap_count_at(centres_mm, scales_mm, quats, points_mm, to_scene, backend: str = "cl") -> np.ndarray:
+    """The field of the Gaussians at unit density, evaluated at ``points_mm``."""
+    import torch
+
+    means = torch.as_tensor(to_scene(centres_mm), dtype=torch.float32)
+    scales = torch.as_tensor(scales_mm * to_scene.scale, dtype=torch.float32)
+    q = torch.as_tensor(quats, dtype=torch.float32)
+    pts = torch.as_tensor(to_scene(points_mm), dtype=torch.float32)
+    ones = torch.ones(len(means), dtype=torch.float32)
+    if backend == "cl":
+        from clgs.voxelizer import voxelize_points
+    else:
+        from clgs.reference.voxelization import voxelize_points
+    with torch.no_grad():
+        return voxelize_points(means, scales, q, ones, pts).numpy().astype(np.float64)

@@ -45,6 +45,17 @@ def atlas(template):
     return DensityAtlas(mean, np.full_like(mean, 1e-4), template.spacing, template.origin)
 
 
+@pytest.fixture(scope="module")
+def tissue_atlas(template):
+    """The atlas of a bone (0.05/mm) in soft tissue (0.01/mm within 28 mm of the z axis), as _scan's truth."""
+    from clgs.shape_model import DensityAtlas
+
+    pts = template.grid().points()
+    r = np.linalg.norm(pts[..., :2], axis=-1)
+    mean = np.where(template.label, 0.05, np.where(r < 28.0, 0.01, 0.0)).astype(np.float32)
+    return DensityAtlas(mean, np.full_like(mean, 1e-6), template.spacing, template.origin)
+
+
 def geometry(n_views=8, det=48):
     return Geometry(DSD=600.0, DSO=400.0, nDetector=(det, det), dDetector=(1.6, 1.6), nVoxel=(32, 32, 32),
                     dVoxel=(2.0, 2.0, 2.0), angles=np.linspace(0, np.pi, n_views, endpoint=False))
@@ -119,7 +130,7 @@ def _scan(template, n_views=8, det=48, alpha=(0.8, -0.6), shape_model=None, I0=N
 
 def _small(**kw):
     base = dict(n_shape=1500, n_free=500, log_every=0, checkpoint_every=0, progress=False, tv_size=8,
-                density_points=8, densify_start=10_000)
+                density_points=8, densify_start=10_000, alpha_init_iterations=20)
     base.update(kw)
     return base
 
@@ -265,3 +276,96 @@ def test_experiment_writes_tables_curves_and_resumes(template, shape_model, atla
     # held-out subjects only
     with pytest.raises(ValueError, match="population"):
         run_experiment(anatomy, tmp_path / "x", views=(3,), subjects=["p"], iterations=2)
+
+
+def test_surroundings_share_the_atlas_with_the_bone(template, atlas, tissue_atlas):
+    from clgs.shape_init import initialise_surroundings
+
+    geo = geometry()
+    inside = initialise(template, tissue_atlas, geo, 1500, seed=1)
+    out = initialise_surroundings(inside, template, tissue_atlas, geo, 800, seed=2)
+    assert len(out.centres) == 800 and not out.near_surface.any()
+    assert template.sdf_at(out.centres).min() > 0.0  # outside the bone (up to the voxel jitter)
+    a = tissue_atlas.mean_at(out.centres)
+    assert a.min() > 0.05 * 0.05 - 1e-9  # on the tissue, not the air around it
+    ok = out.overlap > 1
+    assert ok.mean() > 0.5
+    np.testing.assert_allclose((out.densities * out.overlap)[ok], a[ok], rtol=1e-5)
+    # the overlap counts the bone's Gaussians too: larger next to the bone than among the surroundings alone
+    alone = initialise_surroundings(inside.__class__(inside.centres[:0], inside.scales[:0], inside.quats[:0],
+                                                     inside.densities[:0], inside.overlap[:0], inside.near_surface[:0]),
+                                    template, tissue_atlas, geo, 800, seed=2)
+    near = template.sdf_at(out.centres) < 4.0
+    assert near.any()
+    assert np.all(out.overlap >= alone.overlap - 1e-6)
+    assert np.mean(out.overlap[near] - alone.overlap[near]) > 0.2
+    # an atlas of the bone alone has no surroundings
+    assert initialise_surroundings(inside, template, atlas, geo, 800) is None
+
+
+def _start_volume(scan, parts, **kw):
+    from clgs.r2gs import voxelize_volume
+    from clgs.shape_guided import ShapeGuidedConfig, build_trainer
+
+    cfg = ShapeGuidedConfig(**{k: v for k, v in _small(iterations=1, **kw).items() if k != "progress"})
+    t = build_trainer(scan, parts, cfg)
+    return t, voxelize_volume(t) / cfg.value_scale
+
+
+def test_atlas_start_beats_the_fdk_start_at_few_views(template, shape_model, tissue_atlas):
+    from clgs.metrics import psnr3d
+
+    scan = _scan(template, n_views=3)
+    parts = (template, shape_model, tissue_atlas)
+    t_atlas, v_atlas = _start_volume(scan, parts, free_init="atlas", alpha_init_iterations=0)
+    t_fdk, v_fdk = _start_volume(scan, parts, free_init="fdk", alpha_init_iterations=0)
+    assert psnr3d(v_atlas, scan.truth) > psnr3d(v_fdk, scan.truth) + 3.0
+    # the free set starts outside the bone in both cases
+    for t in (t_atlas, t_fdk):
+        free = t.sets[1].to_numpy()
+        d = template.sdf_at(scan.geometry.scene_to_world(free["means"]))
+        assert np.mean(d > 0) > 0.95
+
+
+def test_alpha_registration_moves_towards_the_subject(template, shape_model, tissue_atlas):
+    from clgs.shape_guided import ShapeGuidedConfig, build_trainer
+
+    truth = np.array([1.0, -0.8])
+    scan = _scan(template, alpha=truth, shape_model=shape_model)
+    parts = (template, shape_model, tissue_atlas)
+    cfg = ShapeGuidedConfig(**{k: v for k, v in _small(iterations=1, alpha_init_iterations=60).items()
+                               if k != "progress"})
+    alpha = build_trainer(scan, parts, cfg).sets[0].alpha.detach().numpy()
+    assert np.all(np.sign(alpha) == np.sign(truth))
+    assert np.linalg.norm(alpha - truth) < 0.75 * np.linalg.norm(truth)  # from 1.0 at alpha = 0 (measured 0.62)
+    cfg0 = ShapeGuidedConfig(**{k: v for k, v in _small(iterations=1, alpha_init_iterations=0).items()
+                                if k != "progress"})
+    np.testing.assert_array_equal(build_trainer(scan, parts, cfg0).sets[0].alpha.detach().numpy(), 0.0)
+
+
+def test_density_prior_field(template, shape_model, atlas, tissue_atlas):
+    """"all" holds the whole model to the atlas (the free set gets gradients); "shape" only the
+    shape set inside the bone; an atlas of the bone alone falls back to "shape"."""
+    from clgs.shape_guided import ShapeGuidedConfig, build_trainer
+    from clgs.trainer import Context
+
+    scan = _scan(template)
+
+    def prior_grads(parts, field):
+        cfg = ShapeGuidedConfig(**{k: v for k, v in _small(iterations=1, alpha_init_iterations=0, density_points=16,
+                                                            density_prior_field=field).items() if k != "progress"})
+        t = build_trainer(scan, parts, cfg)
+        term = next(x for x in t.losses if x.name == "density")
+        with torch.no_grad():  # move the free set off the atlas so the prior has something to say
+            t.sets[1].params["densities"].add_(1.0)
+        value = term.fn(Context(t, 0))
+        free_d = t.sets[1].params["densities"]
+        g = torch.autograd.grad(value, [free_d], allow_unused=True)[0]
+        return term.fn.field, 0.0 if g is None else float(g.abs().sum())
+
+    field, g = prior_grads((template, shape_model, tissue_atlas), "all")
+    assert field == "all" and g > 0
+    field, g = prior_grads((template, shape_model, tissue_atlas), "shape")
+    assert field == "shape" and g == 0
+    field, _ = prior_grads((template, shape_model, atlas), "all")
+    assert field == "shape"
