@@ -18,10 +18,12 @@ def surface_level(anatomy, truth) -> float:
     return float(threshold_multiotsu(t[:: max(1, t.shape[0] // 64)], classes=3)[-1])
 
 
-def bone_mask(volume, level: float):
+def bone_mask(volume, level: float, min_piece: float = 0.1):
     """The solid bone: voxels above ``level``, enclosed cavities (medullary canal, cancellous
-    interior below the level) filled, only the largest connected piece kept; so the surface
-    compared is the outer bone surface, not every iso-contour."""
+    interior below the level) filled, pieces smaller than ``min_piece`` x the largest dropped; so
+    the surface compared is the outer bone surface, not every iso-contour or speckle. (A sparse-view
+    reconstruction often breaks a bone at thin cortex: keeping only the largest piece would
+    measure one fragment's surface against the whole bone.)"""
     import numpy as np
     from scipy import ndimage
 
@@ -29,7 +31,8 @@ def bone_mask(volume, level: float):
     labels, n = ndimage.label(mask)
     if n > 1:
         sizes = ndimage.sum_labels(mask, labels, index=np.arange(1, n + 1))
-        mask = labels == (1 + int(np.argmax(sizes)))
+        keep = np.flatnonzero(sizes >= min_piece * sizes.max()) + 1
+        mask = np.isin(labels, keep)
     return ndimage.binary_fill_holes(mask)
 
 
