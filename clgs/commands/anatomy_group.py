@@ -256,8 +256,9 @@ def make_group(anatomy) -> click.Group:
     @click.option("--views", default=5, show_default=True)
     @click.option("--method", default=None, help="default: shape when the anatomy has a model, else r2gs")
     @click.option("--out", default=None, type=click.Path(file_okay=False), help="keep outputs here")
-    @click.option("--iterations", default=1000, show_default=True,
-                  help="optimisation steps for iterative methods (the papers use 30000: hours on a CPU)")
+    @click.option("--iterations", default=600, show_default=True,
+                  help="optimisation steps for iterative methods (the papers use 30000: hours on a CPU; "
+                       "the shape-guided method peaks near 600 on the femur, see the README)")
     @click.option("--seed", default=0, show_default=True)
     @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="method option (repeatable)")
     def demo(subject_id, views, method, out, iterations, seed, settings):
