@@ -164,6 +164,7 @@ class Context:
         self.geometry = trainer.geometry
         self._tensors = None
         self._render = None
+        self._render_grad_box: list = []
 
     @property
     def target(self) -> torch.Tensor:
@@ -185,17 +186,18 @@ class Context:
             means, *rest = self.tensors
             if means.requires_grad:  # an alias whose gradient is the projection's share alone
                 means = means.view_as(means)
-                means.register_hook(self._keep_render_grad)
+                # the hook appends to a plain list: a hook holding this context would tie the
+                # context and the autograd graph into a cycle that Python's collector cannot see
+                means.register_hook(self._render_grad_box.append)
             self._render = t.backend.project(means, *rest, t.geometry, [self.view])[0] * t.render_scale
         return self._render
 
-    def _keep_render_grad(self, grad: torch.Tensor) -> None:
-        self.render_means_grad = grad
-
-    render_means_grad = None
-    """dLoss/dmeans (all sets concatenated) through the projection only, after backward: what
-    densification looks at (other terms, e.g. TV, also move the means but say nothing about
-    under-fitted projections)."""
+    @property
+    def render_means_grad(self):
+        """dLoss/dmeans (all sets concatenated) through the projection only, after backward: what
+        densification looks at (other terms, e.g. TV, also move the means but say nothing about
+        under-fitted projections). None before backward or without a render."""
+        return self._render_grad_box[-1] if self._render_grad_box else None
 
     def voxelize(self, grid, tensors=None) -> torch.Tensor:
         """The field of all sets (or of ``tensors``) on ``grid``, training units."""

@@ -332,3 +332,15 @@ def test_cl_backend_shares_the_projections_matrices_with_the_tv_patch():
     with torch.no_grad():
         scales.mul_(1.5)
     torch.testing.assert_close(be.voxelize(*params, block), Backend("cl").voxelize(*params, block), rtol=0, atol=0)
+
+
+def test_iterations_leave_no_context_behind(scene):
+    """Each iteration's context (render, gradient hook) is freed: nothing piles up over a run."""
+    import gc
+
+    from clgs.trainer import Context
+
+    t = _trainer(scene, 5)
+    t.fit()
+    gc.collect()
+    assert sum(isinstance(o, Context) for o in gc.get_objects()) == 0
