@@ -343,4 +343,4 @@ def test_iterations_leave_no_context_behind(scene):
     t = _trainer(scene, 5)
     t.fit()
     gc.collect()
-    assert sum(isinstance(o, Context) for o in gc.get_objects()) == 0
+    assert sum(type(o) is Context for o in gc.get_objects()) == 0
