@@ -96,129 +96,6 @@ def _transposed(x: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def _cov_prec_forward(scales: torch.Tensor, quats: torch.Tensor, want: tuple):
-    """The values of :func:`packed_cov_prec` and what its backward reuses (no autograd here)."""
-    qt = _transposed(quats)
-    norm = torch.sqrt((qt * qt).sum(0)).clamp_min(torch.finfo(quats.dtype).tiny ** 0.5)
-    u = qt * (2.0 ** 0.5 / norm)  # sqrt(2) q / |q|: the products below are 2 q_a q_b
-    w, x, y, z = u.unbind(0)
-    xx, yy, zz, xy, xz, yz, wx, wy, wz = x * x, y * y, z * z, x * y, x * z, y * z, w * x, w * y, w * z
-    r = ((1 - (yy + zz), xy - wz, xz + wy),
-         (xy + wz, 1 - (xx + zz), yz - wx),
-         (xz - wy, yz + wx, 1 - (xx + yy)))
-    st = _transposed(scales)
-    s2 = st * st
-    out, diags = [], []
-    for wanted, d in zip(want, (lambda: s2, lambda: 1.0 / s2)):
-        if not wanted:
-            out.append(None)
-            diags.append(None)
-            continue
-        dd = d()
-        d0, d1, d2 = dd.unbind(0)
-        rd = [(row[0] * d0, row[1] * d1, row[2] * d2) for row in r]
-        cols = [rd[i][0] * r[j][0] + rd[i][1] * r[j][1] + rd[i][2] * r[j][2]
-                for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))]
-        out.append(_transposed(torch.stack(cols, 0)))
-        diags.append(dd)
-    return out, (qt, norm, u, r, st, diags)
-
-
-class _PackedCovPrec(torch.autograd.Function):
-    """Forward as :func:`_cov_prec_forward`; the backward is the chain rule written out on (N,)
-    columns (``dL/dR = 2 F R D``, ``dL/dD_k = (R^T F R)_kk`` with ``F`` the symmetric gradient),
-    about half the element-wise passes of autograd through the forward, and nothing recorded."""
-
-    @staticmethod
-    def forward(ctx, scales, quats, want_cov, want_prec):
-        ctx.set_materialize_grads(False)
-        (cov, prec), ctx.parts = _cov_prec_forward(scales, quats, (want_cov, want_prec))
-        empty = scales.new_empty(0)
-        return (empty if cov is None else cov), (empty if prec is None else prec)
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, g_cov, g_prec):
-        qt, norm, u, r, st, diags = ctx.parts
-        need_s, need_q = ctx.needs_input_grad[:2]
-        grads = [(g, d, inverse) for g, d, inverse in ((g_cov, diags[0], False), (g_prec, diags[1], True))
-                 if g is not None and d is not None]
-        if not grads or not (need_s or need_q):
-            return None, None, None, None
-        half = st.new_tensor([1.0, 0.5, 0.5, 1.0, 0.5, 1.0])
-        n = st.shape[1]
-        a = [[None] * 3 for _ in range(3)]  # dL/dR
-        ds = None
-        # in-place ops and addcmul: fewer passes over fresh (N,) buffers
-        for g, d, inverse in grads:
-            f0, f1, f2, f3, f4, f5 = _transposed(g * half).unbind(0)
-            f = ((f0, f1, f2), (f1, f3, f4), (f2, f4, f5))
-            t = [[torch.mul(f[i][0], r[0][k]).addcmul_(f[i][1], r[1][k]).addcmul_(f[i][2], r[2][k])
-                  for k in range(3)] for i in range(3)]  # T = F R
-            if need_s:  # dL/dD_k = sum_i R_ik T_ik, D = s^2 (dD/ds = 2 s) or 1/s^2 (dD/ds = -2 D / s)
-                dd = st.new_empty((3, n))
-                for k in range(3):
-                    torch.mul(r[0][k], t[0][k], out=dd[k]).addcmul_(r[1][k], t[1][k]).addcmul_(r[2][k], t[2][k])
-                term = dd.mul_(d).div_(st).mul_(-2.0) if inverse else dd.mul_(st).mul_(2.0)
-                ds = term if ds is None else ds.add_(term)
-            if need_q:  # dL/dR = 2 T D
-                d2 = (2.0 * d).unbind(0)
-                for i in range(3):
-                    for k in range(3):
-                        if a[i][k] is None:
-                            a[i][k] = t[i][k].mul_(d2[k])
-                        else:
-                            a[i][k].addcmul_(t[i][k], d2[k])
-        dq = None
-        if need_q:  # through R(u), u = sqrt(2) q / |q| = (w, x, y, z)
-            w, x, y, z = u.unbind(0)
-            dwx, dwy, dwz = a[2][1] - a[1][2], a[0][2] - a[2][0], a[1][0] - a[0][1]
-            dxy, dxz, dyz = a[0][1] + a[1][0], a[0][2] + a[2][0], a[1][2] + a[2][1]
-            nxx, nyy, nzz = a[1][1] + a[2][2], a[0][0] + a[2][2], a[0][0] + a[1][1]  # -dL/d(xx) ...
-            du = u.new_empty((4, n))
-            torch.mul(x, dwx, out=du[0]).addcmul_(y, dwy).addcmul_(z, dwz)
-            torch.mul(y, dxy, out=du[1]).addcmul_(z, dxz).addcmul_(w, dwx).addcmul_(x, nxx, value=-2.0)
-            torch.mul(x, dxy, out=du[2]).addcmul_(z, dyz).addcmul_(w, dwy).addcmul_(y, nyy, value=-2.0)
-            torch.mul(x, dxz, out=du[3]).addcmul_(y, dyz).addcmul_(w, dwz).addcmul_(z, nzz, value=-2.0)
-            # dq = (sqrt(2) / |q|) (du - q (q . du) / |q|^2), no projection where the norm is clamped
-            tiny = torch.finfo(qt.dtype).tiny ** 0.5
-            proj = torch.where(norm > tiny, (qt * du).sum(0) / (norm * norm), 0.0)
-            dq = _transposed(du.sub_(qt * proj).mul_(2.0 ** 0.5 / norm))
-        return (None if ds is None else _transposed(ds)), dq, None, None
-
-
-def packed_cov_prec(scales: torch.Tensor, quats: torch.Tensor, cov: bool = True, prec: bool = True):
-    """(covariance, precision), each (N, 6) packed as (xx, xy, xz, yy, yz, zz), or None when not
-    asked: ``R diag(s^2) R^T`` and ``R diag(1/s^2) R^T``, the values of
-    ``clgs.gaussian_math.covariance`` / ``precision`` (the precision is never an inverse, so thin
-    Gaussians keep their accuracy). Written with element-wise ops on contiguous (N,) columns that
-    share ``R`` instead of batched 3x3 products, and a hand-written backward on the same columns:
-    on a CPU, forward + backward for 50k Gaussians costs several times less than batched 3x3
-    products with autograd (measured 12 ms against 110 ms on a busy 2-core machine, before the
-    hand-written backward took another third off)."""
-    if not (cov or prec):
-        return None, None
-    if torch.is_grad_enabled() and (scales.requires_grad or quats.requires_grad):
-        c, p = _PackedCovPrec.apply(scales, quats, bool(cov), bool(prec))
-        return (c if cov else None), (p if prec else None)
-    with torch.no_grad():
-        return tuple(_cov_prec_forward(scales, quats, (cov, prec))[0])
-
-
-def packed_covariance(scales: torch.Tensor, quats: torch.Tensor, inverse: bool = False) -> torch.Tensor:
-    """(N, 6) covariance (or, with ``inverse``, precision); see :func:`packed_cov_prec`."""
-    c, p = packed_cov_prec(scales, quats, cov=not inverse, prec=inverse)
-    return p if inverse else c
-
-
-def axis_half_widths(scales: torch.Tensor, quats: torch.Tensor, n_sigma: float = 3.0) -> torch.Tensor:
-    """(N, 3) ``n_sigma`` half-widths of each Gaussian's axis-aligned box (no gradient), as
-    ``clgs.gaussian_math.axis_extent``."""
-    with torch.no_grad():
-        cov = packed_cov_prec(scales.detach(), quats.detach(), prec=False)[0]
-        return n_sigma * torch.sqrt(cov[:, [0, 3, 5]].clamp_min(0))
-
-
 class GaussianSet:
     """Raw parameters of N Gaussians, their activations and learning-rate schedules.
 
@@ -396,9 +273,9 @@ class Densifier:
     (15 000); ``grad_threshold`` 5e-5; a Gaussian is "small" (cloned) when its largest scale is at
     most ``scale_threshold`` (0.1) x the volume's extent, else split in 2 with scales / 1.6;
     a clone and its original share the density, each split child gets ``split_density`` (0.5) x
-    its parent's (so a split drops most of the parent's integral and the fit rebuilds it; keeping
-    the integral instead, 1.6^3 / 2, let dense children pile up and overfit the views); prune below ``min_density`` (1e-5) or outside the box; never more than ``max_gaussians``
-    in a set (the candidates with the largest gradients go first).
+    its parent's (R2-Gaussian's rule: a split drops most of the parent's integral and the fit
+    rebuilds it); prune below ``min_density`` (1e-5) or outside the box; never more than
+    ``max_gaussians`` in a set (the candidates with the largest gradients go first).
     """
 
     def __init__(self, geometry, *, start=500, until=15_000, interval=100, grad_threshold=5e-5,

@@ -82,16 +82,24 @@ class Backend:
         tensors (same objects, unmodified, same grad mode), else computed now."""
         from clgs.voxelizer import cov_prec
 
-        grad = torch.is_grad_enabled()
-        key = (scales._version, quats._version, grad)
-        last = self._last
-        if last is not None and last[0] is scales and last[1] is quats and last[2] == key:
-            return last[3]
+        out = self._kept(scales, quats)
+        if out is not None:
+            return out
         out = cov_prec(scales, quats, cov=True, prec=True, extent=True)
         # kept for the voxelize call of the same step only when autograd records (training); the
         # trainer drops it after each step
-        self._last = (scales, quats, key, out) if grad else None
+        grad = torch.is_grad_enabled()
+        self._last = (scales, quats, (scales._version, quats._version, grad), out) if grad else None
         return out
+
+    def _kept(self, scales, quats):
+        """The matrices kept by the last projection when they were built from these very tensors
+        (unmodified since, same grad mode), else None."""
+        last = self._last
+        if (last is not None and last[0] is scales and last[1] is quats
+                and last[2] == (scales._version, quats._version, torch.is_grad_enabled())):
+            return last[3]
+        return None
 
     def forget(self) -> None:
         """Drop the matrices kept from the last projection (and the graph they hold)."""
@@ -111,10 +119,9 @@ class Backend:
         from clgs.geometry import Grid
         from clgs.voxelizer import _columns, cov_prec, grid_candidates, voxelize_precision
 
-        last = self._last
-        if (isinstance(grid, Grid) and last is not None and last[0] is scales and last[1] is quats
-                and last[2] == (scales._version, quats._version, torch.is_grad_enabled())):
-            return self.voxelize_shared(means, last[3][1], densities, last[3][2], grid)
+        kept = self._kept(scales, quats) if isinstance(grid, Grid) else None
+        if kept is not None:
+            return self.voxelize_shared(means, kept[1], densities, kept[2], grid)
         if isinstance(grid, Grid):
             # Only the Gaussians that can reach the grid (a 3-sigma box is at most 3 max(scale)
             # wide on any axis): for a 32^3 patch that is a few percent of them, and their

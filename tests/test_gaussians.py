@@ -205,20 +205,22 @@ def test_view_space_gradient_matches_the_detector_coordinate_gradient(mode):
         assert float(got) == pytest.approx(float(w.norm()), rel=tol)
 
 
-def test_packed_covariance_matches_gaussian_math_values_and_gradients():
+def test_training_covariances_match_gaussian_math_values_and_gradients():
+    """What training feeds the kernels (the OpenCL cov_prec) against the torch reference."""
     from clgs import gaussian_math as gm
-    from clgs.gaussians import axis_half_widths, packed_covariance
+    from clgs.voxelizer import cov_prec
 
     g = torch.Generator().manual_seed(0)
     s = (torch.rand(50, 3, generator=g, dtype=torch.float64) * 0.3 + 1e-3).requires_grad_(True)
     q = torch.randn(50, 4, generator=g, dtype=torch.float64).requires_grad_(True)
     for inverse, ref in ((False, gm.covariance), (True, gm.precision)):
-        a, b = packed_covariance(s, q, inverse), ref(s, q)
+        a, b = cov_prec(s, q, cov=not inverse, prec=inverse)[1 if inverse else 0], ref(s, q)
         assert torch.allclose(a, b, rtol=1e-12, atol=0)
         w = torch.randn(50, 6, generator=g, dtype=torch.float64)
         ga = torch.autograd.grad((a * w).sum(), (s, q))
         gb = torch.autograd.grad((b * w).sum(), (s, q))
         assert all(torch.allclose(x, y, rtol=1e-10, atol=1e-12) for x, y in zip(ga, gb))
-    f32 = packed_covariance(s.detach().float(), q.detach().float(), True)
+    f32 = cov_prec(s.detach().float(), q.detach().float(), cov=False, prec=True)[1]
     assert torch.allclose(f32.double(), gm.precision(s, q).detach(), rtol=1e-5, atol=1e-6 * float(f32.abs().max()))
-    assert torch.allclose(axis_half_widths(s, q), gm.axis_extent(s, q), rtol=1e-12)
+    ext = cov_prec(s.detach(), q.detach(), cov=False, prec=False, extent=True)[2]
+    assert torch.allclose(ext, gm.axis_extent(s, q), rtol=1e-12)

@@ -263,10 +263,9 @@ def test_cl_backend_voxelizes_only_the_gaussians_that_reach_a_block():
     """The OpenCL backend culls Gaussians by a 3 max(scale) cube before building precisions: a
     block is bitwise the same region of the full grid, and field and gradients match the op fed
     every Gaussian (float64)."""
-    from clgs.gaussians import packed_cov_prec
     from clgs.geometry import Grid
     from clgs.trainer import Backend
-    from clgs.voxelizer import _GridField, default_voxelizer
+    from clgs.voxelizer import _GridField, cov_prec, default_voxelizer
 
     g = torch.Generator().manual_seed(3)
     n = 400
@@ -283,7 +282,7 @@ def test_cl_backend_voxelizes_only_the_gaussians_that_reach_a_block():
         assert torch.equal(be.voxelize(*p32, block), be.voxelize(*p32, grid)[4:11, 6:12, 8:13])
     part = be.voxelize(*params, block)
     assert float(part.detach().abs().max()) > 0
-    cov, prec = packed_cov_prec(scales, quats)
+    cov, prec, _ = cov_prec(scales, quats)
     extent = 3.0 * torch.sqrt(cov.detach()[:, [0, 3, 5]])
     whole = _GridField.apply(means, prec, dens, extent, block, default_voxelizer())
     torch.testing.assert_close(part, whole, rtol=1e-13, atol=0)
