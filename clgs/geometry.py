@@ -128,6 +128,16 @@ class Geometry:
         return np.asarray(self.nDetector, float) * np.asarray(self.dDetector, float)
 
     @property
+    def resolution_mm(self) -> float:
+        """The finest spacing the scan samples, in mm: the smallest voxel side or detector pixel seen
+        at the rotation axis (pixel x DSO / DSD in cone beam). Structure finer than this is not in
+        the data; it sets the smallest Gaussian a reconstruction may use."""
+        pixel = float(np.min(self.dDetector))
+        if self.mode == "cone":
+            pixel *= self.DSO / self.DSD
+        return min(float(np.min(self.dVoxel)), pixel)
+
+    @property
     def scale(self) -> float:
         """mm -> scene units: the volume's longest side spans 2."""
         return 2.0 / float(np.max(self.sVoxel))

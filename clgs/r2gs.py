@@ -87,6 +87,7 @@ class R2GSConfig(JsonConfig):
     min_density: float = 1e-5
     max_gaussians: int = 500_000
     scale_bounds: tuple | None = (0.0005, 0.5)  # of the volume extent; None -> exp scales
+    scale_floor: float | None = 0.4  # smallest scale >= this x the scan's resolution (None: off)
     projector_mode: str = "affine"  # "affine" (R2-Gaussian) | "exact"
     backend: str = "cl"
     seed: int = 0
@@ -117,6 +118,26 @@ class R2GSResult:
 def volume_box(geometry) -> tuple:
     """Half-extents (x, y, z) of the reconstruction volume in scene units."""
     return tuple(0.5 * geometry.sVoxel[::-1] * geometry.scale)
+
+
+def scale_bounds_for(geometry, scale_bounds, scale_floor):
+    """The scale bounds (fractions of the volume extent) a scan allows: ``scale_bounds`` with its
+    lower end raised to ``scale_floor`` x :attr:`Geometry.resolution_mm` when that is larger.
+
+    Why: with only the extent's 0.05 % as the floor (R2-Gaussian's, one eighth of a voxel on its
+    256^3 scans), a 64^3 scan lets Gaussians shrink to 1/30 of a voxel; long runs then fit the
+    views' noise with sub-voxel needles that voxel-centre sampling misses, and 3D PSNR falls while
+    the projection PSNR still rises (measured: 30.1 dB at 2000 iterations, 23.7 at 5000)."""
+    if scale_bounds is None:
+        return None
+    lo, hi = (float(b) for b in scale_bounds)
+    if scale_floor:
+        lo = max(lo, float(scale_floor) * geometry.resolution_mm / float(np.max(geometry.sVoxel)))
+    if not lo < hi:
+        raise ValueError(f"the smallest Gaussian scale ({lo:.4g} of the volume, from scale_bounds and scale_floor "
+                         f"{scale_floor} x the scan's {geometry.resolution_mm:.3g} mm resolution) is not below the "
+                         f"largest ({hi:.4g}); lower scale_floor or raise scale_bounds[1]")
+    return lo, hi
 
 
 def fdk_volume(scan) -> np.ndarray:
@@ -213,7 +234,8 @@ def build_trainer(scan, cfg: R2GSConfig, out_dir=None, *, progress=False, fdk=No
     geo = scan.geometry
     box = volume_box(geo)
     sched = r2gs_schedules(cfg.schedule_iterations or cfg.iterations)
-    kw = dict(box=box, scale_bounds=cfg.scale_bounds, schedules=sched, name="free", densify=True)
+    kw = dict(box=box, scale_bounds=scale_bounds_for(geo, cfg.scale_bounds, cfg.scale_floor), schedules=sched,
+              name="free", densify=True)
     if cfg.value_scale is None:
         fdk = fdk_volume(scan) if fdk is None else fdk
         cfg.value_scale = value_scale_from(fdk)
@@ -266,7 +288,10 @@ def run_config(config_cls, iterations: int, settings: dict, resume: bool, out_di
     if out_dir is None:
         raise ValueError("resume needs out_dir (the folder holding checkpoint.pt)")
     state = ckpt.load(Path(out_dir) / CHECKPOINT)
-    cfg = config_cls.from_json(ckpt.loads(state["config"]))
+    saved = ckpt.loads(state["config"])
+    if "scale_floor" not in saved and any(f.name == "scale_floor" for f in fields(config_cls)):
+        saved["scale_floor"] = None  # written before the floor existed: keep the bounds it trained with
+    cfg = config_cls.from_json(saved)
     cfg.schedule_iterations = cfg.schedule_iterations or cfg.iterations
     cfg.iterations = max(int(iterations), int(state["iteration"]))
     if "backend" in settings:  # where to compute does not change the run's meaning
@@ -387,6 +412,9 @@ def click_options() -> list:
                      help="OpenCL kernels or the plain torch reference [default: cl]"),
         click.Option(["--projector", "projector_mode"], type=click.Choice(["affine", "exact"]), default=None,
                      help="R2-Gaussian's affine splat or the exact ray integral [default: affine]"),
+        click.Option(["--scale-floor", "scale_floor"], type=click.FloatRange(min=0), default=None,
+                     help="smallest Gaussian scale as a fraction of the scan's resolution (voxel or detector "
+                          "pixel at the axis); 0 keeps only R2-Gaussian's 0.05 % of the volume [default: 0.4]"),
         click.Option(["--tv", "lambda_tv"], type=click.FloatRange(min=0), default=None,
                      help="weight of the TV term (0 disables it) [default: 0.05]"),
         click.Option(["--dssim", "lambda_dssim"], type=click.FloatRange(min=0), default=None,

@@ -49,7 +49,7 @@ import torch.nn.functional as F
 from clgs.evaluation import bone_surface  # the outer bone surface written with the outputs
 from clgs.gaussians import GaussianSet, Schedule, init_from_volume, r2gs_schedules
 from clgs.r2gs import (JsonConfig, fdk_volume, gaussians_in_scan_units, make_trainer, r2gs_losses, restore,
-                       run_config, value_scale_from, volume_box, voxelize_volume)
+                       run_config, scale_bounds_for, value_scale_from, volume_box, voxelize_volume)
 from clgs.trainer import LossTerm, Trainer
 
 CHECKPOINT = "checkpoint.pt"
@@ -91,6 +91,7 @@ class ShapeGuidedConfig(JsonConfig):
     min_density: float = 1e-5
     max_gaussians: int = 500_000
     scale_bounds: tuple | None = (0.0005, 0.5)
+    scale_floor: float | None = 0.4  # see R2GSConfig
     projector_mode: str = "affine"
     backend: str = "cl"
     seed: int = 0
@@ -332,7 +333,8 @@ def fit_initial_alpha(scan, shape_model, cfg: ShapeGuidedConfig, init, free=None
              "quats": frozen}
     bound = ShapeGuidedSet(init.centres, (init.scales * geo.scale).astype(np.float32), init.quats.astype(np.float32),
                            (init.densities * cfg.value_scale).astype(np.float32), shape_model=shape_model,
-                           geometry=geo, box=volume_box(geo), scale_bounds=cfg.scale_bounds, schedules=sched,
+                           geometry=geo, box=volume_box(geo),
+                           scale_bounds=scale_bounds_for(geo, cfg.scale_bounds, cfg.scale_floor), schedules=sched,
                            name="registration")
     for name in ("densities", "scales", "quats"):  # no gradients wanted: a cheaper backward
         bound.params[name].requires_grad_(False)
@@ -402,7 +404,8 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
     bound = cfg.shape_prior and shape_model is not None
     sched = shape_schedules(cfg, iters, free_means=not bound)
     fsched = r2gs_schedules(iters)
-    free_kw = dict(box=box, scale_bounds=cfg.scale_bounds, schedules=fsched, name="free", densify=True)
+    bounds = scale_bounds_for(geo, cfg.scale_bounds, cfg.scale_floor)
+    free_kw = dict(box=box, scale_bounds=bounds, schedules=fsched, name="free", densify=True)
     free, alpha0 = None, None
     if state is None:
         init = initialise(template, atlas, geo, cfg.n_shape, tau=cfg.tau, boundary_weight=cfg.boundary_weight,
@@ -431,7 +434,7 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
     else:
         scales, dens = np.full((n, 3), 0.01), np.full(n, 0.01)
         quats, centres = np.tile([1.0, 0, 0, 0], (n, 1)), np.zeros((n, 3))
-    common = dict(box=box, scale_bounds=cfg.scale_bounds, name="shape")
+    common = dict(box=box, scale_bounds=bounds, name="shape")
     if bound:
         shape_set = ShapeGuidedSet(centres, scales.astype(np.float32), quats.astype(np.float32),
                                    dens.astype(np.float32), shape_model=shape_model, geometry=geo,

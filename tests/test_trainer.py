@@ -343,3 +343,46 @@ def test_iterations_leave_no_context_behind(scene):
     t.fit()
     gc.collect()
     assert sum(type(o) is Context for o in gc.get_objects()) == 0
+
+
+def test_scale_floor_follows_the_scans_resolution():
+    """The smallest scale is 0.4 x the finer of voxel and axis-pixel size, never below the extent's
+    0.05 %; a floor above the largest scale is a clear error."""
+    from clgs.r2gs import scale_bounds_for
+
+    geo = Geometry.default(n_views=4, n_voxel=64, n_detector=128, volume_mm=256.0)
+    pixel_at_axis = geo.dDetector[0] * geo.DSO / geo.DSD
+    assert geo.resolution_mm == pytest.approx(min(4.0, pixel_at_axis))
+    lo, hi = scale_bounds_for(geo, (0.0005, 0.5), 0.4)
+    assert lo == pytest.approx(0.4 * geo.resolution_mm / 256.0) and hi == 0.5
+    assert lo > 9 * 0.0005  # the old floor was 1/30 of a voxel here
+    assert scale_bounds_for(geo, (0.0005, 0.5), None) == (0.0005, 0.5)
+    assert scale_bounds_for(geo, (0.01, 0.5), 0.4)[0] == 0.01  # the larger of the two wins
+    assert scale_bounds_for(geo, None, 0.4) is None
+    with pytest.raises(ValueError, match="lower scale_floor"):
+        scale_bounds_for(geo, (0.0005, 0.002), 0.4)
+
+
+def test_trained_scales_respect_the_floor(scene):
+    from clgs.r2gs import scale_bounds_for
+
+    t = _trainer(scene, 30, scale_floor=0.4)
+    t.fit()
+    lo = scale_bounds_for(scene.geometry, (0.0005, 0.5), 0.4)[0] * t.sets[0].extent
+    assert t.sets[0].scale_range[0] == pytest.approx(lo) and lo > 0.0005 * t.sets[0].extent
+    assert float(t.sets[0].tensors()[1].min()) >= lo * (1 - 1e-6)
+
+
+def test_resume_of_a_checkpoint_without_a_floor_keeps_its_bounds(scene, tmp_path):
+    """Checkpoints written before ``scale_floor`` existed resume with the bounds they trained with."""
+    from clgs.r2gs import run_config
+
+    t = _trainer(scene, 12, tmp_path, scale_floor=None)
+    t.fit()
+    state = ckpt.load(tmp_path / "checkpoint.pt")
+    saved = ckpt.loads(state["config"])
+    saved.pop("scale_floor")
+    state["config"] = ckpt.dumps(saved)
+    ckpt.save(tmp_path / "checkpoint.pt", state)
+    cfg, _ = run_config(R2GSConfig, 12, {}, True, tmp_path)
+    assert cfg.scale_floor is None
