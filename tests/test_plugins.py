@@ -244,6 +244,11 @@ def test_group_simulate_reconstruct_evaluate(toy, tmp_path):
     assert float(lines["surface_mean_mm"]) < 0.5  # the truth's own bone surface vs the true mesh
     r = runner.invoke(group, ["reconstruct", str(scan), "--out", str(tmp_path / "rec2"), "--method", "nosuch"])
     assert r.exit_code != 0 and "not available" in r.output
+    # a method that takes no anatomy (R2-Gaussian) runs from the anatomy's group too
+    r = runner.invoke(group, ["reconstruct", str(scan), "--out", str(tmp_path / "rec3"), "--method", "r2gs",
+                              "--set", "iterations=3", "--set", "n_gaussians=200", "--set", "progress=false"])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "rec3" / "volume.nii.gz").exists() and "psnr3d" in r.output
 
 
 def test_generic_build_model_without_a_plugin_builder(tmp_path):

@@ -79,32 +79,19 @@ def method_accepts(method: str, option: str) -> bool:
 
 
 def run_reconstruct(scan, anatomy, method: str, out=None, **options):
-    """Reconstruct through ``clgs.recon.reconstruct`` when it exists, else the method registry
-    (:mod:`clgs.methods`); the anatomy is passed to methods that take it. Returns the method's
-    result dict (at least ``volume``)."""
-    import importlib
+    """Reconstruct with a method of the registry (:mod:`clgs.methods`); the anatomy goes to the
+    methods that name an ``anatomy`` parameter (the others would take it for a setting). Returns
+    the method's result dict (at least ``volume``)."""
     import inspect
 
-    try:
-        recon = importlib.import_module("clgs.recon")
-    except ImportError:
-        recon = None
-    if recon is not None and hasattr(recon, "reconstruct"):
-        return recon.reconstruct(scan, anatomy=anatomy, method=method, out=out, **options)
-    try:
-        from clgs import methods
-    except ImportError:
-        methods = None
-    if methods is None:
-        raise click.ClickException(f"reconstruction method {method!r} is not available in this clgs")
+    from clgs import methods
+
     try:
         m = methods.get(method)
     except LookupError as exc:
         raise click.ClickException(f"reconstruction method {method!r} is not available: {exc}")
     run = m.callable()
-    params = inspect.signature(run).parameters
-    takes_any = any(p.kind == p.VAR_KEYWORD for p in params.values())
-    if "anatomy" in params or takes_any:
+    if "anatomy" in inspect.signature(run).parameters:
         options["anatomy"] = anatomy
     result = run(scan, out, **options)
     if out is not None and "volume" in result:
