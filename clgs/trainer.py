@@ -390,6 +390,10 @@ class Trainer:
                 row.update(self.evaluate(self))
         self.log.add(row)
         self._sums, self._count = {}, 0
+        if self.checkpoint_path is not None:  # the run folder's log.csv follows a long run live
+            from pathlib import Path
+
+            self.log.write_csv(Path(self.checkpoint_path).parent / "log.csv")
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self, t_wall: float | None = None) -> dict:

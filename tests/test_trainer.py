@@ -83,6 +83,10 @@ def test_resume_is_bit_for_bit(scene, tmp_path, backend):
     assert (tmp_path / "checkpoint.pt").is_file()
     state = ckpt.load(tmp_path / "checkpoint.pt")
     assert state["iteration"] == k
+    if kw.get("log_every", 10):  # the log file follows the run, not only its end
+        from clgs.training_log import TrainingLog
+
+        assert [r["iteration"] for r in TrainingLog.read_csv(tmp_path / "log.csv").rows] == [0, 10, k]
     resumed = _trainer(scene, n, tmp_path, backend=backend, **kw)
     resumed.load_state_dict(state)
     resumed.fit()
