@@ -5,8 +5,14 @@ The SSIM follows 3DGS / R2-Gaussian: an 11x11 Gaussian window (sigma 1.5), ``C1 
 The window is separable and applied as two 1D passes: the same filter at a fraction of the cost
 of an 11x11 convolution. Against a fixed target (training) the SSIM's backward is written out
 (the filter is self-adjoint), a few passes over the image instead of autograd's dozens.
+
+These torch functions are the reference (tests) and the fallback. Training on the OpenCL backend
+takes L1 and D-SSIM together from :mod:`clgs.ssim_cl` (three kernel passes for both terms and
+their gradient), through :class:`ImageTerms`.
 """
 from __future__ import annotations
+
+import weakref
 
 import torch
 
@@ -142,6 +148,60 @@ def dssim(a: torch.Tensor, b: torch.Tensor, b_maps=None) -> torch.Tensor:
 
 def l1(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a - b).abs().mean()
+
+
+class ImageTerms:
+    """L1 and D-SSIM of a training context's render against its measured view, as two loss-term
+    functions (``self.l1``, ``self.dssim``) that share their work within an iteration.
+
+    On the OpenCL backend (CPU float32/float64 renders) both terms come from one call of
+    :func:`clgs.ssim_cl.l1_dssim`: three kernel passes give both values and, on backward, the
+    gradient of whatever weighted sum the trainer formed; the result is kept per context (weakly:
+    it goes with the context) so the second term costs nothing. Elsewhere (the torch backend, or
+    a render the kernels do not take) they are :func:`l1` and :func:`dssim`. The target's filtered
+    maps are computed once per view in either case."""
+
+    def __init__(self):
+        self._maps: dict = {}  # (view, dtype) -> (mu_b, bb), torch path
+        self._targets: dict = {}  # (view, dtype) -> clgs.ssim_cl.SSIMTarget, OpenCL path
+        self._results = weakref.WeakKeyDictionary()  # context -> (l1, dssim), OpenCL path
+
+    @staticmethod
+    def _use_cl(ctx, render) -> bool:
+        return (getattr(getattr(ctx.trainer, "backend", None), "name", None) == "cl" and render.device.type == "cpu"
+                and render.dtype in (torch.float32, torch.float64) and render.dim() in (2, 3)
+                and not ctx.target.requires_grad)
+
+    def _target_maps(self, ctx):
+        key = (ctx.view, ctx.target.dtype)
+        maps = self._maps.get(key)
+        if maps is None:
+            with torch.no_grad():
+                maps = self._maps[key] = target_maps(ctx.target)
+        return maps
+
+    def _both(self, ctx):
+        out = self._results.get(ctx)
+        if out is None:
+            from clgs import ssim_cl
+
+            render = ctx.render
+            key = (ctx.view, render.dtype)
+            target = self._targets.get(key)
+            if target is None:  # b and its maps, padded for the kernels (not kept twice)
+                target = self._targets[key] = ssim_cl.SSIMTarget(ctx.target.detach().to(render.dtype))
+            out = self._results[ctx] = ssim_cl.l1_dssim(render, target)
+        return out
+
+    def l1(self, ctx) -> torch.Tensor:
+        if self._use_cl(ctx, ctx.render):
+            return self._both(ctx)[0]
+        return l1(ctx.render, ctx.target)
+
+    def dssim(self, ctx) -> torch.Tensor:
+        if self._use_cl(ctx, ctx.render):
+            return self._both(ctx)[1]
+        return dssim(ctx.render, ctx.target, b_maps=self._target_maps(ctx))
 
 
 def tv3d(vol: torch.Tensor) -> torch.Tensor:

@@ -165,24 +165,11 @@ def tv_term(size: int):
     return fn
 
 
-def dssim_term():
-    """D-SSIM against the measured view; the target's filtered maps are computed once per view."""
-    cache: dict = {}
-
-    def fn(ctx):
-        maps = cache.get(ctx.view)
-        if maps is None:
-            with torch.no_grad():
-                maps = cache[ctx.view] = L.target_maps(ctx.target)
-        return L.dssim(ctx.render, ctx.target, b_maps=maps)
-
-    return fn
-
-
 def r2gs_losses(cfg: R2GSConfig) -> list:
+    image = L.ImageTerms()  # L1 and D-SSIM from one pass on the OpenCL backend
     return [
-        LossTerm("l1", 1.0, lambda ctx: L.l1(ctx.render, ctx.target)),
-        LossTerm("dssim", cfg.lambda_dssim, dssim_term()),
+        LossTerm("l1", 1.0, image.l1),
+        LossTerm("dssim", cfg.lambda_dssim, image.dssim),
         LossTerm("tv", cfg.lambda_tv, tv_term(cfg.tv_size)),
     ]
 

@@ -323,7 +323,6 @@ def fit_initial_alpha(scan, shape_model, cfg: ShapeGuidedConfig, init, free=None
     The tissue around the bone is left in place: carried by the bone's deformation it made the
     fit follow the limb's outline instead (alpha_1 +0.22, model surface 4.0 mm)."""
     from clgs import losses as L
-    from clgs.r2gs import dssim_term
     from clgs.trainer import Backend
 
     geo = scan.geometry
@@ -341,8 +340,9 @@ def fit_initial_alpha(scan, shape_model, cfg: ShapeGuidedConfig, init, free=None
     sets = [bound]
     if free is not None and len(free) > 0:
         sets.append(_Frozen(free))
-    losses = [LossTerm("l1", 1.0, lambda ctx: L.l1(ctx.render, ctx.target)),
-              LossTerm("dssim", cfg.lambda_dssim, dssim_term()),
+    image = L.ImageTerms()
+    losses = [LossTerm("l1", 1.0, image.l1),
+              LossTerm("dssim", cfg.lambda_dssim, image.dssim),
               LossTerm("shape", cfg.lambda_shape, shape_prior_term("registration"))]
     projections = np.asarray(scan.projections, np.float32) * np.float32(geo.scale * cfg.value_scale)
     trainer = Trainer(sets, geo, projections, losses, iterations=k, backend=Backend(cfg.backend, cfg.projector_mode),

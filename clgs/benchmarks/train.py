@@ -74,6 +74,7 @@ def _breakdown(trainer, n: int = 10) -> dict:
     import torch
 
     from clgs import losses as L
+    from clgs import ssim_cl
     from clgs.projector import project_packed
     from clgs.trainer import Backend, Context
     from clgs.voxelizer import cov_prec
@@ -91,7 +92,7 @@ def _breakdown(trainer, n: int = 10) -> dict:
     sq = [leaf(scales), leaf(quats)]
     vox = [leaf(means), leaf(prec), leaf(dens)]
     target = trainer.projections[view]
-    maps = L.target_maps(target)
+    image_target = ssim_cl.SSIMTarget(target, L.target_maps(target))  # as the trainer caches it per view
     render = leaf(trainer.backend.project(means, scales, quats, dens, geo, [view])[0] * trainer.render_scale)
     grid = geo.volume_grid(scene=True)
     params = [p.detach().clone() for g in trainer.optimizer.param_groups for p in g["params"]]
@@ -107,6 +108,10 @@ def _breakdown(trainer, n: int = 10) -> dict:
         for k, p in s.params.items():
             p.grad = torch.randn_like(p)
 
+    def image_terms():  # the trainer's OpenCL path (clgs.losses.ImageTerms): one fused op, both terms
+        l1, dssim = ssim_cl.l1_dssim(render, image_target)
+        (l1 + 0.25 * dssim).backward()
+
     def activations():
         sum(t.sum() for s in trainer.sets for t in s.tensors()).backward()
 
@@ -115,7 +120,7 @@ def _breakdown(trainer, n: int = 10) -> dict:
         # as trained: covariance, precision and half-widths in one pass, both gradients back
         "covariance + precision (N,6)": lambda: sum(m.sum() for m in cov_prec(*sq)[:2]).backward(),
         "projection kernels": lambda: project_packed(*ins, geo, [view]).sum().backward(),
-        "L1 + D-SSIM": lambda: (L.l1(render, target) + 0.25 * L.dssim(render, target, b_maps=maps)).backward(),
+        "L1 + D-SSIM": image_terms,
         "TV 32^3 patch (cull, kernels)": lambda: L.tv3d(Backend.voxelize_shared(
             vox[0], vox[1], vox[2], extent, L.random_block(grid, 32, trainer.generator))).backward(),
         "Adam": adam.step,
