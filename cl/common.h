@@ -19,5 +19,6 @@ typedef CAT(REAL, 2) real2;
 typedef CAT(REAL, 3) real3;
 typedef CAT(REAL, 4) real4;
 typedef CAT(REAL, 8) real8;
+typedef CAT(REAL, 16) real16;
 
 #endif

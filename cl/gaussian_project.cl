@@ -1,14 +1,20 @@
 /* Gaussian X-ray projector: forward (pixel-centric, tile owner) and backward (Gaussian-centric
  * gather). Switches and conventions: project_setup.h and clgs/projector.py.
  *
- * Forward: one work-item owns a TW x TH tile (TW = 8 pixels = one real8 row) of one view and
- * walks the tile's Gaussian list (counted by preprocess, laid out by binning.cl's bin_offsets
+ * Forward: one work-item owns a TW x TH tile (TW = 8 or 16 pixels = one realW row) of one view
+ * and walks the tile's Gaussian list (counted by preprocess, laid out by binning.cl's bin_offsets
  * and fill, all on the device, in index order), touching
  * only the rows inside each Gaussian's box. Backward: one work-item per run of Gaussians walks
- * each one's own box in every view, in 8-pixel segments from the box's left edge (segments
- * outer, rows inner), gathers dL/dI into moment sums, then applies the chain rule once per view
- * (affine: for 8 Gaussians at once, one per lane). Neither needs atomics; both are
- * reproducible. */
+ * each one's own box in every view, in BW-pixel segments (8 or 16) from the box's left edge
+ * (segments outer, rows inner), gathers dL/dI into moment sums, then applies the chain rule once
+ * per view (affine: for 8 Gaussians at once, one per lane). Neither needs atomics; both are
+ * reproducible.
+ *
+ * Vector widths: TW (the render's row) and BW (the backward's segment) are -D options, 8 or 16,
+ * so that a device whose native float vector holds 16 lanes (AVX-512) gets whole registers. The
+ * per-pixel arithmetic is the same lane by lane at either width, so the forward gives the same
+ * bits at TW = 8 and 16; the backward's sums over a segment's lanes are added in another order
+ * (rounding-level differences between widths, still fixed for each width). */
 #include "project_setup.h"
 
 #ifndef TW
@@ -17,6 +23,94 @@
 #ifndef TH
 #define TH 16
 #endif
+#ifndef BW
+#define BW TW
+#endif
+#if (TW != 8 && TW != 16) || (BW != 8 && BW != 16)
+#error "TW and BW (vector widths of the render and the backward) must be 8 or 16"
+#endif
+
+/* ------------------------------------------------------------------ width-16 helpers */
+/* project_setup.h's 8-lane helpers (LD8G, mask8, splat_exp2_8, sqrt8) at 16 lanes */
+typedef real16 real16u __attribute__((aligned(sizeof(real))));
+#define LD16G(p) (*(__global const real16u *)(p))
+#define ST16G(p) (*(__global real16u *)(p))
+#ifdef REAL_DOUBLE
+typedef long16 mask16;
+#define splat_exp2_16(t) exp2(t)
+#define fast_exp16(x) exp(x)
+#else
+typedef int16 mask16;
+/* splat_exp2_8 (project_setup.h) on 16 lanes: the same coefficients and operations, so every
+ * lane gives the same bits as there */
+inline float16 splat_exp2_16(float16 t)
+{
+    const int16 n = convert_int16(t - 0.5f);
+    const float16 f = t - convert_float16(n);
+    float16 p = 0.00132764725f;
+    p = p * f + 0.00967554189f;
+    p = p * f + 0.0555071309f;
+    p = p * f + 0.240221202f;
+    p = p * f + 0.693146944f;
+    p = p * f + 1.00000012f;
+    return as_float16(as_int16(p) + (n << 23));
+}
+/* fast_exp8 (fastexp.h) on 16 lanes, for the throughput probe */
+inline float16 fast_exp16(float16 x)
+{
+    float16 t = x * 1.4426950408889634f;
+    t = (t > 0.0f) ? (float16)(0.0f) : t;
+    const int16 under = t < -125.0f;
+    t = under ? (float16)(-125.0f) : t;
+    const int16 n = convert_int16(t - 0.5f);
+    const float16 f = t - convert_float16(n);
+    float16 p = FE_C6;
+    p = p * f + FE_C5;
+    p = p * f + FE_C4;
+    p = p * f + FE_C3;
+    p = p * f + FE_C2;
+    p = p * f + FE_C1;
+    p = p * f + 1.0f;
+    const float16 r = as_float16(as_int16(p) + (n << 23));
+    return under ? (float16)(0.0f) : r;
+}
+#endif
+inline real16 sqrt16(real16 y)
+{
+    return (real16)(SQ(y.s0), SQ(y.s1), SQ(y.s2), SQ(y.s3), SQ(y.s4), SQ(y.s5), SQ(y.s6), SQ(y.s7),
+                    SQ(y.s8), SQ(y.s9), SQ(y.sa), SQ(y.sb), SQ(y.sc), SQ(y.sd), SQ(y.se), SQ(y.sf));
+}
+#define sqrt_8 sqrt8
+#define sqrt_16 sqrt16
+#define LANES8 ((real8)(RC(0.0), RC(1.0), RC(2.0), RC(3.0), RC(4.0), RC(5.0), RC(6.0), RC(7.0)))
+#define LANES16 ((real16)(RC(0.0), RC(1.0), RC(2.0), RC(3.0), RC(4.0), RC(5.0), RC(6.0), RC(7.0), RC(8.0), \
+                          RC(9.0), RC(10.0), RC(11.0), RC(12.0), RC(13.0), RC(14.0), RC(15.0)))
+
+inline real hsum8(real8 x)
+{
+    const real4 a = x.lo + x.hi;
+    const real2 b = a.lo + a.hi;
+    return b.x + b.y;
+}
+inline real hsum16(real16 x) { return hsum8(x.lo + x.hi); }
+inline real8 fold8_8(real8 x) { return x; }
+inline real8 fold8_16(real16 x) { return x.lo + x.hi; } /* 16 lanes to 8 partial sums */
+
+/* the names at the render's width W = TW and at the backward's B = BW */
+#define realW CAT(real, TW)
+#define LANESW CAT(LANES, TW)
+#define expW CAT(splat_exp2_, TW)
+#define sqrtW CAT(sqrt_, TW) /* (CAT(sqrt, ..) would expand the builtin's macro) */
+#define STWG CAT(CAT(ST, TW), G)
+#define hsumW CAT(hsum, TW)
+#define fast_expW CAT(fast_exp, TW)
+#define realB CAT(real, BW)
+#define maskB CAT(mask, BW)
+#define LANESB CAT(LANES, BW)
+#define expB CAT(splat_exp2_, BW)
+#define sqrtB CAT(sqrt_, BW)
+#define hsumB CAT(hsum, BW)
+#define fold8B CAT(fold8_, BW) /* realB to real8 */
 
 inline void load_gauss(int g, __global const real *means, __global const real *mats, real3 *p, real *S)
 {
@@ -247,9 +341,21 @@ __kernel void fill(const int N, const int chunk, const int nchunks, const int nt
     }
 }
 
-#if TW != 8
-#error "render: a tile row is one real8 (TW = 8)"
+#if defined(EXACT) && defined(CONE)
+/* straddle_eval's value on a render row of TW pixels (it works on 8: twice for 16) */
+inline realW straddle_row(real3 p, const real *S, View Vw, real amp0, realW uu, real v)
+{
+    real8 w[3], d[3], ia, beta, vnf;
+#if TW == 8
+    return straddle_eval(p, S, Vw, amp0, uu, v, w, d, &ia, &beta, &vnf);
+#else
+    const real8 lo = straddle_eval(p, S, Vw, amp0, uu.lo, v, w, d, &ia, &beta, &vnf);
+    return (real16)(lo, straddle_eval(p, S, Vw, amp0, uu.hi, v, w, d, &ia, &beta, &vnf));
 #endif
+}
+#endif
+
+/* One work-item per TW x TH tile; a tile row is one realW (TW lanes). */
 __kernel void render(const int U, const int V, const int ntx, const int ntiles, const long cap,
                      __global const real *prec, __global const int *starts,
                      __global const int *list, __global const real *means, __global const real *mats,
@@ -260,9 +366,10 @@ __kernel void render(const int U, const int V, const int ntx, const int ntiles, 
     if (tx >= ntx || ty * TH >= V) return;
     const int tile = ty * ntx + tx;
     const int u0 = tx * TW, v0 = ty * TH;
-    real8 acc[TH];
-    for (int r = 0; r < TH; r++) acc[r] = (real8)(RC(0.0));
-    const real8 uu = (real)u0 + (real8)(RC(0.0), RC(1.0), RC(2.0), RC(3.0), RC(4.0), RC(5.0), RC(6.0), RC(7.0));
+    const realW zero = (realW)(RC(0.0));
+    realW acc[TH];
+    for (int r = 0; r < TH; r++) acc[r] = zero;
+    const realW uu = (real)u0 + LANESW;
     const long base = view_base(starts, view, ntiles);
     __global const int *st = starts + (size_t)view * (ntiles + 1);
     long lb = base + st[tile], le = base + st[tile + 1];
@@ -274,9 +381,9 @@ __kernel void render(const int U, const int V, const int ntx, const int ntiles, 
         const int2 b = (int2)((int)R[ROW0_SLOT], (int)R[ROW1_SLOT]);
         const int r0 = (b.x > v0 ? b.x : v0) - v0, r1 = (b.y < v0 + TH - 1 ? b.y : v0 + TH - 1) - v0;
         const real uc = R[0], vc = R[1], amp = R[2];
-        /* t = -q/2 log2(e), so that the exponential is splat_exp2_8(t) */
+        /* t = -q/2 log2(e), so that the exponential is expW(t) (splat_exp2_8 / _16) */
         const real lk0 = R[4] * RC(LOG2E), lk1 = R[5] * RC(LOG2E), lk2 = R[6] * RC(LOG2E);
-        const real8 du = uu - uc;
+        const realW du = uu - uc;
 #if defined(EXACT) && defined(CONE)
         if (R[3] != RC(0.0)) {
             const int g = list[k];
@@ -284,33 +391,31 @@ __kernel void render(const int U, const int V, const int ntx, const int ntiles, 
             real S[6];
             load_gauss(g, means, mats, &p, S);
             const View Vw = load_view(vparams, view);
-            real8 w[3], d[3], ia, beta, vnf;
             for (int r = r0; r <= r1; r++)
-                acc[r] += rho[g] * straddle_eval(p, S, Vw, sqrt(RC(TWO_PI)) / scale, uu, (real)(v0 + r),
-                                                 w, d, &ia, &beta, &vnf);
+                acc[r] += rho[g] * straddle_row(p, S, Vw, sqrt(RC(TWO_PI)) / scale, uu, (real)(v0 + r));
             continue;
         }
         /* numerator -N'/2 log2(e), a' and dd' as polynomials in dv with the du parts once */
         const real a1 = R[7], a2 = R[8], a3 = R[9], a4 = R[10], a5 = R[11];
         const real d0 = R[12], d1 = R[13], d2 = R[14], d3 = R[15], d4 = R[16], d5 = R[17];
-        const real8 Ndu = lk0 * du * du, NB = lk1 * du;
-        const real8 Adu = RC(1.0) + (RC(2.0) * a1 + a3 * du) * du, AB = RC(2.0) * (a4 * du + a2);
-        const real8 Ddu = d0 + (RC(2.0) * d1 + d3 * du) * du, DB = RC(2.0) * (d4 * du + d2);
+        const realW Ndu = lk0 * du * du, NB = lk1 * du;
+        const realW Adu = RC(1.0) + (RC(2.0) * a1 + a3 * du) * du, AB = RC(2.0) * (a4 * du + a2);
+        const realW Ddu = d0 + (RC(2.0) * d1 + d3 * du) * du, DB = RC(2.0) * (d4 * du + d2);
         for (int r = r0; r <= r1; r++) {
-            const real8 dv = (real8)((real)(v0 + r) - vc);
-            const real8 A = Adu + dv * (AB + a5 * dv);
-            const real8 DD = Ddu + dv * (DB + d5 * dv);
-            const real8 ia = RC(1.0) / A;
-            const real8 t = (Ndu + dv * (NB + lk2 * dv)) * ia;
-            const real8 val = amp * sqrt8(DD * ia) * splat_exp2_8(t);
-            acc[r] += (t >= TCUT ? val : (real8)(RC(0.0)));
+            const realW dv = (realW)((real)(v0 + r) - vc);
+            const realW A = Adu + dv * (AB + a5 * dv);
+            const realW DD = Ddu + dv * (DB + d5 * dv);
+            const realW ia = RC(1.0) / A;
+            const realW t = (Ndu + dv * (NB + lk2 * dv)) * ia;
+            const realW val = amp * sqrtW(DD * ia) * expW(t);
+            acc[r] += (t >= TCUT ? val : zero);
         }
 #else
-        const real8 P = lk0 * du * du, Q = lk1 * du; /* t = P + dv (Q + lk2 dv): the du parts once */
+        const realW P = lk0 * du * du, Q = lk1 * du; /* t = P + dv (Q + lk2 dv): the du parts once */
         for (int r = r0; r <= r1; r++) {
-            const real8 dv = (real8)((real)(v0 + r) - vc);
-            const real8 t = P + dv * (Q + lk2 * dv);
-            acc[r] += (t >= TCUT ? amp * splat_exp2_8(t) : (real8)(RC(0.0)));
+            const realW dv = (realW)((real)(v0 + r) - vc);
+            const realW t = P + dv * (Q + lk2 * dv);
+            acc[r] += (t >= TCUT ? amp * expW(t) : zero);
         }
 #endif
     }
@@ -319,10 +424,10 @@ __kernel void render(const int U, const int V, const int ntx, const int ntiles, 
         const int v = v0 + r;
         if (v >= V) break;
         if (u0 + TW <= U) {
-            ST8G(o + (size_t)v * U + u0) = acc[r];
+            STWG(o + (size_t)v * U + u0) = acc[r];
         } else {
-            real tmp[8];
-            vstore8(acc[r], 0, tmp);
+            real tmp[TW];
+            CAT(vstore, TW)(acc[r], 0, tmp);
             for (int i = 0; i < U - u0; i++) o[(size_t)v * U + u0 + i] = tmp[i];
         }
     }
@@ -330,15 +435,8 @@ __kernel void render(const int U, const int V, const int ntx, const int ntiles, 
 
 /* ------------------------------------------------------------------ backward */
 
-inline real hsum8(real8 x)
-{
-    const real4 a = x.lo + x.hi;
-    const real2 b = a.lo + a.hi;
-    return b.x + b.y;
-}
-
-/* dL/dI of the 8 pixels of row v from column s (lanes past the detector edge repeat its last
- * pixel; the caller masks lanes outside the Gaussian's box, which lies on the detector) */
+/* dL/dI of the 8 (16) pixels of row v from column s (lanes past the detector edge repeat its
+ * last pixel; the caller masks lanes outside the Gaussian's box, which lies on the detector) */
 inline real8 load_row(__global const real *gimg, int U, int v, int s)
 {
     __global const real *row = gimg + (size_t)v * U;
@@ -347,6 +445,19 @@ inline real8 load_row(__global const real *gimg, int U, int v, int s)
     for (int i = 0; i < 8; i++) tmp[i] = row[min(s + i, U - 1)];
     return vload8(0, tmp);
 }
+inline real16 load_row16(__global const real *gimg, int U, int v, int s)
+{
+    __global const real *row = gimg + (size_t)v * U;
+    if (s + 16 <= U) return LD16G(row + s);
+    real tmp[16];
+    for (int i = 0; i < 16; i++) tmp[i] = row[min(s + i, U - 1)];
+    return vload16(0, tmp);
+}
+#if BW == 8
+#define load_rowB load_row
+#else
+#define load_rowB load_row16
+#endif
 
 inline void add_sym_outer(real *G, real c, real3 a, real3 b)
 { /* G (packed matrix gradient, off-diagonals as the sum of both entries) += c sym(a b^T) * 2 / 2 */
@@ -360,28 +471,27 @@ inline void add_sym_outer(real *G, real c, real3 a, real3 b)
 
 /* Moments (sum over the box of g E times 1, du, dv, du^2, du dv, dv^2) of dL/dI (g) against a
  * conic splat E = exp(-q/2), q = k0 du^2 + 2 k1 du dv + k2 dv^2 (q <= 9 kept), du = u - uc, dv =
- * v - vc: everything the chain rule of a conic splat needs from the pixels. 8-pixel segments
+ * v - vc: everything the chain rule of a conic splat needs from the pixels. BW-pixel segments
  * from the box's left edge outer, rows inner (the du parts once per segment). Each moment comes
- * back as a real8 whose lanes still have to be added. */
+ * back as a realB whose lanes still have to be added. */
 inline void conic_moments(__global const real *gi, int U, int4 b, real uc, real vc, real k0, real k1, real k2,
-                          real8 *mo)
+                          realB *mo)
 {
-    const real8 lane = (real8)(RC(0.0), RC(1.0), RC(2.0), RC(3.0), RC(4.0), RC(5.0), RC(6.0), RC(7.0));
-    const real8 zero = (real8)(RC(0.0));
-    /* t = -q/2 log2(e), so that E = splat_exp2_8(t) */
+    const realB zero = (realB)(RC(0.0));
+    /* t = -q/2 log2(e), so that E = expB(t) */
     const real nk0 = RC(-0.5 * LOG2E) * k0, nk1 = RC(-LOG2E) * k1, nk2 = RC(-0.5 * LOG2E) * k2;
-    real8 S0 = zero, Su = zero, Sv = zero, Suu = zero, Suv = zero, Svv = zero;
-    for (int s = b.x; s <= b.y; s += 8) {
-        const real8 uu = (real)s + lane;
-        const mask8 lm = uu <= (real)b.y;
-        const real8 du = uu - uc;
-        const real8 A8 = nk0 * du * du, B8 = nk1 * du;
-        real8 c0 = zero, cv = zero, cvv = zero;
+    realB S0 = zero, Su = zero, Sv = zero, Suu = zero, Suv = zero, Svv = zero;
+    for (int s = b.x; s <= b.y; s += BW) {
+        const realB uu = (real)s + LANESB;
+        const maskB lm = uu <= (real)b.y;
+        const realB du = uu - uc;
+        const realB A8 = nk0 * du * du, B8 = nk1 * du;
+        realB c0 = zero, cv = zero, cvv = zero;
         for (int v = b.z; v <= b.w; v++) {
             const real dv = (real)v - vc;
-            const real8 dv8 = (real8)(dv);
-            const real8 t = A8 + dv8 * (B8 + nk2 * dv8);
-            const real8 gE = ((lm & (t >= TCUT)) ? load_row(gi, U, v, s) * splat_exp2_8(t) : zero);
+            const realB dv8 = (realB)(dv);
+            const realB t = A8 + dv8 * (B8 + nk2 * dv8);
+            const realB gE = ((lm & (t >= TCUT)) ? load_rowB(gi, U, v, s) * expB(t) : zero);
             c0 += gE; cv += gE * dv; cvv += gE * (dv * dv);
         }
         S0 += c0; Su += du * c0; Suu += du * du * c0;
@@ -479,35 +589,36 @@ inline void backward_one(const int g, const int N, const int nviews, const int U
              * dv^2 and h / a' times 1 .. dv^4; the du parts are applied once per segment (fewer
              * operations and live vectors per row than the sixteen sums per pixel: about 1.1-1.2x
              * faster on the 50k-Gaussian benchmark). */
-            real8 S0 = zero, Ma = zero, Mbu = zero, Mbv = zero, Maa = zero, Mabu = zero, Mabv = zero;
-            real8 Mbbuu = zero, Mbbuv = zero, Mbbvv = zero;
-            real8 Q0 = zero, Qu = zero, Qv = zero, Quu = zero, Quv = zero, Qvv = zero;
-            for (int s = s0; s <= b.y; s += 8) {
-                /* 8-pixel segment outer, rows inner: the du parts of every polynomial once */
-                const real8 uu = (real)s + lane;
-                const mask8 lm = (uu >= (real)b.x) & (uu <= (real)b.y);
-                const real8 du = uu - sp.uc;
-                const real8 Ndu = nk0 * du * du, NB = nk1 * du;
-                const real8 Adu = RC(1.0) + (RC(2.0) * sp.a1 + sp.a3 * du) * du, AB = RC(2.0) * (sp.a4 * du + sp.a2);
-                const real8 Ddu = sp.d0 + (RC(2.0) * sp.d1 + sp.d3 * du) * du, DB = RC(2.0) * (sp.d4 * du + sp.d2);
-                real8 H0 = zero, H1 = zero, H2 = zero, K0 = zero, K1 = zero, K2 = zero, K3 = zero, K4 = zero;
+            const realB zb = (realB)(RC(0.0));
+            realB S0 = zb, Ma = zb, Mbu = zb, Mbv = zb, Maa = zb, Mabu = zb, Mabv = zb;
+            realB Mbbuu = zb, Mbbuv = zb, Mbbvv = zb;
+            realB Q0 = zb, Qu = zb, Qv = zb, Quu = zb, Quv = zb, Qvv = zb;
+            for (int s = s0; s <= b.y; s += BW) {
+                /* BW-pixel segment outer, rows inner: the du parts of every polynomial once */
+                const realB uu = (real)s + LANESB;
+                const maskB lm = (uu >= (real)b.x) & (uu <= (real)b.y);
+                const realB du = uu - sp.uc;
+                const realB Ndu = nk0 * du * du, NB = nk1 * du;
+                const realB Adu = RC(1.0) + (RC(2.0) * sp.a1 + sp.a3 * du) * du, AB = RC(2.0) * (sp.a4 * du + sp.a2);
+                const realB Ddu = sp.d0 + (RC(2.0) * sp.d1 + sp.d3 * du) * du, DB = RC(2.0) * (sp.d4 * du + sp.d2);
+                realB H0 = zb, H1 = zb, H2 = zb, K0 = zb, K1 = zb, K2 = zb, K3 = zb, K4 = zb;
                 for (int v = b.z; v <= b.w; v++) {
                     const real dv = (real)v - sp.vc, dv2 = dv * dv;
-                    const real8 dv8 = (real8)(dv);
-                    const real8 A = Adu + dv8 * (AB + sp.a5 * dv8);
-                    const real8 ia = RC(1.0) / A;
-                    const real8 t = (Ndu + dv8 * (NB + nk2 * dv8)) * ia;
-                    const real8 DD = Ddu + dv8 * (DB + sp.d5 * dv8);
-                    const real8 h = ((lm & (t >= TCUT)) ?
-                                     load_row(gi, U, v, s) * sqrt8(DD * ia) * splat_exp2_8(t) * ia : zero);
-                    const real8 h2 = h * ia;
+                    const realB dv8 = (realB)(dv);
+                    const realB A = Adu + dv8 * (AB + sp.a5 * dv8);
+                    const realB ia = RC(1.0) / A;
+                    const realB t = (Ndu + dv8 * (NB + nk2 * dv8)) * ia;
+                    const realB DD = Ddu + dv8 * (DB + sp.d5 * dv8);
+                    const realB h = ((lm & (t >= TCUT)) ?
+                                     load_rowB(gi, U, v, s) * sqrtB(DD * ia) * expB(t) * ia : zb);
+                    const realB h2 = h * ia;
                     H0 += h; H1 += h * dv; H2 += h * dv2;
                     K0 += h2; K1 += h2 * dv; K2 += h2 * dv2; K3 += h2 * (dv * dv2); K4 += h2 * (dv2 * dv2);
                 }
                 /* al a' = p0 + p1 dv + p2 dv^2, be a' = b0 + b1 dv */
-                const real8 p0 = (sp.a3 * du + sp.a1) * du, p1 = RC(2.0) * sp.a4 * du + sp.a2;
+                const realB p0 = (sp.a3 * du + sp.a1) * du, p1 = RC(2.0) * sp.a4 * du + sp.a2;
                 const real p2 = sp.a5;
-                const real8 b0 = (RC(1.0) + sp.a1 * du) * ik;
+                const realB b0 = (RC(1.0) + sp.a1 * du) * ik;
                 const real b1 = sp.a2 * ik;
                 S0 += Adu * H0 + AB * H1 + sp.a5 * H2; /* g I = h a' */
                 Ma += p0 * H0 + p1 * H1 + p2 * H2;
@@ -515,19 +626,21 @@ inline void backward_one(const int g, const int N, const int nviews, const int U
                 Mbv += b0 * H1 + b1 * H2;
                 Maa += p0 * p0 * K0 + RC(2.0) * p0 * p1 * K1 + (p1 * p1 + RC(2.0) * p0 * p2) * K2
                        + RC(2.0) * p1 * p2 * K3 + (p2 * p2) * K4;
-                const real8 c0 = p0 * b0, c1 = p0 * b1 + p1 * b0, c2 = p1 * b1 + p2 * b0, c3 = p2 * b1;
+                const realB c0 = p0 * b0, c1 = p0 * b1 + p1 * b0, c2 = p1 * b1 + p2 * b0, c3 = p2 * b1;
                 Mabu += du * (c0 * K0 + c1 * K1 + c2 * K2 + c3 * K3);
                 Mabv += c0 * K1 + c1 * K2 + c2 * K3 + c3 * K4;
-                const real8 e0 = b0 * b0, e1 = RC(2.0) * b0 * b1;
+                const realB e0 = b0 * b0, e1 = RC(2.0) * b0 * b1;
                 const real e2 = b1 * b1;
-                const real8 Z0 = e0 * K0 + e1 * K1 + e2 * K2, Z1 = e0 * K1 + e1 * K2 + e2 * K3;
+                const realB Z0 = e0 * K0 + e1 * K1 + e2 * K2, Z1 = e0 * K1 + e1 * K2 + e2 * K3;
                 Mbbuu += du * du * Z0; Mbbuv += du * Z1; Mbbvv += e0 * K2 + e1 * K3 + e2 * K4;
                 Q0 += H0; Qu += du * H0; Quu += du * du * H0;
                 Qv += H1; Quv += du * H1; Qvv += H2;
             }
             /* the sixteen lane sums, times the amplitude (the sums above are per unit amplitude) */
-            const real8 ha[8] = {S0, Ma, Mbu, Mbv, Maa, Mabu, Mabv, Mbbuu};
-            const real8 hb[8] = {Mbbuv, Mbbvv, Q0, Qu, Qv, Quu, Quv, Qvv};
+            const real8 ha[8] = {fold8B(S0), fold8B(Ma), fold8B(Mbu), fold8B(Mbv), fold8B(Maa), fold8B(Mabu),
+                                 fold8B(Mabv), fold8B(Mbbuu)};
+            const real8 hb[8] = {fold8B(Mbbuv), fold8B(Mbbvv), fold8B(Q0), fold8B(Qu), fold8B(Qv), fold8B(Quu),
+                                 fold8B(Quv), fold8B(Qvv)};
             const real8 Ha = sp.amp0 * hsum8x8(ha), Hb = sp.amp0 * hsum8x8(hb);
             const real3 Sw = Ha.s1 * e + Ha.s2 * gu + Ha.s3 * gv;
             gp += rh * symv(S, Sw);
@@ -553,10 +666,10 @@ inline void backward_one(const int g, const int N, const int nviews, const int U
         }
 #else
         /* conic splat (exact parallel): 6 moments of g E over the box */
-        real8 mv[6];
+        realB mv[6];
         conic_moments(gi, U, sp.box, sp.uc, sp.vc, sp.k0, sp.k1, sp.k2, mv);
-        const real s0_ = hsum8(mv[0]), su = hsum8(mv[1]), sv = hsum8(mv[2]), suu = hsum8(mv[3]), suv = hsum8(mv[4]),
-                   svv = hsum8(mv[5]);
+        const real s0_ = hsumB(mv[0]), su = hsumB(mv[1]), sv = hsumB(mv[2]), suu = hsumB(mv[3]), suv = hsumB(mv[4]),
+                   svv = hsumB(mv[5]);
         const real amp = rh * sp.amp0;
         grho += sp.amp0 * s0_;
         /* exact parallel: w = du w_u + dv w_v, w_u = gu - (h_u / a) r; envelope theorem */
@@ -645,8 +758,10 @@ inline void backward8(const int g0, const int N, const int nviews, const int U, 
             }
             const int4 b = (int4)(((const int *)&sp.u0)[j], ((const int *)&sp.u1)[j], ((const int *)&sp.v0)[j],
                                   ((const int *)&sp.v1)[j]);
+            realB mb[6];
             conic_moments(gi, U, b, ((const real *)&sp.uc)[j], ((const real *)&sp.vc)[j], ((const real *)&sp.k0)[j],
-                          ((const real *)&sp.k1)[j], ((const real *)&sp.k2)[j], pm[j]);
+                          ((const real *)&sp.k1)[j], ((const real *)&sp.k2)[j], mb);
+            for (int k = 0; k < 6; k++) pm[j][k] = fold8B(mb[k]);
         }
         real8 mo[6]; /* lane j: moment of Gaussian g0 + j */
         for (int k = 0; k < 6; k++) {
@@ -740,14 +855,15 @@ __kernel void backward(const int N, const int per, const int nviews, const int U
 }
 
 /* ------------------------------------------------------------------ exp throughput probe */
+/* fast_exp8 (TW = 8) or fast_exp16 (TW = 16) in a loop: TW exps per iteration and work-item */
 __kernel void exp_probe(const int n, __global real *out)
 {
     const int i = get_global_id(0);
-    real8 x = (real8)(RC(-0.001)) * (real)(i & 1023) - (real8)(RC(0.0), RC(0.1), RC(0.2), RC(0.3), RC(0.4), RC(0.5), RC(0.6), RC(0.7));
-    real8 acc = (real8)(RC(0.0));
+    realW x = (realW)(RC(-0.001)) * (real)(i & 1023) - RC(0.1) * LANESW;
+    realW acc = (realW)(RC(0.0));
     for (int k = 0; k < n; k++) {
-        acc += fast_exp8(x);
+        acc += fast_expW(x);
         x -= RC(0.0004);
     }
-    out[i] = hsum8(acc);
+    out[i] = hsumW(acc);
 }

@@ -36,10 +36,32 @@ on first use in a process and cached by ``clgs.runtime``):
 * ``NO_GRAD_MEAN`` / ``NO_GRAD_COV`` / ``NO_GRAD_DENSITY`` in the backward's program when the
   means / the covariance-or-precision / the densities need no gradient (the forward kernels are
   the same in every gradient variant; in practice the forward program is the all-gradients one);
-* ``TW=8``, ``TH=64`` (CPU; ``TH=16`` on GPUs): the forward's tile (``cl/binning.cl`` gets
-  the same; the render needs ``TW=8``, one ``real8`` per tile row).
+* ``TW`` (8 or 16) and ``TH`` (64 on CPUs; on GPUs 16 at ``TW=8``, 8 at ``TW=16``): the
+  forward's tile, ``TW`` pixels = one ``realW`` vector per tile row (``cl/binning.cl`` gets the
+  same tile);
+* ``BW`` (8 or 16): the backward's pixel segment, one ``realB`` vector.
 
-The splat loops use ``splat_exp2_8`` (``cl/project_setup.h``): ``fastexp.h``'s method with a
+Vector width (``TW``, ``BW``): 16 lanes fill an AVX-512 register, 8 an AVX2 one. By default
+the projector follows the device: where its native float vector width is 16 (PoCL on AVX-512
+CPUs) each kernel gets the width that measured faster there (``WIDE``: affine render and
+backward 16; exact parallel render 16, backward 8; exact cone 8 and 8, its pixel loops being
+bound by a division and a square root per pixel, no cheaper per lane at 16), everywhere else 8.
+The environment variable ``CLGS_TILE_WIDTH=8`` or ``16`` (or ``GaussianProjector(width=...)``)
+forces one width on every kernel (any OpenCL device runs either; 16 on an AVX2 CPU is just
+slower). Images are the same bits at either width; gradients agree to rounding (the backward
+adds a box's pixels in another order), and each width is bitwise reproducible.
+Measured side by side in one process on a 2-core AVX-512 Xeon (50k Gaussians, 256^2 detector,
+each kernel relaunched alone, 8 and 16 lanes alternating, CPU-time medians, several runs), 16
+lanes against 8: affine render 1.12-1.21x faster, affine backward 1.11-1.16x; exact parallel
+render 1.12-1.15x, its backward 0.90-0.93x (slower: kept at 8); exact cone render 0.83-0.95x and
+backward 0.82-0.89x (kept at 8). Per call (``clgs bench kernels --widths``: set-up, binning and
+fill included, which do not depend on the width) the affine cone forward gained about 1.08x and
+its backward 1.12x. The exp probe runs about 1.5x faster per CPU-second at 16 lanes; the pixel
+loops gain less because 16-wide tile rows and segments cover more pixels outside each footprint
+(28% of the render's lanes are useful at 16, 42% at 8, for Gaussians 4-16 pixels across).
+
+The splat loops use ``splat_exp2_8`` (``cl/project_setup.h``; ``splat_exp2_16`` in
+``cl/gaussian_project.cl``, the same polynomial on 16 lanes): ``fastexp.h``'s method with a
 degree-5 fitted polynomial and no range handling at all (the loops fold ``log2(e)`` into their
 coefficients and select zero wherever ``q > 9``, the only lanes where the result is not valid).
 
@@ -52,7 +74,7 @@ exact-cone polynomials, amplitude, footprint box, culling, 8 Gaussians per ``rea
 (``setup_affine8``, ``setup_exact_cone8``; exact parallel one at a time); then the chunk's
 counts per tile, while its boxes are in cache) -> ``bin_offsets`` (deterministic counting sort
 into the tiles) -> ``fill`` (lists in Gaussian index order, each entry with a copy of its record
-so the render streams them) -> ``render`` (a work-item per tile, ``real8`` rows). The number of
+so the render streams them) -> ``render`` (a work-item per tile, ``realW`` rows). The number of
 (tile, Gaussian) pairs is only known on the device: the lists get a capacity from the last
 call's pairs per Gaussian and view (plus 25%, at least what the pooled buffers hold), ``fill``
 and ``render`` never go past it, and the pair count comes back with the image; a call that
@@ -65,8 +87,9 @@ Gaussian's own box in every view. Affine: 8 Gaussians at a time, the set-up reco
 forward's own ``setup_affine8`` (same bits, about the cost of reading the records back) and the
 chain rule done for all 8 in ``real8``. Exact: one Gaussian at a time; when the backward
 directly follows the forward of the same inputs (the autograd op passes the forward's token) it
-reuses the forward's per-(view, Gaussian) set-up instead of recomputing it. Its exact-cone pixel
-loop keeps only 8 moment sums per row (the rest is applied once per 8-pixel segment).
+reuses the forward's per-(view, Gaussian) set-up instead of recomputing it. The pixels of a
+box are walked in ``BW``-pixel segments from its left edge, rows inner; the exact-cone loop keeps
+only 8 moment sums per row (the rest is applied once per segment).
 
 Kernels avoid OpenCL builtins that PoCL compiles to calls (``select``, ``vload8``, vector
 ``sqrt``, ``min``) inside loops: a call there also makes the compiler spill every live vector
@@ -78,6 +101,7 @@ written by one work-item, so same input gives the same bits.
 """
 from __future__ import annotations
 
+import os
 import threading
 
 import numpy as np
@@ -92,6 +116,41 @@ _HIST_BUDGET = 1 << 24  # ints in the binning histogram (views x chunks x tiles)
 
 class ProjectorError(ValueError):
     """Inputs the projector cannot handle, with what to do about them."""
+
+
+WIDTH_ENV = "CLGS_TILE_WIDTH"
+WIDTHS = (8, 16)
+# (render, backward) vector widths per (beam, mode) on a device whose native float vector has 16
+# lanes, each kept at 16 only where 16 lanes measured faster than 8 side by side (50k Gaussians,
+# 256^2 detector, CPU time per launch; figures in the module docstring). The exact cone's pixel
+# loops are bound by a division and a square root per pixel, which cost the same per lane at
+# either width, so the wider rows' extra masked lanes only add work there.
+WIDE = {("cone", "affine"): (16, 16), ("parallel", "affine"): (16, 16),
+        ("parallel", "exact"): (16, 8), ("cone", "exact"): (8, 8)}
+
+
+def _check_width(w, what):
+    try:
+        ok = int(w) in WIDTHS
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ProjectorError(f"{what} must be 8 or 16 (pixels per vector row), got {w!r}")
+    return int(w)
+
+
+def tile_width(device=None) -> tuple[int, bool]:
+    """(width, forced): ``$CLGS_TILE_WIDTH`` (8 or 16) if set, forced on every kernel; else 16
+    when the device's native float vector holds 16 lanes (AVX-512 CPUs), applied per kernel as
+    ``WIDE`` says, else 8."""
+    env = os.environ.get(WIDTH_ENV, "").strip()
+    if env:
+        return _check_width(env, f"${WIDTH_ENV}"), True
+    if device is None:
+        from . import runtime
+
+        device = runtime.device()
+    return (16 if int(device.native_vector_width_float) == 16 else 8), False
 
 
 def view_params(geometry, views, dtype=np.float32) -> np.ndarray:
@@ -146,13 +205,15 @@ class GaussianProjector:
     # histogram column each; see forward.)
     LOCAL_G_CPU, LOCAL_TILE_CPU, PER_CPU = 1, (1, 1, 1), 16
     LOCAL_G_GPU, LOCAL_TILE_GPU, PER_GPU = 64, (8, 8, 1), 1
-    # Forward tile (TW, TH): one real8 row wide. Tall tiles on CPUs: a 2-8 pixel Gaussian then
-    # mostly falls in one tile row, so there are fewer (tile, Gaussian) pairs to bin, copy and
-    # loop over (8 x 64 ran binning + fill + render about 20% faster than 8 x 16); GPUs keep the
-    # accumulator small.
-    TILE_CPU, TILE_GPU = (8, 64), (8, 16)
+    # Forward tile (TW, TH), TW = the render's vector width. Tall tiles on CPUs: a 2-8 pixel
+    # Gaussian then mostly falls in one tile row, so there are fewer (tile, Gaussian) pairs to
+    # bin, copy and loop over (8 x 64 ran binning + fill + render about 20% faster than 8 x 16;
+    # at 16 wide, 16 x 64 beat 16 x 32 and 16 x 16); GPUs keep the accumulator small.
+    TILE_CPU = {8: (8, 64), 16: (16, 64)}
+    TILE_GPU = {8: (8, 16), 16: (16, 8)}
 
-    def __init__(self):
+    def __init__(self, width: int | None = None):
+        """``width`` (8 or 16) forces that vector width on every kernel; None: ``tile_width()``."""
         from . import runtime
 
         self._runtime = runtime
@@ -168,24 +229,45 @@ class GaussianProjector:
         self._rec_token = None
         self.last_token = None
         self.extra_defines: dict = {}  # tuning experiments only
-        self.tile = self.TILE_CPU if self.cpu else self.TILE_GPU
+        if width is None:
+            self.width, self.forced = tile_width(runtime.device())
+        else:
+            self.width, self.forced = _check_width(width, "width"), True
+        self.tile = None  # (TW, TH) to use for every forward instead of the automatic tile (tests, tuning)
+        self.backward_width = None  # likewise for the backward's BW
         self._vp_cache: dict = {}
         self._pair_ratio = 2.0  # Gaussian-tile pairs per Gaussian and view in the last forward
         self.on_launch = None  # profiling hook: called with (kernel name, event) for every launch
         self._lock = threading.Lock()
 
     # ----------------------------------------------------------------------------- plumbing
+    def widths(self, beam: str, mode: str) -> tuple[int, int]:
+        """(render, backward) vector widths for this beam and mode."""
+        if self.width == 8 or self.forced:
+            w = (self.width, self.width)
+        else:
+            w = WIDE[(beam, mode)]
+        tw = self.tile[0] if self.tile is not None else w[0]
+        return tw, self.backward_width or w[1]
+
+    def tile_for(self, beam: str, mode: str) -> tuple[int, int]:
+        """The forward's tile (TW, TH) for this beam and mode."""
+        if self.tile is not None:
+            return tuple(self.tile)
+        return (self.TILE_CPU if self.cpu else self.TILE_GPU)[self.widths(beam, mode)[0]]
+
     def program(self, beam: str, mode: str, real: str, grads=(True, True, True)):
-        defines = {"REAL": real, "CONE": beam == "cone", "EXACT": mode == "exact", "TW": self.tile[0],
-                   "TH": self.tile[1]}
+        TW, TH = self.tile_for(beam, mode)
+        defines = {"REAL": real, "CONE": beam == "cone", "EXACT": mode == "exact", "TW": TW, "TH": TH,
+                   "BW": self.widths(beam, mode)[1]}
         defines["NO_GRAD_MEAN"] = not grads[0]
         defines["NO_GRAD_COV"] = not grads[1]
         defines["NO_GRAD_DENSITY"] = not grads[2]
         defines.update(self.extra_defines)
         return self._runtime.get_program("gaussian_project.cl", defines, self.ctx)
 
-    def _binning(self):
-        return self._runtime.get_program("binning.cl", {"TW": self.tile[0], "TH": self.tile[1]}, self.ctx)
+    def _binning(self, tile):
+        return self._runtime.get_program("binning.cl", {"TW": tile[0], "TH": tile[1]}, self.ctx)
 
     def _launch(self, prog, name: str, gsize, lsize, *args):
         event = prog.kernel(name)(self.queue, gsize, lsize, *args)
@@ -297,7 +379,8 @@ class GaussianProjector:
                 out[...] = 0
                 return out
             prog = self.program(geometry.mode, mode, real)
-            binp = self._binning()
+            TW, TH = self.tile_for(geometry.mode, mode)
+            binp = self._binning((TW, TH))
             i32, rl = np.int32, dt.type
             rec_len = 20 if (mode == "exact" and geometry.mode == "cone") else 8
             uses_list = mode == "exact" and geometry.mode == "cone"
@@ -307,7 +390,6 @@ class GaussianProjector:
             b_vp = self._in("vp", vp)
             b_rec = self._pooled(f"rec{dt.itemsize}", nv * N * rec_len * dt.itemsize)
             b_box = self._pooled("box", nv * N * 16)
-            TW, TH = self.tile
             ntx, nty = -(-U // TW), -(-V // TH)
             ntiles = ntx * nty
             nchunks = max(1, min(-(-N // 128), 256, _HIST_BUDGET // (nv * ntiles)))

@@ -1,5 +1,6 @@
 """Gaussian projector: forward against plain torch/NumPy references, gradients by finite
-differences (float64 builds), precision agreement, determinism and extreme inputs."""
+differences (float64 builds), precision agreement, determinism and extreme inputs. The key
+tests run at both vector widths (8 and 16 lanes, forced), whatever the machine's own width."""
 import math
 
 import numpy as np
@@ -8,11 +9,20 @@ import torch
 
 from clgs.gaussian_math import covariance, precision, unpack_sym
 from clgs.geometry import Geometry
-from clgs.projector import GaussianProjector, ProjectorError, project, project_packed
+from clgs.projector import WIDE, WIDTH_ENV, GaussianProjector, ProjectorError, project, project_packed, tile_width
 from clgs.reference.projection import exact_quadrature, project_dense
 
 BEAMS = ("cone", "parallel")
 MODES = ("affine", "exact")
+WIDTHS = (8, 16)
+_projectors: dict = {}
+
+
+def wproj(width):
+    """A projector forced to one vector width on every kernel (one per width, shared)."""
+    if width not in _projectors:
+        _projectors[width] = GaussianProjector(width)
+    return _projectors[width]
 
 
 def geom(beam, n_det=40, n_views=4, off=(3.0, -5.0)):
@@ -34,16 +44,17 @@ def mats_for(mode, s, q):
 
 
 # ----------------------------------------------------------------------------- forward
+@pytest.mark.parametrize("width", WIDTHS)
 @pytest.mark.parametrize("beam", BEAMS)
 @pytest.mark.parametrize("mode", MODES)
-def test_forward_matches_dense_reference(beam, mode):
+def test_forward_matches_dense_reference(beam, mode, width):
     g = geom(beam)
     m, s, q, d = scene(40)
     mats = mats_for(mode, s, q)
     ref, near = project_dense(m, mats, d, g, [0, 1, 3], mode)
     assert float(ref.max()) > 1.0  # the scene is seen
-    out32 = project_packed(m.float(), mats.float(), d.float(), g, [0, 1, 3], mode)
-    out64 = project_packed(m, mats, d, g, [0, 1, 3], mode)
+    out32 = project_packed(m.float(), mats.float(), d.float(), g, [0, 1, 3], mode, wproj(width))
+    out64 = project_packed(m, mats, d, g, [0, 1, 3], mode, wproj(width))
     assert out32.dtype == torch.float32 and out64.dtype == torch.float64
     keep = ~near
     # 1e-5 relative, with an absolute floor of 2e-6 of the peak for the 3-sigma tails (float32
@@ -111,17 +122,19 @@ def test_affine_vs_exact_error_is_small_for_small_gaussians_and_bounded_for_larg
 
 
 # ----------------------------------------------------------------------------- gradients
+@pytest.mark.parametrize("width", WIDTHS)
 @pytest.mark.parametrize("beam", BEAMS)
 @pytest.mark.parametrize("mode", MODES)
-def test_gradcheck(beam, mode):
+def test_gradcheck(beam, mode, width):
     g = geom(beam, n_det=12, n_views=3)
     m, s, q, d = scene(3, lo=0.12, hi=0.25, spread=0.7, seed=11)
     args = [t.clone().requires_grad_() for t in (m, s, q, d)]
-    f = lambda *a: project(*a, g, [0, 2], mode)  # noqa: E731
+    f = lambda *a: project(*a, g, [0, 2], mode, wproj(width))  # noqa: E731
     assert torch.autograd.gradcheck(f, args, eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
-def test_gradcheck_exact_straddling_source():
+@pytest.mark.parametrize("width", WIDTHS)
+def test_gradcheck_exact_straddling_source(width):
     g = geom("cone", n_det=12, n_views=1, off=(0, 0))
     src = torch.as_tensor(g.view_vectors()[0, :3])
     m = src + torch.tensor([[0.1, 0.05, 0.0], [-0.3, 0.1, 0.1], [0.4, -0.2, 0.05]], dtype=torch.float64)
@@ -129,7 +142,7 @@ def test_gradcheck_exact_straddling_source():
     q = torch.randn(3, 4, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
     d = torch.tensor([0.5, 1.0, 0.7], dtype=torch.float64)
     args = [t.clone().requires_grad_() for t in (m, s, q, d)]
-    f = lambda *a: project(*a, g, [0], "exact")  # noqa: E731
+    f = lambda *a: project(*a, g, [0], "exact", wproj(width))  # noqa: E731
     assert torch.autograd.gradcheck(f, args, eps=1e-6, atol=1e-6, rtol=1e-4)
     out = f(*args).detach()
     ref, _ = project_dense(m, precision(s, q), d, g, [0], "exact")
@@ -137,14 +150,15 @@ def test_gradcheck_exact_straddling_source():
     assert float((out - ref).abs().max()) < 1e-10 * float(ref.max())
 
 
+@pytest.mark.parametrize("width", WIDTHS)
 @pytest.mark.parametrize("mode", MODES)
-def test_partial_and_cached_gradients_match_full(mode):
+def test_partial_and_cached_gradients_match_full(mode, width):
     """The NO_GRAD_* builds give the same numbers for what they do compute, and a backward that
     reuses the forward's set-up (token) gives the same as one that recomputes it."""
     g = geom("cone", n_det=16, n_views=2)
     m, s, q, d = scene(6, seed=5)
     mats = mats_for(mode, s, q)
-    proj = GaussianProjector()
+    proj = GaussianProjector(width)
     gout = np.random.default_rng(0).random((2, 16, 16))
     args = (m.numpy(), mats.numpy(), d.numpy(), g, [0, 1], mode, gout)
     full = proj.backward(*args)
@@ -183,7 +197,8 @@ def test_float32_agrees_with_float64(beam, mode):
 @pytest.mark.parametrize("beam", BEAMS)
 @pytest.mark.parametrize("mode", MODES)
 @pytest.mark.parametrize("dtype", (np.float32, np.float64))
-def test_gaussian_gradients_do_not_depend_on_their_neighbours(beam, mode, dtype):
+@pytest.mark.parametrize("width", WIDTHS)
+def test_gaussian_gradients_do_not_depend_on_their_neighbours(beam, mode, dtype, width):
     """The backward works on runs of Gaussians (affine: 8 per vector, one per lane); a
     Gaussian's gradient depends on dL/dI and itself only, so it must come out bit for bit the
     same whatever run or lane it lands in, with culled and partial runs around it."""
@@ -194,7 +209,7 @@ def test_gaussian_gradients_do_not_depend_on_their_neighbours(beam, mode, dtype)
     mats = mats_for(mode, s, q)
     args = [t.numpy().astype(dtype) for t in (m, mats, d)]
     gout = np.random.default_rng(3).random((2, 24, 24)).astype(dtype)
-    proj = GaussianProjector()
+    proj = wproj(width)
     full = proj.backward(*args, g, [0, 2], mode, gout)
     assert np.abs(full[0]).max() > 0
     for pick in ([0, 9, 18, 5], [7, 3], [18]):
@@ -203,12 +218,13 @@ def test_gaussian_gradients_do_not_depend_on_their_neighbours(beam, mode, dtype)
             np.testing.assert_array_equal(part[k], full[k][pick])
 
 # ----------------------------------------------------------------------------- determinism
+@pytest.mark.parametrize("width", WIDTHS)
 @pytest.mark.parametrize("mode", MODES)
-def test_bitwise_reproducible_with_crowded_tiles(mode):
+def test_bitwise_reproducible_with_crowded_tiles(mode, width):
     g = geom("cone", n_det=64, n_views=2)
     m, s, q, d = scene(3000, dtype=torch.float32, lo=0.01, hi=0.05, spread=0.3, seed=4)
     args = [t.clone().requires_grad_() for t in (m, s, q, d)]
-    proj = GaussianProjector()
+    proj = GaussianProjector(width)
     outs, grads = [], []
     for _ in range(2):
         for t in args:
@@ -222,20 +238,21 @@ def test_bitwise_reproducible_with_crowded_tiles(mode):
     for a, b in zip(*grads):
         assert torch.equal(a, b)
     # a fresh projector (fresh buffers) gives the same bits too
-    assert torch.equal(project(*[t.detach() for t in args], g, [0, 1], mode), outs[0])
+    assert torch.equal(project(*[t.detach() for t in args], g, [0, 1], mode, GaussianProjector(width)), outs[0])
 
 
 
 @pytest.mark.parametrize("mode", MODES)
 def test_tile_shape_does_not_change_the_image(mode):
-    """Every pixel sums its Gaussians in index order with the same arithmetic whatever the
-    forward's tile (8 x 64 on CPUs, 8 x 16 on GPUs), so the images agree bit for bit."""
+    """Every pixel sums its Gaussians in index order with the same arithmetic lane by lane
+    whatever the forward's tile and vector width (8 or 16 x 64 on CPUs, 8 x 16 or 16 x 8 on
+    GPUs), so the images agree bit for bit."""
     g = geom("cone", n_det=80, n_views=2)
     m, s, q, d = scene(400, dtype=torch.float32, lo=0.01, hi=0.06, spread=0.9, seed=6)
     mats = mats_for(mode, s, q)
     args = (m.numpy(), mats.numpy(), d.numpy(), g, [0, 1], mode)
     images = []
-    for tile in ((8, 64), (8, 16), (8, 8)):
+    for tile in ((8, 64), (8, 16), (8, 8), (16, 64), (16, 8)):
         proj = GaussianProjector()
         proj.tile = tile
         images.append(proj.forward(*args))
@@ -243,17 +260,18 @@ def test_tile_shape_does_not_change_the_image(mode):
     for im in images[1:]:
         np.testing.assert_array_equal(im, images[0])
 
+@pytest.mark.parametrize("width", WIDTHS)
 @pytest.mark.parametrize("mode", MODES)
-def test_tile_lists_grow_when_the_guess_is_too_small(mode):
+def test_tile_lists_grow_when_the_guess_is_too_small(mode, width):
     """The tile lists are sized from the previous call's pairs per Gaussian (no wait for the
     count between launches); a call that needs more runs again with larger lists, once, and
     gives the same bits as a projector that never ran short."""
     g = geom("cone", n_det=64, n_views=2)
     m, s, q, d = scene(3000, dtype=torch.float32, lo=0.01, hi=0.05, spread=0.8, seed=8)
     args = (m.numpy(), mats_for(mode, s, q).numpy(), d.numpy(), g, [0, 1], mode)
-    ref = GaussianProjector().forward(*args)
-    proj = GaussianProjector()
-    proj.tile = (8, 8)  # many (tile, Gaussian) pairs, so that a tiny guess cannot hold them
+    ref = GaussianProjector(width).forward(*args)
+    proj = GaussianProjector(width)
+    proj.tile = (width, 8)  # many (tile, Gaussian) pairs, so that a tiny guess cannot hold them
     proj._pair_ratio = 1e-4
     launches = []
     proj.on_launch = lambda name, event: launches.append(name)
@@ -266,10 +284,73 @@ def test_tile_lists_grow_when_the_guess_is_too_small(mode):
     assert launches.count("preprocess") == 1  # sized right from then on
 
 
+@pytest.mark.parametrize("beam", BEAMS)
+@pytest.mark.parametrize("mode", MODES)
+def test_vector_widths_agree(beam, mode):
+    """16-lane kernels against 8-lane ones: the forward is the same arithmetic per pixel (same
+    bits); the backward adds the pixels of a box in another order once a box is wider than 8
+    pixels, so its gradients agree to float32 rounding of the sums (measured ~3e-7 of the
+    largest entry; float64 ~1e-15), with boxes up to ~40 pixels wide here."""
+    g = geom(beam, n_det=48, n_views=2)
+    m, s, q, d = scene(60, lo=0.01, hi=0.25, spread=0.9, seed=13)
+    mats = mats_for(mode, s, q)
+    for dt, tol in ((np.float32, 4e-6), (np.float64, 1e-12)):
+        args = (m.numpy().astype(dt), mats.numpy().astype(dt), d.numpy().astype(dt), g, [0, 1], mode)
+        gout = np.random.default_rng(5).random((2, 48, 48)).astype(dt)
+        res = {}
+        for w in WIDTHS:
+            p = wproj(w)
+            assert p.widths(beam, mode) == (w, w)
+            out = p.forward(*args)
+            res[w] = (out, p.backward(*args, gout, token=p.last_token))
+        assert res[8][0].max() > 1.0
+        np.testing.assert_array_equal(res[16][0], res[8][0])
+        for g16, g8 in zip(res[16][1], res[8][1]):
+            scale = np.abs(g8).max()
+            assert scale > 0
+            np.testing.assert_allclose(g16, g8, rtol=0, atol=tol * scale)
+
+
+def test_vector_width_choice(monkeypatch):
+    """16 lanes where the device's native float vector has 16 (per kernel as WIDE says), 8
+    elsewhere; $CLGS_TILE_WIDTH forces one width on every kernel."""
+
+    class Dev:
+        def __init__(self, n):
+            self.native_vector_width_float = n
+
+    monkeypatch.delenv(WIDTH_ENV, raising=False)
+    assert tile_width(Dev(16)) == (16, False)
+    assert tile_width(Dev(8)) == (8, False) and tile_width(Dev(4)) == (8, False)
+    monkeypatch.setenv(WIDTH_ENV, "16")
+    assert tile_width(Dev(8)) == (16, True)
+    p = GaussianProjector()
+    assert p.forced and all(p.widths(b, m) == (16, 16) for b in BEAMS for m in MODES)
+    assert p.tile_for("cone", "exact")[0] == 16
+    opts = p.program("cone", "exact", "float").options
+    assert "-DTW=16" in opts and "-DBW=16" in opts
+    monkeypatch.setenv(WIDTH_ENV, "8")
+    assert all(GaussianProjector().widths(b, m) == (8, 8) for b in BEAMS for m in MODES)
+    monkeypatch.setenv(WIDTH_ENV, "12")
+    with pytest.raises(ProjectorError, match="CLGS_TILE_WIDTH must be 8 or 16"):
+        GaussianProjector()
+    with pytest.raises(ProjectorError, match="width must be 8 or 16"):
+        GaussianProjector(4)
+    # automatic width 16: each kernel as measured (the exact cone stays at 8 lanes)
+    p = GaussianProjector(16)
+    p.forced = False
+    for key, (tw, bw) in WIDE.items():
+        assert p.widths(*key) == (tw, bw)
+        assert p.tile_for(*key)[0] == tw
+        opts = p.program(*key, "float").options
+        assert f"-DTW={tw}" in opts and f"-DBW={bw}" in opts
+    assert WIDE[("cone", "affine")] == (16, 16)
+
+
 # ----------------------------------------------------------------------------- extremes
-def _finite_fwd_bwd(m, s, q, d, g, mode, views=None):
+def _finite_fwd_bwd(m, s, q, d, g, mode, views=None, projector=None):
     args = [t.clone().requires_grad_() for t in (m, s, q, d)]
-    o = project(*args, g, views, mode)
+    o = project(*args, g, views, mode, projector)
     assert torch.isfinite(o).all()
     o.sum().backward()
     for t in args:
@@ -279,7 +360,8 @@ def _finite_fwd_bwd(m, s, q, d, g, mode, views=None):
 
 @pytest.mark.parametrize("mode", MODES)
 @pytest.mark.parametrize("dtype", (torch.float32, torch.float64))
-def test_extreme_scales_thinness_and_densities(mode, dtype):
+@pytest.mark.parametrize("width", WIDTHS)
+def test_extreme_scales_thinness_and_densities(mode, dtype, width):
     g = geom("cone", n_det=48, n_views=2)
     gen = torch.Generator().manual_seed(3)
     n = 60
@@ -290,12 +372,13 @@ def test_extreme_scales_thinness_and_densities(mode, dtype):
     s[1::3, 1:] *= 1e-3  # needles
     q = torch.randn(n, 4, generator=gen).to(dtype)
     d = torch.logspace(-8, 4, n).to(dtype)[torch.randperm(n, generator=gen)]
-    o = _finite_fwd_bwd(m, s, q, d, g, mode)
+    o = _finite_fwd_bwd(m, s, q, d, g, mode, projector=wproj(width))
     assert float(o.max()) > 0
 
 
 @pytest.mark.parametrize("dtype", (torch.float32, torch.float64))
-def test_on_and_behind_source_plane(dtype):
+@pytest.mark.parametrize("width", WIDTHS)
+def test_on_and_behind_source_plane(dtype, width):
     """Cone beam: exact mode integrates Gaussians at/behind the source (t > 0 only), affine
     culls them; neither gives NaN/Inf."""
     g = geom("cone", n_det=24, n_views=1, off=(0, 0))
@@ -307,8 +390,8 @@ def test_on_and_behind_source_plane(dtype):
                      dtype=dtype)
     q = torch.tensor([[1.0, 0, 0, 0]] * 5, dtype=dtype)
     d = torch.ones(5, dtype=dtype)
-    e = _finite_fwd_bwd(m, s, q, d, g, "exact")
-    a = _finite_fwd_bwd(m, s, q, d, g, "affine")
+    e = _finite_fwd_bwd(m, s, q, d, g, "exact", projector=wproj(width))
+    a = _finite_fwd_bwd(m, s, q, d, g, "affine", projector=wproj(width))
     ref, near = project_dense(m.double(), precision(s, q).double(), d.double(), g, [0], "exact")
     tol = 1e-5 if dtype == torch.float32 else 1e-10
     assert float(ref.max()) > 1.0
@@ -337,11 +420,12 @@ def test_grazing_ray_on_edge_on_pancake(mode):
 
 
 @pytest.mark.parametrize("n_det", (1, 2048))
-def test_tiny_and_huge_detectors(n_det):
+@pytest.mark.parametrize("width", WIDTHS)
+def test_tiny_and_huge_detectors(n_det, width):
     g = Geometry.default(n_views=2, mode="cone", n_detector=n_det, n_voxel=32)
     m, s, q, d = scene(5, dtype=torch.float32, lo=0.05, hi=0.2, spread=0.3)
     for mode in MODES:
-        o = _finite_fwd_bwd(m, s, q, d, g, mode, [1])
+        o = _finite_fwd_bwd(m, s, q, d, g, mode, [1], wproj(width))
         assert o.shape == (1, n_det, n_det)
         assert float(o.max()) > 0
         if n_det == 2048:

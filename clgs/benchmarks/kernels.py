@@ -19,13 +19,19 @@ For each detector (128^2, 256^2), beam (cone, parallel) and mode (affine, exact)
   ``--torch-n`` and its time is scaled by N / torch-n (its cost is linear in N).
 * ``fwd cpu`` / ``bwd cpu``: the same calls' CPU time (all threads of the process, ms): on a
   shared machine, CPU time / cores estimates the unloaded wall time better than wall time does.
-* ``exp ceil``: the fraction of the device's own exp throughput (probe kernel: ``fast_exp8`` in
-  a loop, measured in the same run) reached by the useful evaluation rate, both per CPU-second
-  (mean of forward and backward).
+* ``exp ceil``: the fraction of the device's own exp throughput (probe kernel: the inline exp
+  in a loop at the projector's vector width, ``fast_exp16`` where the device's native float
+  vector has 16 lanes, else ``fast_exp8``; measured in the same run) reached by the useful
+  evaluation rate, both per CPU-second (mean of forward and backward). The probe is printed at
+  that width and at 8 lanes for comparison, and the widths each row's render and backward use
+  are printed before the table (``$CLGS_TILE_WIDTH=8|16`` forces one; see ``clgs.projector``).
 * For exact rows: ``err vs exact`` is max |affine - exact| / max exact of the same view, and
   ``exact/affine`` the ratio of their fwd+bwd times.
 * ``--stages``: after each row, every kernel's device time (event profiling, median ms) and
   the number of kernel launches per forward and per backward call, to see where time goes.
+* ``--widths``: after each row, the same calls with the projector forced to 8 and to 16 lanes
+  on every kernel, alternating call by call in this process (``--repeat`` rounds, medians): wall
+  and CPU milliseconds and the 8/16 ratios, to decide per kernel which width pays.
 * ``--n``, ``--det``, ``--beam``: run only these cases (each may be repeated), e.g. the
   reference case ``--n 50000 --det 256 --beam cone`` (the voxelizer rows are then left out).
 
@@ -83,12 +89,16 @@ def _useful(means, cov, geometry, view):
     return total
 
 
-def _exp_ceiling(projector, repeat):
-    """exp/s of the probe kernel: (per wall second, per CPU second of this process)."""
+def _exp_ceiling(projector, repeat, width):
+    """exp/s of the probe kernel at ``width`` lanes: (per wall second, per CPU second of this process)."""
     import numpy as np
     import pyopencl as cl
 
-    prog = projector.program("cone", "affine", "float")
+    from .. import runtime
+
+    th = (projector.TILE_CPU if projector.cpu else projector.TILE_GPU)[width][1]
+    prog = runtime.get_program("gaussian_project.cl", {"REAL": "float", "CONE": True, "TW": width, "BW": width,
+                                                       "TH": th}, projector.ctx)
     n, G = 4000, 8192
     buf = cl.Buffer(projector.ctx, cl.mem_flags.READ_WRITE, size=G * 4)
     k = prog.kernel("exp_probe")
@@ -101,7 +111,7 @@ def _exp_ceiling(projector, repeat):
         projector.queue.finish()
         ts.append(time.perf_counter() - t)
         cs.append(time.process_time() - c)
-    return G * n * 8 / _median(ts), G * n * 8 / _median(cs)
+    return G * n * width / _median(ts), G * n * width / _median(cs)
 
 
 def _time_kernels(projector, m, mats, rho, geometry, mode, repeat):
@@ -158,6 +168,29 @@ def _stages(projector, m, mats, rho, geometry, mode, repeat):
     return {ph: {k: _median(v) for k, v in t.items()} for ph, t in times.items()}, launches
 
 
+def _compare_widths(projectors, m, mats, rho, geometry, mode, repeat):
+    """{width: [fwd wall, bwd wall, fwd cpu, bwd cpu] medians (ms)}, widths alternating call by call."""
+    import numpy as np
+
+    mn, mt, rn = m.numpy(), mats.numpy(), rho.numpy()
+    gout = np.random.default_rng(0).random((1, *geometry.nDetector), dtype=np.float32)
+    times = {w: ([], [], [], []) for w in projectors}
+    for r in range(repeat + 1):
+        order = list(projectors.items()) if r % 2 == 0 else list(projectors.items())[::-1]
+        for w, p in order:
+            view = [r % geometry.n_views]
+            t, c = time.perf_counter(), time.process_time()
+            p.forward(mn, mt, rn, geometry, view, mode)
+            tf, cf = time.perf_counter() - t, time.process_time() - c
+            t, c = time.perf_counter(), time.process_time()
+            p.backward(mn, mt, rn, geometry, view, mode, gout, token=p.last_token)
+            tb, cb = time.perf_counter() - t, time.process_time() - c
+            if r:  # the first round compiles
+                for lst, x in zip(times[w], (tf, tb, cf, cb)):
+                    lst.append(x)
+    return {w: [_median(x) * 1e3 for x in ts] for w, ts in times.items()}
+
+
 def _time_torch(m, mats, rho, geometry, mode, repeat):
     import torch
 
@@ -181,11 +214,13 @@ def _time_torch(m, mats, rho, geometry, mode, repeat):
 @click.option("--repeat", default=7, show_default=True, help="timed repeats per case (median)")
 @click.option("--torch-n", default=5000, show_default=True, help="largest N timed in torch (scaled above)")
 @click.option("--stages", is_flag=True, help="also print each kernel's device time and launches per call")
+@click.option("--widths", "widths", is_flag=True,
+              help="also time each case at 8 and at 16 lanes, alternating, and print the ratios")
 @click.option("--n", "sizes_opt", type=int, multiple=True, help="numbers of Gaussians (default 10000 and 50000)")
 @click.option("--det", "dets_opt", type=click.Choice(["128", "256"]), multiple=True, help="detector sizes (default both)")
 @click.option("--beam", "beams_opt", type=click.Choice(["cone", "parallel"]), multiple=True,
               help="beams (default both)")
-def main(quick, repeat, torch_n, stages, sizes_opt, dets_opt, beams_opt):
+def main(quick, repeat, torch_n, stages, widths, sizes_opt, dets_opt, beams_opt):
     """Gaussian projector: ms, evaluations/s, fraction of the exp ceiling, speed-up over torch."""
     import torch
 
@@ -198,9 +233,18 @@ def main(quick, repeat, torch_n, stages, sizes_opt, dets_opt, beams_opt):
         repeat = min(repeat, 3)
         torch_n = min(torch_n, 2000)
     proj = GaussianProjector()
-    ceiling, ceiling_cpu = _exp_ceiling(proj, max(3, repeat))
-    click.echo(f"device exp ceiling (fast_exp8 probe): {ceiling / 1e9:.2f} G exp/s wall, "
-               f"{ceiling_cpu / 1e9:.2f} G exp per CPU-second")
+    wproj = {w: GaussianProjector(w) for w in (8, 16)} if widths else None
+    ceiling, ceiling_cpu = _exp_ceiling(proj, max(3, repeat), proj.width)
+    click.echo(f"device exp ceiling (fast_exp{proj.width} probe, the projector's width): {ceiling / 1e9:.2f} G exp/s "
+               f"wall, {ceiling_cpu / 1e9:.2f} G exp per CPU-second")
+    if proj.width != 8:
+        c8, c8_cpu = _exp_ceiling(proj, max(3, repeat), 8)
+        click.echo(f"                   (fast_exp8 probe, for comparison): {c8 / 1e9:.2f} G exp/s wall, "
+                   f"{c8_cpu / 1e9:.2f} G exp per CPU-second ({ceiling_cpu / c8_cpu:.2f}x per CPU-second at "
+                   f"{proj.width})")
+    how = "forced by $CLGS_TILE_WIDTH" if proj.forced else "from the device's native float vector width"
+    click.echo(f"vector width {proj.width} ({how}); (render, backward) lanes: "
+               + ", ".join(f"{b} {m} {proj.widths(b, m)}" for b in ("cone", "parallel") for m in ("affine", "exact")))
     header = (f"{'N':>6} {'det':>5} {'beam':>8} {'mode':>6} | {'fwd ms':>7} {'bwd ms':>7} "
               f"{'fwd cpu':>7} {'bwd cpu':>7} | {'fwd Geval/s':>11} {'bwd Geval/s':>11} {'exp ceil':>8} | "
               f"{'torch ms':>9} {'x torch':>7} | {'err vs exact':>12} {'exact/affine':>12}")
@@ -236,6 +280,13 @@ def main(quick, repeat, torch_n, stages, sizes_opt, dets_opt, beams_opt):
                         ratio = (fwd + bwd) / (res["affine"][0] + res["affine"][1])
                         line += f" {err:12.2e} {ratio:12.2f}"
                     click.echo(line)
+                    if widths:
+                        r = _compare_widths(wproj, m, mats, rho, g, mode, repeat)
+                        a, b = r[8], r[16]
+                        click.echo(f"    8 vs 16 lanes: fwd {a[0]:.2f} / {b[0]:.2f} ms ({a[0] / b[0]:.2f}x), "
+                                   f"bwd {a[1]:.2f} / {b[1]:.2f} ms ({a[1] / b[1]:.2f}x); CPU ms: fwd {a[2]:.2f} / "
+                                   f"{b[2]:.2f} ({a[2] / b[2]:.2f}x), bwd {a[3]:.2f} / {b[3]:.2f} ({a[3] / b[3]:.2f}x); "
+                                   f"16 lanes: {useful / b[0] / 1e6:.2f} / {useful / b[1] / 1e6:.2f} Geval/s")
                     if stages:
                         ms, launches = _stages(proj, m, mats, rho, g, mode, repeat)
                         for ph in ("fwd", "bwd"):
