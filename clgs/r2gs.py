@@ -156,11 +156,14 @@ def value_scale_from(volume: np.ndarray) -> float:
 
 
 def tv_term(size: int):
-    """TV of the model voxelised on a random ``size^3`` block of the volume grid."""
+    """TV of the model voxelised on a random ``size^3`` block of the volume grid (on the OpenCL
+    backend one fused device pass: cull, field, TV and its gradient, see :mod:`clgs.tv_patch`)."""
 
     def fn(ctx):
+        from clgs.tv_patch import patch_tv
+
         grid = ctx.geometry.volume_grid(scene=True)
-        return L.tv3d(ctx.voxelize(L.random_block(grid, size, ctx.generator)))
+        return patch_tv(ctx.trainer.backend, ctx.tensors, L.random_block(grid, size, ctx.generator))
 
     return fn
 

@@ -27,6 +27,11 @@ or float64 by the inputs' dtype; CPU tensors):
   covariances with it too.
 * ``Voxelizer``: owns the compiled programs and scratch buffers; the module functions share one.
 
+The TV loss on a small block (R2-Gaussian's random 32^3 patch) has a fused form in
+``clgs.tv_patch`` (culling, field, TV and gradient rows on the device in one batch, one wait),
+built from the kernels here (``patch_*`` in ``cl/voxelize.cl``, with ``vox_grid`` writing a padded
+layout and the gradient sums shared with ``vox_grid_grad``).
+
 Accuracy: float32 kernels match the float32 torch reference to ~1e-7 of the peak. For very thin
 Gaussians (scale ratios near 1e-3) ``d^T P d`` cancels in float32 whatever the order of
 operations (P holds 1/s^2 next to O(1) values), so the field near them is good to about 1% of
@@ -149,6 +154,30 @@ def grid_candidates(means: torch.Tensor, half_widths: torch.Tensor, grid: Grid):
         return None if idx.numel() == n else idx
 
 
+_declared: set = set()
+_declared_lock = threading.Lock()
+
+
+def _declare_scalars(kernel, args) -> None:
+    """Tell pyopencl the kernel's scalar argument types (from the NumPy scalars of its first call):
+    its argument setter then packs them directly, ~3 us per launch instead of ~100 us for a
+    kernel with twenty arguments (a cost paid on the host at every launch otherwise)."""
+    key = id(kernel)
+    if key in _declared:
+        return
+    dtypes = []
+    for a in args:
+        if isinstance(a, runtime.cl.MemoryObjectHolder):
+            dtypes.append(None)
+        elif isinstance(a, np.generic):
+            dtypes.append(a.dtype)
+        else:  # a Python number: leave pyopencl's own conversion
+            return
+    kernel.set_scalar_arg_dtypes(dtypes)
+    with _declared_lock:
+        _declared.add(key)
+
+
 class _PointBins:
     """Points sorted by a coarse cell grid, each cell padded to a multiple of 8.
 
@@ -268,6 +297,7 @@ class Voxelizer:
         return buf
 
     def _run(self, kernel, n_items: int, *args):
+        _declare_scalars(kernel, args)
         kernel.set_args(*args)
         runtime.cl.enqueue_nd_range_kernel(self.queue, kernel, (_round_up(max(n_items, 1), _LOCAL),), (_LOCAL,))
 
@@ -363,7 +393,8 @@ class Voxelizer:
         if length:
             obuf = self._output(out)
             self._run(prog.kernel("vox_grid"), nbricks, packed, start, lst, np.int32(indexed), xb, yb, zb,
-                      np.int32(nx), np.int32(ny), np.int32(nz), np.int32(nbx), np.int32(nby), np.int32(nbricks), obuf)
+                      np.int32(nx), np.int32(ny), np.int32(nz), np.int32(nbx), np.int32(nby), np.int32(nbricks), obuf,
+                      np.int32(nx), np.int32(0))
             self._fetch(obuf, out)
         else:
             self.queue.finish()

@@ -76,7 +76,8 @@ def _breakdown(trainer, n: int = 10) -> dict:
     from clgs import losses as L
     from clgs import ssim_cl
     from clgs.projector import project_packed
-    from clgs.trainer import Backend, Context
+    from clgs.trainer import Context
+    from clgs.tv_patch import tv_patch
     from clgs.voxelizer import cov_prec
 
     geo = trainer.geometry
@@ -121,8 +122,8 @@ def _breakdown(trainer, n: int = 10) -> dict:
         "covariance + precision (N,6)": lambda: sum(m.sum() for m in cov_prec(*sq)[:2]).backward(),
         "projection kernels": lambda: project_packed(*ins, geo, [view]).sum().backward(),
         "L1 + D-SSIM": image_terms,
-        "TV 32^3 patch (cull, kernels)": lambda: L.tv3d(Backend.voxelize_shared(
-            vox[0], vox[1], vox[2], extent, L.random_block(grid, 32, trainer.generator))).backward(),
+        "TV 32^3 patch (cull, kernels)": lambda: tv_patch(
+            vox[0], vox[1], vox[2], extent, L.random_block(grid, 32, trainer.generator)).backward(),
         "Adam": adam.step,
     }
     if densifier is not None:

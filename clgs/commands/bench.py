@@ -10,6 +10,7 @@ import click
 BENCHMARKS = {
     "kernels": ("clgs.benchmarks.kernels", "Gaussian projector and voxelizer: ms, evaluations/s, speed-up over torch"),
     "ct": ("clgs.benchmarks.ct", "FDK and SART: wall time and quality at 5-50 views; against scikit-image"),
+    "tv-patch": ("clgs.benchmarks.tv_patch", "TV patch: the fused device pass against the unfused path, same patches"),
     "train": ("clgs.benchmarks.train", "training iterations per second against the same iteration in torch"),
 }
 
