@@ -1,10 +1,10 @@
 /* Gaussian X-ray projector: forward (pixel-centric, tile owner) and backward (Gaussian-centric
  * gather). Switches and conventions: project_setup.h and clgs/projector.py.
  *
- * Forward: one work-item owns a TW x TH tile (TW = 8 or 16 pixels = one realW row) of one view
- * and walks the tile's Gaussian list (counted by preprocess, laid out by binning.cl's bin_offsets
- * and fill, all on the device, in index order), touching
- * only the rows inside each Gaussian's box. Backward: one work-item per run of Gaussians walks
+ * Forward, two kernels: preprocess (set-up of every (Gaussian, view) and the per-tile lists, all
+ * on the device, in index order) and render: one work-item owns a TW x TH tile (TW = 8 or 16
+ * pixels = one realW row) of one view and walks the tile's Gaussian list, touching only the rows
+ * inside each Gaussian's box. Backward: one work-item per run of Gaussians walks
  * each one's own box in every view, in BW-pixel segments (8 or 16) from the box's left edge
  * (segments outer, rows inner), gathers dL/dI into moment sums, then applies the chain rule once
  * per view (affine: for 8 Gaussians at once, one per lane). Neither needs atomics; both are
@@ -230,12 +230,112 @@ inline void preprocess_exact8(const int g0, const int view, const int N, const i
 
 #endif
 
+/* ------------------------------------------------------------------ tile lists */
+/* The render's per-tile lists are built inside the set-up kernel, with no separate pass over
+ * the Gaussians: every (chunk, view) work-item lays its own Gaussians out tile by tile (a
+ * counting sort within the chunk: count, prefix, place) in a region of the lists it takes with
+ * one integer atomic add on a shared counter. Regions land in any order, but the render walks
+ * a tile's segment in every chunk's region, chunks in index order, so each tile still sees its
+ * Gaussians in index order whatever the device does: the sums are bitwise reproducible, and the
+ * same as with one global list per tile. (No float atomics; the one int atomic per chunk only
+ * picks where a region lies, never an order of summation.) */
+
+/* Count the tiles box b covers (kept == 0: none) into cnt, four arrays of ntiles counts, one
+ * per corner of a box of up to 2 x 2 tiles (nearly all, with the tall CPU tiles): branch-free,
+ * as the tile spans are random and a mispredicted loop exit costs more than the adds, and in
+ * four arrays so that the adds of one box never wait for each other through memory (the
+ * corners a box does not reach add 0). Larger boxes go into the first array. */
+inline void count_box(const int4 b, const int kept, const int ntx, const int ntiles, __global int *cnt)
+{
+    const int tx0 = (uint)b.x / TW, tx1 = (uint)b.y / TW, ty0 = (uint)b.z / TH, ty1 = (uint)b.w / TH;
+    if (tx1 - tx0 <= 1 && ty1 - ty0 <= 1) {
+        const int ex = tx1 > tx0, ey = ty1 > ty0;
+        cnt[ty0 * ntx + tx0] += kept;
+        cnt[ntiles + ty0 * ntx + tx1] += kept & ex;
+        cnt[2 * ntiles + ty1 * ntx + tx0] += kept & ey;
+        cnt[3 * ntiles + ty1 * ntx + tx1] += kept & ex & ey;
+        return;
+    }
+    if (!kept) return;
+    for (int ty = ty0; ty <= ty1; ty++)
+        for (int tx = tx0; tx <= tx1; tx++) cnt[ty * ntx + tx] += 1;
+}
+
+/* The counts (count_box) to tile starts, shifted by one: cs[0] = 0 and cs[t + 1] = tile t's
+ * start, the cursor place_box advances to tile t + 1's start. Returns the chunk's pair count. */
+inline int prefix_counts(const int ntiles, __global const int *cnt, __global int *cs)
+{
+    int s = 0;
+    cs[0] = 0;
+    for (int t = 0; t < ntiles; t++) {
+        cs[t + 1] = s;
+        s += cnt[t] + cnt[ntiles + t] + cnt[2 * ntiles + t] + cnt[3 * ntiles + t];
+    }
+    return s;
+}
+
+/* Copy Gaussian g's record (with its box's first and last row in the slots the render reads
+ * them from) to the next entry of every tile segment its box b covers, in the chunk's region
+ * lst / gidx. After the chunk's last Gaussian, cs[t] is tile t's start and cs[ntiles] the
+ * region's size. (A branch-free variant for boxes of up to 2 x 2 tiles, as count_box, measured
+ * no faster: this pass is bound by the stores.) */
+inline void place_box(const int g, const int4 b, const int ntx, __global int *cs,
+                      __global const real *r, __global real *lst, __global int *gidx)
+{
+    const int tx0 = (uint)b.x / TW, tx1 = (uint)b.y / TW, ty0 = (uint)b.z / TH, ty1 = (uint)b.w / TH;
 #ifndef EXACT
-/* Affine: Gaussians [g0, g0 + 8) of one view at once, one per lane (setup_affine8). Lanes past
- * N repeat Gaussian N - 1 and are not written. */
+    const real8 R = LD8G(r); /* the affine record already holds the rows (preprocess8) */
+#endif
+    for (int ty = ty0; ty <= ty1; ty++)
+        for (int tx = tx0; tx <= tx1; tx++) {
+            const int pos = cs[1 + ty * ntx + tx]++;
+            __global real *P = lst + (size_t)pos * REC;
+#ifndef EXACT
+            ST8G(P) = R;
+#else
+            for (int i = 0; i + 8 <= REC; i += 8) ST8G(P + i) = LD8G(r + i);
+            for (int i = REC / 8 * 8; i < REC; i++) P[i] = r[i];
+            P[ROW0_SLOT] = (real)b.z;
+            P[ROW1_SLOT] = (real)b.w;
+#endif
+#if defined(EXACT) && defined(CONE)
+            gidx[pos] = g; /* the render needs it for straddling Gaussians only */
+#endif
+        }
+}
+
+#ifndef EXACT
+/* 8 x 8 transpose, y[j] lane i = x[i] lane j, in three rounds of pairwise shuffles (the
+ * records of 8 Gaussians as 8 vector stores: about 4% off the set-up kernel against 64 scalar
+ * ones) */
+inline void transpose8(const real8 *x, real8 *y)
+{
+    real8 a[8], b[8];
+    /* a[i], a[i + 1] (i even): rows i and i + 1 interleaved, columns 0 1 4 5 and 2 3 6 7 */
+    for (int i = 0; i < 8; i += 2) {
+        a[i] = (real8)(x[i].s0, x[i + 1].s0, x[i].s1, x[i + 1].s1, x[i].s4, x[i + 1].s4, x[i].s5, x[i + 1].s5);
+        a[i + 1] = (real8)(x[i].s2, x[i + 1].s2, x[i].s3, x[i + 1].s3, x[i].s6, x[i + 1].s6, x[i].s7, x[i + 1].s7);
+    }
+    /* b[i + m] (i = 0, 4; m = 0 .. 3): rows i .. i + 3 of column m, then of column m + 4 */
+    for (int i = 0; i < 8; i += 4)
+        for (int h = 0; h < 2; h++) {
+            const real8 p = a[i + h], q = a[i + 2 + h];
+            b[i + 2 * h] = (real8)(p.s01, q.s01, p.s45, q.s45);
+            b[i + 2 * h + 1] = (real8)(p.s23, q.s23, p.s67, q.s67);
+        }
+    for (int m = 0; m < 4; m++) {
+        y[m] = (real8)(b[m].lo, b[4 + m].lo);
+        y[m + 4] = (real8)(b[m].hi, b[4 + m].hi);
+    }
+}
+
+/* Affine: Gaussians [g0, g0 + 8) of one view at once, one per lane (setup_affine8): their
+ * records and boxes (culled: (1, 0, 1, 0)) into rec and box, and their tiles counted into cnt.
+ * Lanes past N repeat Gaussian N - 1 and are neither written nor counted. */
 inline void preprocess8(const int g0, const int view, const int N, const int U, const int V, const real scale,
-                        __global const real *means, __global const real *mats, __global const real *rho,
-                        __global const real *vparams, __global real *rec, __global int4 *box)
+                        const int ntx, __global const real *means, __global const real *mats,
+                        __global const real *rho, __global const real *vparams, __global real *rec,
+                        __global int4 *box, const int ntiles, __global int *cnt)
 {
     real8 in[10];
     gather8(g0, N, means, mats, rho, in);
@@ -243,104 +343,93 @@ inline void preprocess8(const int g0, const int view, const int N, const int U, 
     p.x = in[0]; p.y = in[1]; p.z = in[2];
     Frame8 f;
     const Splat8 sp = setup_affine8(p, in + 3, load_view(vparams, view), scale, U, V, &f);
-    /* the record: centre, amplitude, straddle flag (0), -q/2 coefficients, amplitude per density */
-    const real8 out[REC] = {sp.uc, sp.vc, in[9] * sp.amp0, (real8)(RC(0.0)),
-                            RC(-0.5) * sp.k0, -sp.k1, RC(-0.5) * sp.k2, sp.amp0};
-    const int8 bx[4] = {sp.u0, sp.u1, sp.v0, sp.v1};
-    const mask8 ok = sp.ok;
-    for (int j = 0; j < 8 && g0 + j < N; j++) {
-        const size_t idx = (size_t)view * N + g0 + j;
-        if (!((const mask1 *)&ok)[j]) {
-            box[idx] = (int4)(1, 0, 1, 0);
-            continue;
+    const int8 ok = convert_int8(sp.ok) & (sp.u0 <= sp.u1) & (sp.v0 <= sp.v1); /* kept, box not empty */
+    const int8 u0 = ok ? sp.u0 : (int8)(1), u1 = ok ? sp.u1 : (int8)(0);
+    const int8 v0 = ok ? sp.v0 : (int8)(1), v1 = ok ? sp.v1 : (int8)(0);
+    /* the record: centre, amplitude, first row of the box, -q/2 coefficients, last row (the
+     * backward recomputes its set-up, so the record only serves the render) */
+    const real8 out[8] = {sp.uc, sp.vc, in[9] * sp.amp0, convert_real8(v0),
+                          RC(-0.5) * sp.k0, -sp.k1, RC(-0.5) * sp.k2, convert_real8(v1)};
+    const size_t idx0 = (size_t)view * N + g0;
+    if (g0 + 8 <= N) {
+        real8 r[8];
+        transpose8(out, r);
+        for (int j = 0; j < 8; j++) ST8G(rec + (idx0 + j) * REC) = r[j];
+        box[idx0] = (int4)(u0.s0, u1.s0, v0.s0, v1.s0);
+        box[idx0 + 1] = (int4)(u0.s1, u1.s1, v0.s1, v1.s1);
+        box[idx0 + 2] = (int4)(u0.s2, u1.s2, v0.s2, v1.s2);
+        box[idx0 + 3] = (int4)(u0.s3, u1.s3, v0.s3, v1.s3);
+        box[idx0 + 4] = (int4)(u0.s4, u1.s4, v0.s4, v1.s4);
+        box[idx0 + 5] = (int4)(u0.s5, u1.s5, v0.s5, v1.s5);
+        box[idx0 + 6] = (int4)(u0.s6, u1.s6, v0.s6, v1.s6);
+        box[idx0 + 7] = (int4)(u0.s7, u1.s7, v0.s7, v1.s7);
+    } else {
+        for (int j = 0; j < 8 && g0 + j < N; j++) {
+            box[idx0 + j] = (int4)(((const int *)&u0)[j], ((const int *)&u1)[j], ((const int *)&v0)[j],
+                                   ((const int *)&v1)[j]);
+            for (int i = 0; i < REC; i++) rec[(idx0 + j) * REC + i] = ((const real *)&out[i])[j];
         }
-        box[idx] = (int4)(((const int *)&bx[0])[j], ((const int *)&bx[1])[j], ((const int *)&bx[2])[j],
-                          ((const int *)&bx[3])[j]);
-        for (int i = 0; i < REC; i++) rec[idx * REC + i] = ((const real *)&out[i])[j];
     }
+    for (int j = 0; j < 8 && g0 + j < N; j++)
+        count_box((int4)(((const int *)&u0)[j], ((const int *)&u1)[j], ((const int *)&v0)[j], ((const int *)&v1)[j]),
+                  ((const int *)&ok)[j] & 1, ntx, ntiles, cnt);
 }
 #endif
 
 /* Work-item (c, view) handles the Gaussians [c chunk, (c + 1) chunk) of one view (affine:
- * chunk is a multiple of 8): their records and boxes, then their counts per tile into its own
- * histogram column (binning.cl), while the boxes are still in cache. */
+ * chunk is a multiple of 8): their records and boxes into rec and box (the exact backward reuses
+ * them), then their tile lists (see above): tile starts within the region in row view nchunks
+ * + c of cst (its last entry the region's size), the region's first entry in rbase. alloc[0]
+ * counts the entries taken (zero before the launch); a region that does not fit below cap is not
+ * written and gets rbase -1 (the host sees the count, grows the lists and runs again), and
+ * alloc[1] gets 1 if the count passed 2^31 - 1. */
 __kernel void preprocess(const int N, const int chunk, const int nchunks, const int U, const int V,
-                         const real scale, const int ntx, const int ntiles,
+                         const real scale, const int ntx, const int ntiles, const int cap,
                          __global const real *means, __global const real *mats, __global const real *rho,
                          __global const real *vparams, __global real *rec, __global int4 *box,
-                         __global int *hist)
+                         __global int *cnts, __global int *cst, __global int *rbase, volatile __global int *alloc,
+                         __global real *lst, __global int *gidx)
 {
     const int c = get_global_id(0);
     const int view = get_global_id(1);
     if (c >= nchunks) return;
     const int ga = c * chunk, g1 = min(N, (c + 1) * chunk);
+    const size_t region = (size_t)view * nchunks + c;
+    __global int *cs = cst + region * (ntiles + 1), *cnt = cnts + region * 4 * ntiles;
+    for (int t = 0; t < 4 * ntiles; t++) cnt[t] = 0;
 #if !defined(EXACT)
     for (int g = ga; g < g1; g += 8)
-        preprocess8(g, view, N, U, V, scale, means, mats, rho, vparams, rec, box);
-#elif defined(CONE)
+        preprocess8(g, view, N, U, V, scale, ntx, means, mats, rho, vparams, rec, box, ntiles, cnt);
+#else
+#if defined(CONE)
     for (int g = ga; g < g1; g += 8)
         preprocess_exact8(g, view, N, U, V, scale, means, mats, rho, vparams, rec, box);
 #else
     for (int g = ga; g < g1; g++)
         preprocess_one(g, view, N, U, V, scale, means, mats, rho, vparams, rec, box);
 #endif
-    __global int *h = hist + ((size_t)view * nchunks + c) * ntiles;
-    for (int t = 0; t < ntiles; t++) h[t] = 0;
     for (int g = ga; g < g1; g++) {
         const int4 b = box[(size_t)view * N + g];
-        if (b.x > b.y) continue;
-        const int tx0 = b.x / TW, tx1 = b.y / TW, ty0 = b.z / TH, ty1 = b.w / TH;
-        for (int ty = ty0; ty <= ty1; ty++)
-            for (int tx = tx0; tx <= tx1; tx++) h[ty * ntx + tx] += 1;
+        count_box(b, b.x <= b.y && b.z <= b.w, ntx, ntiles, cnt);
     }
-}
-
-/* Where a view's lists begin: the views before it come first (bin_offsets, binning.cl) */
-inline long view_base(__global const int *starts, int view, int ntiles)
-{
-    long base = 0;
-    for (int w = 0; w < view; w++) base += starts[(size_t)w * (ntiles + 1) + ntiles];
-    return base;
+#endif
+    const int n = prefix_counts(ntiles, cnt, cs);
+    const int base = atomic_add(alloc, n);
+    if (n < 0 || base < 0 || (long)base + n > (long)INT_MAX) atomic_or(alloc + 1, 1);
+    const int fits = n >= 0 && base >= 0 && (long)base + n <= (long)cap;
+    rbase[region] = fits ? base : -1;
+    if (!fits) return;
+    __global real *l = lst + (size_t)base * REC;
+    __global int *gi = gidx + base;
+    for (int g = ga; g < g1; g++) {
+        const size_t idx = (size_t)view * N + g;
+        const int4 b = box[idx];
+        if (b.x > b.y || b.z > b.w) continue;
+        place_box(g, b, ntx, cs, rec + idx * REC, l, gi);
+    }
 }
 
 /* ------------------------------------------------------------------ forward */
-/* Last binning pass (see binning.cl): each (chunk, view) work-item writes its Gaussians, in
- * index order, at its own offsets in the tile lists, together with a copy of their record and
- * row range, so that the render reads every list front to back instead of gathering records
- * from all over memory (that gather, not the arithmetic, was what bounded the render). */
-__kernel void fill(const int N, const int chunk, const int nchunks, const int ntx, const int ntiles,
-                   const long cap, __global const int4 *box, __global const real *rec, __global int *hist,
-                   __global const int *starts, __global int *list, __global real *prec)
-{
-    const int c = get_global_id(0);
-    const int view = get_global_id(1);
-    if (c >= nchunks) return;
-    __global int *h = hist + ((size_t)view * nchunks + c) * ntiles;
-    const long base = view_base(starts, view, ntiles);
-    const int g1 = min(N, (c + 1) * chunk);
-    for (int g = c * chunk; g < g1; g++) {
-        const size_t idx = (size_t)view * N + g;
-        const int4 b = box[idx];
-        if (b.x > b.y) continue;
-        const int tx0 = b.x / TW, tx1 = b.y / TW, ty0 = b.z / TH, ty1 = b.w / TH;
-        for (int ty = ty0; ty <= ty1; ty++)
-            for (int tx = tx0; tx <= tx1; tx++) {
-                const int t = ty * ntx + tx;
-                const long pos = base + h[t];
-                h[t] += 1;
-                if (pos < 0 || pos >= cap) continue; /* lists too small: the host grows them and runs again */
-#if defined(EXACT) && defined(CONE)
-                list[pos] = g; /* the render needs it for straddling Gaussians only */
-#endif
-                __global real *P = prec + (size_t)pos * REC;
-                for (int i = 0; i + 8 <= REC; i += 8) ST8G(P + i) = LD8G(rec + idx * REC + i);
-                for (int i = REC / 8 * 8; i < REC; i++) P[i] = rec[idx * REC + i];
-                P[ROW0_SLOT] = (real)b.z;
-                P[ROW1_SLOT] = (real)b.w;
-            }
-    }
-}
-
 #if defined(EXACT) && defined(CONE)
 /* straddle_eval's value on a render row of TW pixels (it works on 8: twice for 16) */
 inline realW straddle_row(real3 p, const real *S, View Vw, real amp0, realW uu, real v)
@@ -355,10 +444,11 @@ inline realW straddle_row(real3 p, const real *S, View Vw, real amp0, realW uu, 
 }
 #endif
 
-/* One work-item per TW x TH tile; a tile row is one realW (TW lanes). */
-__kernel void render(const int U, const int V, const int ntx, const int ntiles, const long cap,
-                     __global const real *prec, __global const int *starts,
-                     __global const int *list, __global const real *means, __global const real *mats,
+/* One work-item per TW x TH tile; a tile row is one realW (TW lanes). The tile's list is its
+ * segment in every chunk's region (preprocess), chunks in order. */
+__kernel void render(const int U, const int V, const int ntx, const int ntiles, const int nchunks,
+                     __global const real *lst, __global const int *cst, __global const int *rbase,
+                     __global const int *gidx, __global const real *means, __global const real *mats,
                      __global const real *rho, __global const real *vparams, const real scale,
                      __global real *out)
 {
@@ -370,54 +460,55 @@ __kernel void render(const int U, const int V, const int ntx, const int ntiles, 
     realW acc[TH];
     for (int r = 0; r < TH; r++) acc[r] = zero;
     const realW uu = (real)u0 + LANESW;
-    const long base = view_base(starts, view, ntiles);
-    __global const int *st = starts + (size_t)view * (ntiles + 1);
-    long lb = base + st[tile], le = base + st[tile + 1];
-    lb = lb < 0 ? 0 : lb > cap ? cap : lb; /* an overflowing call is run again */
-    le = le < lb ? lb : le > cap ? cap : le;
-    const int beg = (int)lb, end = (int)le; /* cap < 2^31 */
-    for (int k = beg; k < end; k++) {
-        __global const real *R = prec + (size_t)k * REC;
-        const int2 b = (int2)((int)R[ROW0_SLOT], (int)R[ROW1_SLOT]);
-        const int r0 = (b.x > v0 ? b.x : v0) - v0, r1 = (b.y < v0 + TH - 1 ? b.y : v0 + TH - 1) - v0;
-        const real uc = R[0], vc = R[1], amp = R[2];
-        /* t = -q/2 log2(e), so that the exponential is expW(t) (splat_exp2_8 / _16) */
-        const real lk0 = R[4] * RC(LOG2E), lk1 = R[5] * RC(LOG2E), lk2 = R[6] * RC(LOG2E);
-        const realW du = uu - uc;
+    for (int c = 0; c < nchunks; c++) {
+        const size_t region = (size_t)view * nchunks + c;
+        __global const int *cs = cst + region * (ntiles + 1);
+        const int base = rbase[region];
+        if (base < 0) continue; /* the region did not fit: the call runs again */
+        const int end = base + cs[tile + 1];
+        for (int k = base + cs[tile]; k < end; k++) {
+            __global const real *R = lst + (size_t)k * REC;
+            const int2 b = (int2)((int)R[ROW0_SLOT], (int)R[ROW1_SLOT]);
+            const int r0 = (b.x > v0 ? b.x : v0) - v0, r1 = (b.y < v0 + TH - 1 ? b.y : v0 + TH - 1) - v0;
+            const real uc = R[0], vc = R[1], amp = R[2];
+            /* t = -q/2 log2(e), so that the exponential is expW(t) (splat_exp2_8 / _16) */
+            const real lk0 = R[4] * RC(LOG2E), lk1 = R[5] * RC(LOG2E), lk2 = R[6] * RC(LOG2E);
+            const realW du = uu - uc;
 #if defined(EXACT) && defined(CONE)
-        if (R[3] != RC(0.0)) {
-            const int g = list[k];
-            real3 p;
-            real S[6];
-            load_gauss(g, means, mats, &p, S);
-            const View Vw = load_view(vparams, view);
-            for (int r = r0; r <= r1; r++)
-                acc[r] += rho[g] * straddle_row(p, S, Vw, sqrt(RC(TWO_PI)) / scale, uu, (real)(v0 + r));
-            continue;
-        }
-        /* numerator -N'/2 log2(e), a' and dd' as polynomials in dv with the du parts once */
-        const real a1 = R[7], a2 = R[8], a3 = R[9], a4 = R[10], a5 = R[11];
-        const real d0 = R[12], d1 = R[13], d2 = R[14], d3 = R[15], d4 = R[16], d5 = R[17];
-        const realW Ndu = lk0 * du * du, NB = lk1 * du;
-        const realW Adu = RC(1.0) + (RC(2.0) * a1 + a3 * du) * du, AB = RC(2.0) * (a4 * du + a2);
-        const realW Ddu = d0 + (RC(2.0) * d1 + d3 * du) * du, DB = RC(2.0) * (d4 * du + d2);
-        for (int r = r0; r <= r1; r++) {
-            const realW dv = (realW)((real)(v0 + r) - vc);
-            const realW A = Adu + dv * (AB + a5 * dv);
-            const realW DD = Ddu + dv * (DB + d5 * dv);
-            const realW ia = RC(1.0) / A;
-            const realW t = (Ndu + dv * (NB + lk2 * dv)) * ia;
-            const realW val = amp * sqrtW(DD * ia) * expW(t);
-            acc[r] += (t >= TCUT ? val : zero);
-        }
+            if (R[3] != RC(0.0)) {
+                const int g = gidx[k];
+                real3 p;
+                real S[6];
+                load_gauss(g, means, mats, &p, S);
+                const View Vw = load_view(vparams, view);
+                for (int r = r0; r <= r1; r++)
+                    acc[r] += rho[g] * straddle_row(p, S, Vw, sqrt(RC(TWO_PI)) / scale, uu, (real)(v0 + r));
+                continue;
+            }
+            /* numerator -N'/2 log2(e), a' and dd' as polynomials in dv with the du parts once */
+            const real a1 = R[7], a2 = R[8], a3 = R[9], a4 = R[10], a5 = R[11];
+            const real d0 = R[12], d1 = R[13], d2 = R[14], d3 = R[15], d4 = R[16], d5 = R[17];
+            const realW Ndu = lk0 * du * du, NB = lk1 * du;
+            const realW Adu = RC(1.0) + (RC(2.0) * a1 + a3 * du) * du, AB = RC(2.0) * (a4 * du + a2);
+            const realW Ddu = d0 + (RC(2.0) * d1 + d3 * du) * du, DB = RC(2.0) * (d4 * du + d2);
+            for (int r = r0; r <= r1; r++) {
+                const realW dv = (realW)((real)(v0 + r) - vc);
+                const realW A = Adu + dv * (AB + a5 * dv);
+                const realW DD = Ddu + dv * (DB + d5 * dv);
+                const realW ia = RC(1.0) / A;
+                const realW t = (Ndu + dv * (NB + lk2 * dv)) * ia;
+                const realW val = amp * sqrtW(DD * ia) * expW(t);
+                acc[r] += (t >= TCUT ? val : zero);
+            }
 #else
-        const realW P = lk0 * du * du, Q = lk1 * du; /* t = P + dv (Q + lk2 dv): the du parts once */
-        for (int r = r0; r <= r1; r++) {
-            const realW dv = (realW)((real)(v0 + r) - vc);
-            const realW t = P + dv * (Q + lk2 * dv);
-            acc[r] += (t >= TCUT ? amp * expW(t) : zero);
-        }
+            const realW P = lk0 * du * du, Q = lk1 * du; /* t = P + dv (Q + lk2 dv): the du parts once */
+            for (int r = r0; r <= r1; r++) {
+                const realW dv = (realW)((real)(v0 + r) - vc);
+                const realW t = P + dv * (Q + lk2 * dv);
+                acc[r] += (t >= TCUT ? amp * expW(t) : zero);
+            }
 #endif
+        }
     }
     __global real *o = out + (size_t)view * V * U;
     for (int r = 0; r < TH; r++) {

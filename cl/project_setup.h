@@ -66,9 +66,11 @@ inline real8 sqrt8(real8 y)
 #else
 #define REC 8
 #endif
-/* In the render's copies of the records (fill), two slots the render does not read carry the
- * box's first and last row instead (integers, exact in a real): the kappa and amplitude-per-
- * density slots (exact cone), the straddle flag and amplitude-per-density slots (otherwise). */
+/* In the render's copies of the records (the tile lists, see preprocess), two slots the render
+ * does not read carry the box's first and last row instead (integers, exact in a real): the
+ * kappa and amplitude-per-density slots (exact cone), the straddle flag and amplitude-per-density
+ * slots (otherwise; the affine set-up writes the rows there straight away, its backward does not
+ * read the records). */
 #if defined(EXACT) && defined(CONE)
 #define ROW0_SLOT 18
 #define ROW1_SLOT 19

@@ -37,8 +37,7 @@ on first use in a process and cached by ``clgs.runtime``):
   means / the covariance-or-precision / the densities need no gradient (the forward kernels are
   the same in every gradient variant; in practice the forward program is the all-gradients one);
 * ``TW`` (8 or 16) and ``TH`` (64 on CPUs; on GPUs 16 at ``TW=8``, 8 at ``TW=16``): the
-  forward's tile, ``TW`` pixels = one ``realW`` vector per tile row (``cl/binning.cl`` gets the
-  same tile);
+  forward's tile, ``TW`` pixels = one ``realW`` vector per tile row;
 * ``BW`` (8 or 16): the backward's pixel segment, one ``realB`` vector.
 
 Vector width (``TW``, ``BW``): 16 lanes fill an AVX-512 register, 8 an AVX2 one. By default
@@ -54,8 +53,8 @@ Measured side by side in one process on a 2-core AVX-512 Xeon (50k Gaussians, 25
 each kernel relaunched alone, 8 and 16 lanes alternating, CPU-time medians, several runs), 16
 lanes against 8: affine render 1.12-1.21x faster, affine backward 1.11-1.16x; exact parallel
 render 1.12-1.15x, its backward 0.90-0.93x (slower: kept at 8); exact cone render 0.83-0.95x and
-backward 0.82-0.89x (kept at 8). Per call (``clgs bench kernels --widths``: set-up, binning and
-fill included, which do not depend on the width) the affine cone forward gained about 1.08x and
+backward 0.82-0.89x (kept at 8). Per call (``clgs bench kernels --widths``: set-up and tile
+lists included, which do not depend on the width) the affine cone forward gained about 1.08x and
 its backward 1.12x. The exp probe runs about 1.5x faster per CPU-second at 16 lanes; the pixel
 loops gain less because 16-wide tile rows and segments cover more pixels outside each footprint
 (28% of the render's lanes are useful at 16, 42% at 8, for Gaussians 4-16 pixels across).
@@ -65,22 +64,33 @@ The splat loops use ``splat_exp2_8`` (``cl/project_setup.h``; ``splat_exp2_16`` 
 degree-5 fitted polynomial and no range handling at all (the loops fold ``log2(e)`` into their
 coefficients and select zero wherever ``q > 9``, the only lanes where the result is not valid).
 
-``cl/binning.cl`` (``bin_offsets``: list positions from per-chunk tile counts, no atomics) is
-built once per tile size.
-
-Pipeline of one forward call: four launches and a single wait, at the end.
+Pipeline of one forward call: two launches and a single wait, at the end.
 ``preprocess`` (a work-item per chunk of consecutive Gaussians and view: centre, conic or
 exact-cone polynomials, amplitude, footprint box, culling, 8 Gaussians per ``real8``
-(``setup_affine8``, ``setup_exact_cone8``; exact parallel one at a time); then the chunk's
-counts per tile, while its boxes are in cache) -> ``bin_offsets`` (deterministic counting sort
-into the tiles) -> ``fill`` (lists in Gaussian index order, each entry with a copy of its record
-so the render streams them) -> ``render`` (a work-item per tile, ``realW`` rows). The number of
-(tile, Gaussian) pairs is only known on the device: the lists get a capacity from the last
-call's pairs per Gaussian and view (plus 25%, at least what the pooled buffers hold), ``fill``
-and ``render`` never go past it, and the pair count comes back with the image; a call that
-needed more runs again with larger lists (the first call, or a scene that grew a lot). Waiting
-for that count between the launches, as an earlier version did, left the device idle while
-Python launched the rest.
+(``setup_affine8``, ``setup_exact_cone8``; exact parallel one at a time); then, while the
+chunk's records and boxes are in cache, its own tile lists: a counting sort of its Gaussians by
+tile into a region of the lists that it takes with one integer atomic add, each entry a copy of
+the Gaussian's record so that the render streams them) -> ``render`` (a work-item per tile,
+``realW`` rows, walking the tile's segment of every chunk's region, chunks in order: each pixel
+adds its Gaussians in index order, so the image does not depend on where the regions landed,
+on the chunking or on the tile). The number of (tile, Gaussian) pairs is only known on the
+device: the lists get a capacity from the last call's pairs per Gaussian and view (plus 25%, at
+least what the pooled buffers hold), a region that does not fit is not written (nor read), and
+the pair count comes back with the image; a call that needed more runs again with larger lists
+(the first call, or a scene that grew a lot). CPUs get few chunks (8 per compute unit, at
+least 32): the render reads a tile's entries region by region, and longer runs stream better.
+
+Per call, the host sets only the kernel arguments that changed since the kernel's last launch
+(pyopencl spends about 8-10 us per scalar argument), keeps each geometry's view parameters, and
+waits once per call (every read-back mapped without blocking, then one wait). An earlier
+version (separate offsets and list-filling kernels, four launches, every argument set on every
+call) was measured side by side in one process against this one, 50k Gaussians, 256^2 detector,
+affine cone beam, one view per call, alternating, medians, on a loaded 2-core AVX-512 machine:
+forward 1.41-1.48x faster in wall time and 1.19x in CPU time (set-up and lists 0.91 -> 0.70 ms
+of device time, render unchanged; Python before the first launch 0.28 -> 0.11 ms), backward
+1.03-1.12x wall and 1.05-1.08x CPU (host side only: 0.53 -> 0.14 ms before its launch, mostly
+zero-filled gradient arrays that the kernel overwrites anyway), a whole autograd step
+1.07-1.19x; images and gradients the same bits.
 
 The backward is one kernel, a work-item per run of Gaussians (16 on CPUs) gathering over each
 Gaussian's own box in every view. Affine: 8 Gaussians at a time, the set-up recomputed by the
@@ -111,7 +121,7 @@ from .gaussian_math import covariance, precision
 
 MODES = ("affine", "exact")
 VP = 20
-_HIST_BUDGET = 1 << 24  # ints in the binning histogram (views x chunks x tiles)
+_HIST_BUDGET = 1 << 22  # views x chunks x tiles: the tile counts take 5 ints each (20 bytes)
 
 
 class ProjectorError(ValueError):
@@ -236,6 +246,13 @@ class GaussianProjector:
         self.tile = None  # (TW, TH) to use for every forward instead of the automatic tile (tests, tuning)
         self.backward_width = None  # likewise for the backward's BW
         self._vp_cache: dict = {}
+        self._progs: dict = {}
+        # Gaussians are set up and binned in chunks, a work-item per (chunk, view), each chunk's
+        # tile lists in one region (cl/gaussian_project.cl): enough chunks to keep every compute
+        # unit busy, and no more on CPUs, where the render reads each tile's entries region by
+        # region and longer runs stream better (256 chunks: render about 10% slower than 32).
+        cus = int(runtime.device().max_compute_units)
+        self.max_chunks = min(256, max(32, 8 * cus)) if self.cpu else 256
         self._pair_ratio = 2.0  # Gaussian-tile pairs per Gaussian and view in the last forward
         self.on_launch = None  # profiling hook: called with (kernel name, event) for every launch
         self._lock = threading.Lock()
@@ -257,6 +274,16 @@ class GaussianProjector:
         return (self.TILE_CPU if self.cpu else self.TILE_GPU)[self.widths(beam, mode)[0]]
 
     def program(self, beam: str, mode: str, real: str, grads=(True, True, True)):
+        """The compiled program for this variant (looked up once per variant and setting: the
+        runtime's own cache costs tens of microseconds a call)."""
+        key = (beam, mode, real, tuple(grads), self.tile and tuple(self.tile), self.backward_width,
+               tuple(sorted(self.extra_defines.items())))
+        prog = self._progs.get(key)
+        if prog is None:
+            prog = self._progs[key] = self._program(beam, mode, real, grads)
+        return prog
+
+    def _program(self, beam, mode, real, grads):
         TW, TH = self.tile_for(beam, mode)
         defines = {"REAL": real, "CONE": beam == "cone", "EXACT": mode == "exact", "TW": TW, "TH": TH,
                    "BW": self.widths(beam, mode)[1]}
@@ -266,11 +293,25 @@ class GaussianProjector:
         defines.update(self.extra_defines)
         return self._runtime.get_program("gaussian_project.cl", defines, self.ctx)
 
-    def _binning(self, tile):
-        return self._runtime.get_program("binning.cl", {"TW": tile[0], "TH": tile[1]}, self.ctx)
-
     def _launch(self, prog, name: str, gsize, lsize, *args):
-        event = prog.kernel(name)(self.queue, gsize, lsize, *args)
+        """Enqueue a kernel, setting only the arguments that changed since its last launch:
+        pyopencl spends about 8-10 us per scalar argument, and most stay the same call after
+        call (kernels are shared by every projector of a context, hence the module-wide record)."""
+        import pyopencl as cl
+
+        k = prog.kernel(name)
+        with _launch_lock:
+            last = _kernel_args.get(id(k))
+            if last is None or len(last) != len(args):
+                last = _kernel_args[id(k)] = [None] * len(args)
+            for i, v in enumerate(args):
+                old = last[i]
+                if old is v:
+                    continue
+                if isinstance(v, cl.MemoryObjectHolder) or old is None or type(old) is not type(v) or old != v:
+                    k.set_arg(i, v)
+                last[i] = v
+            event = cl.enqueue_nd_range_kernel(self.queue, k, gsize, lsize)
         if self.on_launch is not None:
             self.on_launch(name, event)
         return event
@@ -301,6 +342,19 @@ class GaussianProjector:
         cl.enqueue_copy(self.queue, buf, arr, is_blocking=False)
         return buf
 
+    def _zeros(self, name: str, n: int):
+        """(buffer, array): n int32 zeros for the device to count into, and the host array that
+        ``_fetch_all`` reads them back to."""
+        import pyopencl as cl
+
+        arr = np.zeros(n, np.int32)
+        self._keep.append(arr)
+        if self.cpu:
+            return cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=arr), arr
+        buf = self._pooled(name, arr.nbytes)
+        cl.enqueue_copy(self.queue, buf, arr, is_blocking=False)
+        return buf, arr
+
     def _out(self, name: str, arr: np.ndarray):
         import pyopencl as cl
 
@@ -308,20 +362,28 @@ class GaussianProjector:
             return cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
         return self._pooled(name, arr.nbytes)
 
-    def _fetch(self, buf, arr: np.ndarray):
-        """Make ``arr`` hold the buffer's content (blocking)."""
+    def _fetch_all(self, pairs):
+        """Make every array hold its buffer's content, with one wait for all of them."""
         import pyopencl as cl
 
-        if arr.size == 0:
+        pairs = [(buf, arr) for buf, arr in pairs if arr.size]
+        if not pairs:
             return
-        if self.cpu:
-            mapped, _ = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ, 0, arr.shape, arr.dtype,
-                                              is_blocking=True)
+        if not self.cpu:
+            for buf, arr in pairs[:-1]:
+                cl.enqueue_copy(self.queue, arr, buf, is_blocking=False)
+            cl.enqueue_copy(self.queue, pairs[-1][1], pairs[-1][0], is_blocking=True)
+            return
+        maps = []
+        for buf, arr in pairs:
+            mapped, event = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ, 0, arr.shape, arr.dtype,
+                                                  is_blocking=False)
+            maps.append((mapped, arr))
+        event.wait()  # an in-order queue: the last map done means all are
+        for mapped, arr in maps:
             if mapped.__array_interface__["data"][0] != arr.__array_interface__["data"][0]:
                 arr[...] = mapped  # the driver kept its own copy
             mapped.base.release()
-        else:
-            cl.enqueue_copy(self.queue, arr, buf, is_blocking=True)
 
     @staticmethod
     def _check(means, mats, densities):
@@ -334,6 +396,7 @@ class GaussianProjector:
             raise ProjectorError(f"{n} Gaussians is more than this projector indexes; split the scene")
 
     def _setup(self, means, mats, densities, geometry, views, mode):
+        """Checks, then (real, dtype, number of views, view parameters, geometry.scale)."""
         if mode not in MODES:
             raise ProjectorError(f"mode must be one of {MODES}, got {mode!r}")
         self._check(means, mats, densities)
@@ -342,35 +405,51 @@ class GaussianProjector:
         if mats.dtype != dt or densities.dtype != dt:
             raise ProjectorError(f"means, matrices and densities must share one dtype, got {means.dtype}, "
                                  f"{mats.dtype}, {densities.dtype}")
-        views = np.asarray(views, np.int64).reshape(-1)
-        if views.size == 0:
-            raise ProjectorError("no views asked for: pass at least one view index")
-        if views.min() < 0 or views.max() >= geometry.n_views:
-            raise ProjectorError(f"view indices must lie in [0, {geometry.n_views - 1}], got {views.tolist()}")
-        # the view parameters of the last few (geometry, views): a training step asks for the same
-        # ones in its forward and backward (the angles are compared, in case they were edited)
-        key = (id(geometry), views.tobytes(), dt.str)
-        hit = self._vp_cache.get(key)
-        angles = np.asarray(geometry.angles)[views]
-        if hit is not None and hit[0] is geometry and np.array_equal(hit[1], angles):
-            return real, dt, views, hit[2]
-        vp = view_params(geometry, views, dt)
-        if len(self._vp_cache) >= 8:
-            self._vp_cache.pop(next(iter(self._vp_cache)))
-        self._vp_cache[key] = (geometry, angles.copy(), vp)
-        return real, dt, views, vp
+        # View parameters are kept per geometry (the last few; a Geometry is frozen, its angles
+        # read-only), row by row as views are asked for, and per list of views: a training run
+        # asks for the same few views again and again (its forward and backward, every epoch),
+        # and computing a row costs about 100 us of Python. (The entry holds the geometry, so
+        # its id cannot be reused by another object while cached.)
+        ent = self._vp_cache.get((id(geometry), dt.str))
+        if ent is None or ent[0] is not geometry:
+            if len(self._vp_cache) >= 8:
+                self._vp_cache.pop(next(iter(self._vp_cache)))
+            n = geometry.n_views
+            ent = (geometry, np.zeros((n, VP), dt), np.zeros(n, bool), geometry.scale, {})
+            self._vp_cache[(id(geometry), dt.str)] = ent
+        try:
+            vkey = tuple(views)
+            vp = ent[4].get(vkey)
+        except TypeError:  # not a flat sequence of indices: checked below
+            vkey, vp = None, None
+        if vp is None:
+            idx = np.asarray(views).reshape(-1)
+            if idx.size == 0:
+                raise ProjectorError("no views asked for: pass at least one view index")
+            if idx.dtype.kind not in "iu" or idx.min() < 0 or idx.max() >= geometry.n_views:
+                raise ProjectorError(f"view indices must be integers in [0, {geometry.n_views - 1}], got "
+                                     f"{idx.tolist()}")
+            table, done = ent[1], ent[2]
+            new = np.unique(idx[~done[idx]])
+            if new.size:
+                table[new] = view_params(geometry, new, dt)
+                done[new] = True
+            vp = table[idx]
+            if vkey is not None:
+                if len(ent[4]) >= 64:
+                    ent[4].pop(next(iter(ent[4])))
+                ent[4][vkey] = vp
+        return real, dt, len(vp), vp, ent[3]
 
     # ----------------------------------------------------------------------------- forward
     def forward(self, means: np.ndarray, mats: np.ndarray, densities: np.ndarray, geometry, views,
                 mode: str = "affine") -> np.ndarray:
         """Projections (len(views), V, U) from NumPy means (N,3), packed covariance (affine) or
         precision (exact) (N,6) and densities (N,), all float32 or all float64."""
-        import pyopencl as cl
-
         with self._lock:
-            real, dt, views, vp = self._setup(means, mats, densities, geometry, views, mode)
+            real, dt, nv, vp, scale = self._setup(means, mats, densities, geometry, views, mode)
             V, U = geometry.nDetector
-            nv, N = len(views), means.shape[0]
+            N = means.shape[0]
             out = np.empty((nv, V, U), dt)
             self._token += 1
             self.last_token = self._token
@@ -378,12 +457,12 @@ class GaussianProjector:
             if N == 0:
                 out[...] = 0
                 return out
-            prog = self.program(geometry.mode, mode, real)
-            TW, TH = self.tile_for(geometry.mode, mode)
-            binp = self._binning((TW, TH))
-            i32, rl = np.int32, dt.type
-            rec_len = 20 if (mode == "exact" and geometry.mode == "cone") else 8
-            uses_list = mode == "exact" and geometry.mode == "cone"
+            beam = geometry.mode
+            prog = self.program(beam, mode, real)
+            TW, TH = self.tile_for(beam, mode)
+            i32 = np.int32
+            rec_len = 20 if (mode == "exact" and beam == "cone") else 8
+            uses_list = mode == "exact" and beam == "cone"
             b_means = self._in("means", means)
             b_mats = self._in("mats", mats)
             b_rho = self._in("rho", densities)
@@ -392,12 +471,12 @@ class GaussianProjector:
             b_box = self._pooled("box", nv * N * 16)
             ntx, nty = -(-U // TW), -(-V // TH)
             ntiles = ntx * nty
-            nchunks = max(1, min(-(-N // 128), 256, _HIST_BUDGET // (nv * ntiles)))
+            nchunks = max(1, min(-(-N // 128), self.max_chunks, _HIST_BUDGET // (nv * ntiles)))
             chunk = _round_up(-(-N // nchunks), 8)  # affine set-up: 8 Gaussians per vector
             nchunks = -(-N // chunk)
-            b_hist = self._pooled("hist", nv * nchunks * ntiles * 4)
-            b_starts = self._pooled("starts", nv * (ntiles + 1) * 4)
-            starts = np.empty((nv, ntiles + 1), np.int32)
+            b_cnt = self._pooled("cnt", nv * nchunks * 4 * ntiles * 4)
+            b_cst = self._pooled("cst", nv * nchunks * (ntiles + 1) * 4)
+            b_rbase = self._pooled("rbase", nv * nchunks * 4)
             b_out = self._out("out", out)
             lt = self.LOCAL_TILE
             # The pair count is only known on the device; rather than wait for it between the
@@ -405,35 +484,31 @@ class GaussianProjector:
             # a margin, and whatever the pooled buffers already hold), the kernels never write past
             # that capacity, and a call that needed more runs again with larger lists.
             want = int(self._pair_ratio * 1.25 * N * nv) + 4096
-            while True:
-                # the lists proper (Gaussian indices) are only read for the exact cone's straddlers
-                b_list = self._pooled("list", want * 4 if uses_list else 16)
-                b_prec = self._pooled(f"prec{dt.itemsize}", want * rec_len * dt.itemsize)
-                cap = min(b_prec.size // (rec_len * dt.itemsize), 2**31 - 1)
-                if uses_list:
-                    cap = min(cap, b_list.size // 4)
-                self._launch(prog, "preprocess", (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks), i32(U),
-                             i32(V), rl(geometry.scale), i32(ntx), i32(ntiles), b_means, b_mats, b_rho, b_vp,
-                             b_rec, b_box, b_hist)
-                self._launch(binp, "bin_offsets", (nv,), (1,), i32(nv), i32(nchunks), i32(ntiles), b_hist,
-                             b_starts)
-                self._launch(prog, "fill", (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks), i32(ntx),
-                             i32(ntiles), np.int64(cap), b_box, b_rec, b_hist, b_starts, b_list, b_prec)
-                self._launch(prog, "render", (_round_up(ntx, lt[0]), _round_up(nty, lt[1]), nv), lt, i32(U),
-                             i32(V), i32(ntx), i32(ntiles), np.int64(cap), b_prec, b_starts, b_list,
-                             b_means, b_mats, b_rho, b_vp, rl(geometry.scale), b_out)
-                cl.enqueue_copy(self.queue, starts, b_starts, is_blocking=False)
-                self._fetch(b_out, out)  # waits for the copy too (in-order queue)
-                counts = starts[:, -1].astype(np.int64)
-                total = int(counts.sum())
-                if (counts < 0).any() or total >= 2**31:
-                    self._keep.clear()
-                    raise ProjectorError("more Gaussian-tile pairs than 2^31: use fewer views per call")
-                if total <= cap:
-                    break
-                want = total + total // 4
+            try:
+                while True:
+                    # the Gaussian indices of the entries are only read for the exact cone's straddlers
+                    b_gidx = self._pooled("gidx", want * 4 if uses_list else 16)
+                    b_lst = self._pooled(f"lst{dt.itemsize}", want * rec_len * dt.itemsize)
+                    cap = min(b_lst.size // (rec_len * dt.itemsize), 2**31 - 1)
+                    if uses_list:
+                        cap = min(cap, b_gidx.size // 4)
+                    b_alloc, alloc = self._zeros("alloc", 2)
+                    self._launch(prog, "preprocess", (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks),
+                                 i32(U), i32(V), dt.type(scale), i32(ntx), i32(ntiles), i32(cap), b_means, b_mats,
+                                 b_rho, b_vp, b_rec, b_box, b_cnt, b_cst, b_rbase, b_alloc, b_lst, b_gidx)
+                    self._launch(prog, "render", (_round_up(ntx, lt[0]), _round_up(nty, lt[1]), nv), lt, i32(U),
+                                 i32(V), i32(ntx), i32(ntiles), i32(nchunks), b_lst, b_cst, b_rbase, b_gidx,
+                                 b_means, b_mats, b_rho, b_vp, dt.type(scale), b_out)
+                    self._fetch_all([(b_alloc, alloc), (b_out, out)])  # the call's one wait
+                    total = int(alloc[0])
+                    if alloc[1] or total < 0:
+                        raise ProjectorError("more Gaussian-tile pairs than 2^31: use fewer views per call")
+                    if total <= cap:
+                        break
+                    want = total + total // 4
+            finally:
+                self._keep.clear()
             self._pair_ratio = total / (N * nv)
-            self._keep.clear()
             self.last_pairs = total
             self._rec_token = self._token
             return out
@@ -446,18 +521,22 @@ class GaussianProjector:
         forward call with these very inputs and views; if no other forward ran since, the
         per-(view, Gaussian) set-up it left on the device is reused instead of recomputed."""
         with self._lock:
-            real, dt, views, vp = self._setup(means, mats, densities, geometry, views, mode)
+            real, dt, nv, vp, scale = self._setup(means, mats, densities, geometry, views, mode)
             V, U = geometry.nDetector
-            nv, N = len(views), means.shape[0]
+            N = means.shape[0]
             if grad_out.shape != (nv, V, U):
                 raise ProjectorError(f"gradient shape {grad_out.shape} does not match projections {(nv, V, U)}")
             grad_out = np.ascontiguousarray(grad_out, dt)
-            outs = [np.zeros((N, 3), dt), np.zeros((N, 6), dt), np.zeros((N,), dt)]
+            shapes = ((N, 3), (N, 6), (N,))
             if N == 0 or not any(needs):
-                return tuple(o if k else None for o, k in zip(outs, needs))
-            prog = self.program(geometry.mode, mode, real, tuple(bool(k) for k in needs))
-            q = self.queue
-            b = [self._out(f"grad{k}", o) for k, o in enumerate(outs)]
+                return tuple(np.zeros(sh, dt) if k else None for sh, k in zip(shapes, needs))
+            needs = tuple(bool(k) for k in needs)
+            prog = self.program(geometry.mode, mode, real, needs)
+            # the kernel writes every entry of the gradients it computes (and none of the others,
+            # which get a placeholder buffer)
+            outs = [np.empty(sh, dt) if k else None for sh, k in zip(shapes, needs)]
+            b = [self._out(f"grad{k}", o) if o is not None else self._pooled(f"grad{k}", 16)
+                 for k, o in enumerate(outs)]
             LG = self.LOCAL_G
             per = self.PER if mode == "exact" else _round_up(self.PER, 8)  # affine: 8 Gaussians per vector
             nitems = -(-N // per)
@@ -466,22 +545,19 @@ class GaussianProjector:
             b_rec = self._pooled(f"rec{dt.itemsize}", nv * N * rec_len * dt.itemsize)
             b_box = self._pooled("box", nv * N * 16)
             self._launch(prog, "backward", (_round_up(nitems, LG),), (LG,), np.int32(N), np.int32(per),
-                         np.int32(nv), np.int32(U), np.int32(V), dt.type(geometry.scale),
+                         np.int32(nv), np.int32(U), np.int32(V), dt.type(scale),
                          np.int32(cached), b_rec, b_box, self._in("means", means),
                          self._in("mats", mats), self._in("rho", densities), self._in("vp", vp),
                          self._in("gimg", grad_out), *b)
-            res = []
-            for k, (buf, o) in enumerate(zip(b, outs)):
-                if needs[k]:
-                    self._fetch(buf, o)
-                    res.append(o)
-                else:
-                    res.append(None)
-            q.finish()
-            self._keep.clear()
-            return tuple(res)
+            try:
+                self._fetch_all([(buf, o) for buf, o in zip(b, outs) if o is not None])
+            finally:
+                self._keep.clear()
+            return tuple(outs)
 
 
+_launch_lock = threading.Lock()
+_kernel_args: dict = {}  # id(kernel) -> the arguments it was last launched with (kernels are shared)
 _default: GaussianProjector | None = None
 _default_lock = threading.Lock()
 

@@ -243,22 +243,58 @@ def test_bitwise_reproducible_with_crowded_tiles(mode, width):
 
 
 @pytest.mark.parametrize("mode", MODES)
-def test_tile_shape_does_not_change_the_image(mode):
+def test_tile_shape_and_chunking_do_not_change_the_image(mode):
     """Every pixel sums its Gaussians in index order with the same arithmetic lane by lane
     whatever the forward's tile and vector width (8 or 16 x 64 on CPUs, 8 x 16 or 16 x 8 on
-    GPUs), so the images agree bit for bit."""
+    GPUs) and however the Gaussians are cut into chunks (each chunk's lists in their own
+    region, wherever it lands), so the images agree bit for bit."""
     g = geom("cone", n_det=80, n_views=2)
     m, s, q, d = scene(400, dtype=torch.float32, lo=0.01, hi=0.06, spread=0.9, seed=6)
     mats = mats_for(mode, s, q)
     args = (m.numpy(), mats.numpy(), d.numpy(), g, [0, 1], mode)
     images = []
-    for tile in ((8, 64), (8, 16), (8, 8), (16, 64), (16, 8)):
+    for tile, chunks in (((8, 64), 32), ((8, 16), 32), ((8, 8), 1), ((16, 64), 3), ((16, 8), 256)):
         proj = GaussianProjector()
         proj.tile = tile
+        proj.max_chunks = chunks
         images.append(proj.forward(*args))
     assert images[0].max() > 0
     for im in images[1:]:
         np.testing.assert_array_equal(im, images[0])
+
+
+def test_reused_projector_matches_fresh_ones():
+    """One projector (and a second sharing its compiled kernels) called with changing scenes,
+    sizes, views, geometries, modes and precisions, interleaved: every call gives the bits a
+    fresh projector gives. Kernel arguments are only set when they change and view parameters
+    are kept per geometry, so a stale argument or parameter would show here."""
+    g1, g2 = geom("cone", n_det=40, n_views=4), geom("cone", n_det=24, n_views=3, off=(0.0, 0.0))
+    cases = []
+    for n, seed in ((300, 1), (57, 2)):
+        m, s, q, d = scene(n, dtype=torch.float32, seed=seed)
+        for mode in MODES:
+            mats = mats_for(mode, s, q)
+            for g, views in ((g1, [0, 2]), (g2, [1]), (g1, [3])):
+                for dt in (np.float32, np.float64):
+                    cases.append((m.numpy().astype(dt), mats.numpy().astype(dt), d.numpy().astype(dt), g, views,
+                                  mode))
+    refs = []
+    for c in cases:
+        p = GaussianProjector(8)
+        out = p.forward(*c)
+        gout = np.random.default_rng(len(refs)).random(out.shape).astype(out.dtype)
+        refs.append((out, gout, p.backward(*c, gout, token=p.last_token)))
+    a, b = GaussianProjector(8), GaussianProjector(8)
+    order = list(range(len(cases))) * 2
+    np.random.default_rng(0).shuffle(order)
+    for k, i in enumerate(order):
+        p = (a, b)[k % 2]
+        out = p.forward(*cases[i])
+        np.testing.assert_array_equal(out, refs[i][0])
+        grads = p.backward(*cases[i], refs[i][1], token=p.last_token)
+        for x, y in zip(grads, refs[i][2]):
+            np.testing.assert_array_equal(x, y)
+
 
 @pytest.mark.parametrize("width", WIDTHS)
 @pytest.mark.parametrize("mode", MODES)

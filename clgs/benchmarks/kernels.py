@@ -27,8 +27,9 @@ For each detector (128^2, 256^2), beam (cone, parallel) and mode (affine, exact)
   are printed before the table (``$CLGS_TILE_WIDTH=8|16`` forces one; see ``clgs.projector``).
 * For exact rows: ``err vs exact`` is max |affine - exact| / max exact of the same view, and
   ``exact/affine`` the ratio of their fwd+bwd times.
-* ``--stages``: after each row, every kernel's device time (event profiling, median ms) and
-  the number of kernel launches per forward and per backward call, to see where time goes.
+* ``--stages``: after each row, every kernel's device time (event profiling, median ms), the
+  number of kernel launches per forward and per backward call, and the call's wall time outside
+  its kernels (Python, argument setting, waits, read-back), to see where time goes.
 * ``--widths``: after each row, the same calls with the projector forced to 8 and to 16 lanes
   on every kernel, alternating call by call in this process (``--repeat`` rounds, medians): wall
   and CPU milliseconds and the 8/16 ratios, to decide per kernel which width pays.
@@ -137,7 +138,10 @@ def _time_kernels(projector, m, mats, rho, geometry, mode, repeat):
 
 
 def _stages(projector, m, mats, rho, geometry, mode, repeat):
-    """Per-kernel device milliseconds (median) and launches per call, forward and backward."""
+    """Per-kernel device milliseconds (median), launches per call and the call's wall time
+    outside its kernels (median of wall minus the sum of its kernels: Python, argument setting,
+    waits, read-back; on a busy machine also time the device spent waiting for a core),
+    forward and backward."""
     import numpy as np
     import pyopencl as cl
 
@@ -148,24 +152,32 @@ def _stages(projector, m, mats, rho, geometry, mode, repeat):
     projector.on_launch = lambda name, event: events.append((name, event))
     gout = np.random.default_rng(0).random((1, *geometry.nDetector), dtype=np.float32)
     times = {"fwd": {}, "bwd": {}}
+    outside = {"fwd": [], "bwd": []}
     launches = {"fwd": 0, "bwd": 0}
     try:
         for r in range(repeat):
             for phase in ("fwd", "bwd"):
                 events.clear()
+                t = time.perf_counter()
                 if phase == "fwd":
                     projector.forward(mn, mt, rn, geometry, [r % geometry.n_views], mode)
                 else:
                     projector.backward(mn, mt, rn, geometry, [r % geometry.n_views], mode, gout,
                                        token=projector.last_token)
+                wall = time.perf_counter() - t
                 projector.queue.finish()
                 launches[phase] = len(events)
+                dev = 0.0
                 for name, ev in events:
-                    times[phase].setdefault(name, []).append((ev.profile.end - ev.profile.start) * 1e-6)
+                    ms = (ev.profile.end - ev.profile.start) * 1e-6
+                    times[phase].setdefault(name, []).append(ms)
+                    dev += ms
+                outside[phase].append(wall * 1e3 - dev)
     finally:
         projector.queue = queue
         projector.on_launch = None
-    return {ph: {k: _median(v) for k, v in t.items()} for ph, t in times.items()}, launches
+    return ({ph: {k: _median(v) for k, v in t.items()} for ph, t in times.items()}, launches,
+            {ph: _median(v) for ph, v in outside.items()})
 
 
 def _compare_widths(projectors, m, mats, rho, geometry, mode, repeat):
@@ -288,11 +300,11 @@ def main(quick, repeat, torch_n, stages, widths, sizes_opt, dets_opt, beams_opt)
                                    f"{b[2]:.2f} ({a[2] / b[2]:.2f}x), bwd {a[3]:.2f} / {b[3]:.2f} ({a[3] / b[3]:.2f}x); "
                                    f"16 lanes: {useful / b[0] / 1e6:.2f} / {useful / b[1] / 1e6:.2f} Geval/s")
                     if stages:
-                        ms, launches = _stages(proj, m, mats, rho, g, mode, repeat)
+                        ms, launches, outside = _stages(proj, m, mats, rho, g, mode, repeat)
                         for ph in ("fwd", "bwd"):
                             parts = ", ".join(f"{k} {v:.2f}" for k, v in ms[ph].items())
                             click.echo(f"    {ph}: {launches[ph]} kernel launch(es); device ms: {parts} "
-                                       f"(sum {sum(ms[ph].values()):.2f})")
+                                       f"(sum {sum(ms[ph].values()):.2f}); outside the kernels {outside[ph]:.2f}")
     scaled = " (torch on the first %d Gaussians, time scaled by N/%d)" % (torch_n, torch_n)
     click.echo(f"useful evaluations: pixels within 3 sigma, summed over Gaussians; torch = fwd + autograd bwd{scaled}")
     if sizes_opt or dets_opt or beams_opt:
