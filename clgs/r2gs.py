@@ -156,14 +156,16 @@ def value_scale_from(volume: np.ndarray) -> float:
 
 
 def tv_term(size: int):
-    """TV of the model voxelised on a random ``size^3`` block of the volume grid (on the OpenCL
+    """TV of the model voxelised on a random ``size^3`` block of the volume grid, shifted by a random
+    fraction of a voxel as R2-Gaussian places its patch anywhere (on the OpenCL
     backend one fused device pass: cull, field, TV and its gradient, see :mod:`clgs.tv_patch`)."""
 
     def fn(ctx):
         from clgs.tv_patch import patch_tv
 
         grid = ctx.geometry.volume_grid(scene=True)
-        return patch_tv(ctx.trainer.backend, ctx.tensors, L.random_block(grid, size, ctx.generator))
+        block = L.random_block(grid, size, ctx.generator, subvoxel=True)  # off the evaluation lattice
+        return patch_tv(ctx.trainer.backend, ctx.tensors, block)
 
     return fn
 

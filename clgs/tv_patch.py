@@ -47,14 +47,13 @@ _lock = threading.Lock()
 
 
 def _tv_weights(shape, dt):
-    """(w_x, w_y, w_z): 1 / (number of differences along each axis), 0 for an axis of one sample,
-    rounded as torch's mean backward rounds them (a division in the tensor's dtype)."""
-    nz, ny, nx = shape
-    total = nx * ny * nz
-    out = []
-    for n in (nx, ny, nz):
-        out.append(dt(1) / dt(total // n * (n - 1)) if n > 1 else dt(0))
-    return out
+    """(w_x, w_y, w_z): each difference's weight in the TV, 1 / (number of differences over the
+    three axes, see ``losses.tv_count``), 0 for an axis of one sample."""
+    from .losses import tv_count
+
+    count = tv_count(shape)
+    w = dt(1) / dt(count) if count else dt(0)
+    return [w if n > 1 else dt(0) for n in shape[::-1]]
 
 
 class PatchTV:
@@ -188,13 +187,13 @@ class PatchTV:
         else:  # pragma: no cover - the capacity is set from the count of the run before
             raise RuntimeError("TV patch: the brick lists kept overflowing")
         k = int(meta[0])
-        # the TV as tv3d adds it up: per-axis means (rounded to the dtype), z first, then y, then x;
-        # the slices' partial sums are added in float64
+        # the TV as tv3d defines it: all absolute differences over their count; the slices'
+        # partial sums are added in float64
+        from .losses import tv_count
+
         sums = part[:3 * nz].reshape(nz, 3).astype(np.float64).sum(0)
-        value = dt(0)
-        for a, size in ((2, nz), (1, ny), (0, nx)):
-            if size > 1:
-                value = dt(value + dt(sums[a] / (nx * ny * nz // size * (size - 1))))
+        count = tv_count((nz, ny, nx))
+        value = dt(sum(float(sums[a]) for a, size in ((2, nz), (1, ny), (0, nx)) if size > 1) / count) if count else dt(0)
         idx = torch.from_numpy(kidx[:k].astype(np.int64))
         rows = torch.from_numpy(grad[:k * GRADSTRIDE].reshape(k, GRADSTRIDE).copy()) if want else None
         out_field = None

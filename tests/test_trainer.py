@@ -173,7 +173,7 @@ def test_zero_weight_terms_are_never_computed(scene, monkeypatch):
     t2 = _trainer(scene, 3, lambda_tv=0.05)
     t2.evaluate = None
     t2.fit()
-    assert calls == [(16, 16, 16)] * 3  # a 32^3 patch, clipped to this 16^3 volume, per iteration
+    assert calls == [(15, 15, 15)] * 3  # a 32^3 patch, clipped to this 16^3 volume (less one: the sub-voxel shift)
 
 
 def test_frozen_parameters_do_not_move(scene):

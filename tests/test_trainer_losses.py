@@ -84,7 +84,10 @@ def test_l1_and_tv():
     assert float(L.l1(a, torch.zeros(2, 2))) == 2.5
     z, y, x = torch.meshgrid(torch.arange(4.0), torch.arange(5.0), torch.arange(6.0), indexing="ij")
     vol = 2 * x + 3 * y - z  # constant steps along each axis
-    assert float(L.tv3d(vol)) == pytest.approx(2 + 3 + 1)
+    # all absolute differences over their count (R2-Gaussian's mean), not the sum of per-axis means
+    n_x, n_y, n_z = 4 * 5 * 5, 4 * 4 * 6, 3 * 5 * 6
+    assert L.tv_count(vol.shape) == n_x + n_y + n_z
+    assert float(L.tv3d(vol)) == pytest.approx((2 * n_x + 3 * n_y + 1 * n_z) / (n_x + n_y + n_z))
     assert float(L.tv3d(torch.ones(3, 3, 3))) == 0
     assert float(L.tv3d(torch.ones(1, 1, 5).cumsum(-1))) == pytest.approx(1.0)
     with pytest.raises(ValueError, match="block"):
@@ -101,6 +104,23 @@ def test_random_block_is_inside_seeded_and_clipped():
         start = np.rint((np.asarray(b.origin) - grid.origin) / 0.05).astype(int)  # (x, y, z)
         assert np.all(start >= 0) and np.all(start + 32 <= np.asarray(grid.shape)[::-1])
     assert L.random_block(Grid((8, 40, 40), (0, 0, 0), (1, 1, 1)), 32, g1).shape == (8, 32, 32)
+
+
+def test_subvoxel_blocks_leave_the_voxel_lattice_but_stay_inside():
+    grid = Grid((40, 50, 60), (-1.0, -1.0, -1.0), (0.05, 0.05, 0.05))
+    g1, g2 = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
+    fracs = []
+    for _ in range(30):
+        b = L.random_block(grid, 32, g1, subvoxel=True)
+        assert b == L.random_block(grid, 32, g2, subvoxel=True)  # seeded
+        assert b.shape == (32, 32, 32) and b.spacing == grid.spacing
+        pos = (np.asarray(b.origin) - grid.origin) / 0.05  # (x, y, z) in voxels
+        last = pos + 31
+        assert np.all(pos >= 0) and np.all(last <= np.asarray(grid.shape)[::-1] - 1 + 1e-9)
+        fracs.extend(pos - np.floor(pos))
+    assert 0.3 < np.mean(fracs) < 0.7 and np.max(fracs) > 0.5  # off the lattice, spread over the voxel
+    small = L.random_block(Grid((1, 40, 40), (0, 0, 0), (1, 1, 1)), 32, g1, subvoxel=True)
+    assert small.shape == (1, 32, 32) and small.origin[2] == 0  # a one-sample axis is not shifted
 
 
 def test_training_log_csv_plot_and_summary(tmp_path):
