@@ -30,6 +30,17 @@
 #ifndef RB
 #define RB 8
 #endif
+#ifndef WT0 /* the host always defines these; the defaults (window 11, sigma 1.5, C1 = 0.01^2,
+               C2 = 0.03^2) let the file build on its own, e.g. when checking an installation */
+#define WT0 0.26601171f
+#define WT1 0.21300554f
+#define WT2 0.10936068f
+#define WT3 0.03600077f
+#define WT4 0.00759876f
+#define WT5 0.00102838f
+#define SC1 0.0001f
+#define SC2 0.0009f
+#endif
 #define RC(x) ((real)(x))
 
 typedef real8 real8u __attribute__((aligned(sizeof(real))));
