@@ -10,6 +10,7 @@
 
 #ifdef REAL_DOUBLE
 #define fast_exp8(x) exp(x)
+#define fast_exp16(x) exp(x)
 #define fast_exp(x) exp(x)
 #else
 
@@ -20,24 +21,29 @@
 #define FE_C5 0.0013333558146428443f
 #define FE_C6 0.00015403530393381609f
 
-inline float8 fast_exp8(float8 x)
-{
-    float8 t = x * 1.4426950408889634f;
-    t = (t > 0.0f) ? (float8)(0.0f) : t;
-    int8 under = t < -125.0f;
-    t = under ? (float8)(-125.0f) : t;
-    int8 n = convert_int8(t - 0.5f);               /* truncation: ceil for negatives */
-    float8 f = t - convert_float8(n);              /* in (-0.5, 0.5] */
-    float8 p = FE_C6;
-    p = p * f + FE_C5;
-    p = p * f + FE_C4;
-    p = p * f + FE_C3;
-    p = p * f + FE_C2;
-    p = p * f + FE_C1;
-    p = p * f + 1.0f;
-    float8 r = as_float8(as_int8(p) + (n << 23));
-    return under ? (float8)(0.0f) : r;
-}
+/* fast_exp<W> for a vector width W (8 and 16 are made below); splat_exp2<W> (project_setup.h)
+ * is the same 2^t without the clamps, for arguments the callers keep in range. */
+#define CLGS_DEFINE_FAST_EXP(W)                                                                   \
+    inline float##W fast_exp##W(float##W x)                                                       \
+    {                                                                                             \
+        float##W t = x * 1.4426950408889634f;                                                     \
+        t = (t > 0.0f) ? (float##W)(0.0f) : t;                                                    \
+        const int##W under = t < -125.0f;                                                         \
+        t = under ? (float##W)(-125.0f) : t;                                                      \
+        const int##W n = convert_int##W(t - 0.5f); /* truncation: ceil for negatives */          \
+        const float##W f = t - convert_float##W(n); /* in (-0.5, 0.5] */                         \
+        float##W p = FE_C6;                                                                       \
+        p = p * f + FE_C5;                                                                        \
+        p = p * f + FE_C4;                                                                        \
+        p = p * f + FE_C3;                                                                        \
+        p = p * f + FE_C2;                                                                        \
+        p = p * f + FE_C1;                                                                        \
+        p = p * f + 1.0f;                                                                         \
+        const float##W r = as_float##W(as_int##W(p) + (n << 23));                                 \
+        return under ? (float##W)(0.0f) : r;                                                      \
+    }
+CLGS_DEFINE_FAST_EXP(8)
+CLGS_DEFINE_FAST_EXP(16)
 
 inline float fast_exp(float x)
 {

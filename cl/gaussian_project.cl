@@ -37,43 +37,9 @@ typedef real16 real16u __attribute__((aligned(sizeof(real))));
 #define ST16G(p) (*(__global real16u *)(p))
 #ifdef REAL_DOUBLE
 typedef long16 mask16;
-#define splat_exp2_16(t) exp2(t)
-#define fast_exp16(x) exp(x)
 #else
 typedef int16 mask16;
-/* splat_exp2_8 (project_setup.h) on 16 lanes: the same coefficients and operations, so every
- * lane gives the same bits as there */
-inline float16 splat_exp2_16(float16 t)
-{
-    const int16 n = convert_int16(t - 0.5f);
-    const float16 f = t - convert_float16(n);
-    float16 p = 0.00132764725f;
-    p = p * f + 0.00967554189f;
-    p = p * f + 0.0555071309f;
-    p = p * f + 0.240221202f;
-    p = p * f + 0.693146944f;
-    p = p * f + 1.00000012f;
-    return as_float16(as_int16(p) + (n << 23));
-}
-/* fast_exp8 (fastexp.h) on 16 lanes, for the throughput probe */
-inline float16 fast_exp16(float16 x)
-{
-    float16 t = x * 1.4426950408889634f;
-    t = (t > 0.0f) ? (float16)(0.0f) : t;
-    const int16 under = t < -125.0f;
-    t = under ? (float16)(-125.0f) : t;
-    const int16 n = convert_int16(t - 0.5f);
-    const float16 f = t - convert_float16(n);
-    float16 p = FE_C6;
-    p = p * f + FE_C5;
-    p = p * f + FE_C4;
-    p = p * f + FE_C3;
-    p = p * f + FE_C2;
-    p = p * f + FE_C1;
-    p = p * f + 1.0f;
-    const float16 r = as_float16(as_int16(p) + (n << 23));
-    return under ? (float16)(0.0f) : r;
-}
+/* splat_exp2_16 and fast_exp16 come from project_setup.h and fastexp.h */
 #endif
 inline real16 sqrt16(real16 y)
 {

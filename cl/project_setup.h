@@ -104,19 +104,23 @@ typedef int8 mask8;
 #define LOG2E 1.4426950408889634
 #ifdef REAL_DOUBLE
 #define splat_exp2_8(t) exp2(t)
+#define splat_exp2_16(t) exp2(t)
 #else
-inline float8 splat_exp2_8(float8 t)
-{
-    const int8 n = convert_int8(t - 0.5f);
-    const float8 f = t - convert_float8(n);
-    float8 p = 0.00132764725f;
-    p = p * f + 0.00967554189f;
-    p = p * f + 0.0555071309f;
-    p = p * f + 0.240221202f;
-    p = p * f + 0.693146944f;
-    p = p * f + 1.00000012f;
-    return as_float8(as_int8(p) + (n << 23));
-}
+#define CLGS_DEFINE_SPLAT_EXP2(W)                                                                 \
+    inline float##W splat_exp2_##W(float##W t)                                                    \
+    {                                                                                             \
+        const int##W n = convert_int##W(t - 0.5f);                                                \
+        const float##W f = t - convert_float##W(n);                                               \
+        float##W p = 0.00132764725f;                                                              \
+        p = p * f + 0.00967554189f;                                                               \
+        p = p * f + 0.0555071309f;                                                                \
+        p = p * f + 0.240221202f;                                                                 \
+        p = p * f + 0.693146944f;                                                                 \
+        p = p * f + 1.00000012f;                                                                  \
+        return as_float##W(as_int##W(p) + (n << 23));                                             \
+    }
+CLGS_DEFINE_SPLAT_EXP2(8)
+CLGS_DEFINE_SPLAT_EXP2(16)
 #endif
 /* the cut q <= QCUT as a bound on t = -q/2 log2(e) */
 #define TCUT RC(-0.5 * QCUT * LOG2E)
