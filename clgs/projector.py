@@ -118,6 +118,7 @@ import numpy as np
 import torch
 
 from .gaussian_math import covariance, precision
+from clgs.runtime import real_name, round_up
 
 MODES = ("affine", "exact")
 VP = 20
@@ -188,16 +189,6 @@ def view_params(geometry, views, dtype=np.float32) -> np.ndarray:
     return out.astype(dtype)
 
 
-def _real_name(dtype) -> str:
-    if dtype == np.float32:
-        return "float"
-    if dtype == np.float64:
-        return "double"
-    raise ProjectorError(f"projector inputs must be float32 or float64, got {dtype}")
-
-
-def _round_up(n: int, m: int) -> int:
-    return (n + m - 1) // m * m
 
 
 class GaussianProjector:
@@ -322,7 +313,7 @@ class GaussianProjector:
         nbytes = max(int(nbytes), 16)
         buf = self._pool.get(name)
         if buf is None or buf.size < nbytes:
-            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, size=_round_up(nbytes + nbytes // 4, 4096))
+            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, size=round_up(nbytes + nbytes // 4, 4096))
             self._pool[name] = buf
         return buf
 
@@ -400,7 +391,7 @@ class GaussianProjector:
         if mode not in MODES:
             raise ProjectorError(f"mode must be one of {MODES}, got {mode!r}")
         self._check(means, mats, densities)
-        real = _real_name(means.dtype)
+        real = real_name(means.dtype, "projector inputs", ProjectorError)
         dt = means.dtype
         if mats.dtype != dt or densities.dtype != dt:
             raise ProjectorError(f"means, matrices and densities must share one dtype, got {means.dtype}, "
@@ -472,7 +463,7 @@ class GaussianProjector:
             ntx, nty = -(-U // TW), -(-V // TH)
             ntiles = ntx * nty
             nchunks = max(1, min(-(-N // 128), self.max_chunks, _HIST_BUDGET // (nv * ntiles)))
-            chunk = _round_up(-(-N // nchunks), 8)  # affine set-up: 8 Gaussians per vector
+            chunk = round_up(-(-N // nchunks), 8)  # affine set-up: 8 Gaussians per vector
             nchunks = -(-N // chunk)
             b_cnt = self._pooled("cnt", nv * nchunks * 4 * ntiles * 4)
             b_cst = self._pooled("cst", nv * nchunks * (ntiles + 1) * 4)
@@ -496,7 +487,7 @@ class GaussianProjector:
                     self._launch(prog, "preprocess", (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks),
                                  i32(U), i32(V), dt.type(scale), i32(ntx), i32(ntiles), i32(cap), b_means, b_mats,
                                  b_rho, b_vp, b_rec, b_box, b_cnt, b_cst, b_rbase, b_alloc, b_lst, b_gidx)
-                    self._launch(prog, "render", (_round_up(ntx, lt[0]), _round_up(nty, lt[1]), nv), lt, i32(U),
+                    self._launch(prog, "render", (round_up(ntx, lt[0]), round_up(nty, lt[1]), nv), lt, i32(U),
                                  i32(V), i32(ntx), i32(ntiles), i32(nchunks), b_lst, b_cst, b_rbase, b_gidx,
                                  b_means, b_mats, b_rho, b_vp, dt.type(scale), b_out)
                     self._fetch_all([(b_alloc, alloc), (b_out, out)])  # the call's one wait
@@ -538,13 +529,13 @@ class GaussianProjector:
             b = [self._out(f"grad{k}", o) if o is not None else self._pooled(f"grad{k}", 16)
                  for k, o in enumerate(outs)]
             LG = self.LOCAL_G
-            per = self.PER if mode == "exact" else _round_up(self.PER, 8)  # affine: 8 Gaussians per vector
+            per = self.PER if mode == "exact" else round_up(self.PER, 8)  # affine: 8 Gaussians per vector
             nitems = -(-N // per)
             cached = token is not None and token == self._rec_token
             rec_len = 20 if (mode == "exact" and geometry.mode == "cone") else 8
             b_rec = self._pooled(f"rec{dt.itemsize}", nv * N * rec_len * dt.itemsize)
             b_box = self._pooled("box", nv * N * 16)
-            self._launch(prog, "backward", (_round_up(nitems, LG),), (LG,), np.int32(N), np.int32(per),
+            self._launch(prog, "backward", (round_up(nitems, LG),), (LG,), np.int32(N), np.int32(per),
                          np.int32(nv), np.int32(U), np.int32(V), dt.type(scale),
                          np.int32(cached), b_rec, b_box, self._in("means", means),
                          self._in("mats", mats), self._in("rho", densities), self._in("vp", vp),

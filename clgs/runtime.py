@@ -124,6 +124,22 @@ def supports_double() -> bool:
     return "cl_khr_fp64" in device().extensions
 
 
+def round_up(n: int, m: int) -> int:
+    """``n`` rounded up to a multiple of ``m`` (global sizes, padded rows)."""
+    return (n + m - 1) // m * m
+
+
+def real_name(dtype, what: str, error=ValueError) -> str:
+    """The kernels' ``REAL`` for a NumPy float dtype; ``error`` (naming ``what``) for any other."""
+    import numpy as np
+
+    if dtype == np.float32:
+        return "float"
+    if dtype == np.float64:
+        return "double"
+    raise error(f"{what} must be float32 or float64, got {dtype}")
+
+
 def _format_options(defines: dict | None) -> tuple:
     opts = []
     for key in sorted(defines or {}):

@@ -37,6 +37,7 @@ import threading
 
 import numpy as np
 import torch
+from clgs.runtime import real_name, round_up
 
 WINDOW, SIGMA = 11, 1.5
 C1, C2 = 0.01 ** 2, 0.03 ** 2
@@ -46,16 +47,6 @@ class SSIMError(ValueError):
     """Inputs the OpenCL image loss cannot take, with what to do about them."""
 
 
-def _real_name(dtype) -> str:
-    if dtype == np.float32:
-        return "float"
-    if dtype == np.float64:
-        return "double"
-    raise SSIMError(f"images must be float32 or float64, got {dtype}")
-
-
-def _round_up(n: int, m: int) -> int:
-    return (n + m - 1) // m * m
 
 
 def _padded(x: np.ndarray, wp: int) -> np.ndarray:
@@ -86,7 +77,7 @@ class SSIMTarget:
         if b.dim() != 3 or b.shape[-1] < 1 or b.shape[-2] < 1:
             raise SSIMError(f"the target must be (H, W) or (B, H, W) with H, W >= 1, got {tuple(b.shape)}")
         dt = np.dtype(str(b.dtype).replace("torch.", ""))
-        _real_name(dt)
+        real_name(dt, "images", SSIMError)
         if maps is None:
             with torch.no_grad():
                 maps = L.target_maps(b, WINDOW, SIGMA)
@@ -170,7 +161,7 @@ class ImageLoss:
         nbytes = max(int(nbytes), 64)
         buf = self._pool.get(name)
         if buf is None or buf.size < nbytes:
-            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, size=_round_up(nbytes + nbytes // 4, 4096))
+            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, size=round_up(nbytes + nbytes // 4, 4096))
             self._pool[name] = buf
             self._layout[name] = None
         if self._layout[name] != layout:
@@ -195,7 +186,7 @@ class ImageLoss:
         buf = self._pool.get(name)
         if buf is None or buf.size < nbytes:
             buf = self._pool[name] = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE,
-                                               size=_round_up(nbytes + nbytes // 4, 4096))
+                                               size=round_up(nbytes + nbytes // 4, 4096))
         return buf
 
     def _launch(self, prog, name: str, gsize, *args):
@@ -234,7 +225,7 @@ class ImageLoss:
 
         B, H, W = a.shape
         nseg, dt = target.nseg, a.dtype
-        prog = self.program(_real_name(dt))
+        prog = self.program(real_name(dt, "images", SSIMError))
         i32 = np.int32
         layout = (B, H, nseg, dt.str)
         nbytes = B * (H + 10) * nseg * 3 * 8 * dt.itemsize
@@ -260,7 +251,7 @@ class ImageLoss:
         tb = target.buffers(self.ctx, self.queue, self.cpu)
         b_out = self._pooled(f"out{dt.itemsize}", a.nbytes)
         i32 = np.int32
-        self._launch(self.program(_real_name(dt)), "ssim_grad", (-(-H // self.rb), B), i32(H), i32(W),
+        self._launch(self.program(real_name(dt, "images", SSIMError)), "ssim_grad", (-(-H // self.rb), B), i32(H), i32(W),
                      i32(target.nseg), dt.type(w_l1 / n), dt.type(w_ssim / n), T, self._in(a), tb["b"], b_out)
         return b_out
 

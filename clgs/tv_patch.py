@@ -36,8 +36,9 @@ import torch
 
 from . import runtime
 from .geometry import Grid
-from .voxelizer import (GRADSTRIDE, GSTRIDE, _SMALL_CELLS, Voxelizer, _np_dtype, _round_up, _want,
+from .voxelizer import (GRADSTRIDE, GSTRIDE, _SMALL_CELLS, Voxelizer, _np_dtype, _want,
                         default_voxelizer, grid_axes)
+from .runtime import round_up
 
 _CHUNK = 512  # Gaussians per culling work-item (at least; at most _MAX_CHUNKS chunks)
 _MAX_CHUNKS = 64
@@ -88,7 +89,7 @@ class PatchTV:
         offs, end = [], 0
         for dtype, count in sections:
             offs.append(end)
-            end = _round_up(end + np.dtype(dtype).itemsize * max(count, 1), _ALIGN)
+            end = round_up(end + np.dtype(dtype).itemsize * max(count, 1), _ALIGN)
         arr, buf = self._host_array("out", end)
         views = [arr[o:o + np.dtype(d).itemsize * c].view(d) for o, (d, c) in zip(offs, sections)]
         subs = [buf.get_sub_region(o, np.dtype(d).itemsize * max(c, 1)) for o, (d, c) in zip(offs, sections)]
@@ -114,7 +115,7 @@ class PatchTV:
         vox, cl = self.vox, runtime.cl
         n = int(means.shape[0])
         nz, ny, nx = (int(s) for s in grid.shape)
-        pitch = _round_up(nx, 8) + 16
+        pitch = round_up(nx, 8) + 16
         if n == 0:
             empty = np.zeros((0,), np.int64)
             return (0.0, torch.from_numpy(empty), torch.zeros((0, GRADSTRIDE), dtype=means.dtype) if want else None,
@@ -123,7 +124,7 @@ class PatchTV:
         ins = [t.detach().contiguous().numpy() for t in (means, prec, densities, extent)]
         bufs = [vox._input(a) for a in ins]
         xs, ys, zs = grid_axes(grid, dt)
-        nxp = _round_up(nx, 8) + 8
+        nxp = round_up(nx, 8) + 8
         xs_p = np.concatenate([xs, (np.float64(grid.origin[0]) + np.float64(grid.spacing[0])
                                     * np.arange(nx, nxp)).astype(dt)])
         axes = [vox._input(a) for a in (xs_p, ys, zs)]
@@ -183,7 +184,7 @@ class PatchTV:
                 raise MemoryError(
                     f"TV patch: {n} Gaussians meet the patch's {ncells} bricks {pairs} times (too many to list): "
                     "the Gaussians are very large for this patch; bound the scales or use a smaller patch")
-            self._cap_list = min(_round_up(pairs + pairs // 4 + 1, 1 << 12), (1 << 31) - 1)
+            self._cap_list = min(round_up(pairs + pairs // 4 + 1, 1 << 12), (1 << 31) - 1)
         else:  # pragma: no cover - the capacity is set from the count of the run before
             raise RuntimeError("TV patch: the brick lists kept overflowing")
         k = int(meta[0])

@@ -74,6 +74,7 @@ import torch
 
 from . import runtime
 from .geometry import Grid
+from .runtime import round_up
 
 SOURCE = "voxelize.cl"
 GSTRIDE = 16  # reals per packed Gaussian: p (3), rho, P (6), e (3), pad (3)
@@ -87,9 +88,6 @@ _SMALL_CELLS = 512
 _SMALL_PAIRS = 1 << 22
 _UNSORTED_BYTES = 1 << 20
 
-
-def _round_up(n: int, m: int) -> int:
-    return (n + m - 1) // m * m
 
 
 def _np_dtype(dtype: torch.dtype):
@@ -299,7 +297,7 @@ class Voxelizer:
     def _run(self, kernel, n_items: int, *args):
         _declare_scalars(kernel, args)
         kernel.set_args(*args)
-        runtime.cl.enqueue_nd_range_kernel(self.queue, kernel, (_round_up(max(n_items, 1), _LOCAL),), (_LOCAL,))
+        runtime.cl.enqueue_nd_range_kernel(self.queue, kernel, (round_up(max(n_items, 1), _LOCAL),), (_LOCAL,))
 
     def _bin(self, prog, gbuf, n, real, origin, inv, nc, home=False, copy=False):
         """Counting sort of Gaussians into cells: (start (ncells+1), list, list length), where
@@ -369,7 +367,7 @@ class Voxelizer:
         real = dt
         prog = self._program(dt)
         xs, ys, zs = grid_axes(grid, dt)
-        nxp = _round_up(nx, 8) + 8
+        nxp = round_up(nx, 8) + 8
         xs_p = np.concatenate([xs, (np.float64(grid.origin[0]) + np.float64(grid.spacing[0])
                                     * np.arange(nx, nxp)).astype(dt)])
         gnp = gauss.detach().numpy()
@@ -413,7 +411,7 @@ class Voxelizer:
         nz, ny, nx = (int(s) for s in grid.shape)
         prog = self._program(dt, tuple(sorted(want)))
         xs, ys, zs = grid_axes(grid, dt)
-        nxp = _round_up(nx, 8) + 8
+        nxp = round_up(nx, 8) + 8
         xs_p = np.concatenate([xs, (np.float64(grid.origin[0]) + np.float64(grid.spacing[0])
                                     * np.arange(nx, nxp)).astype(dt)])
         g_np = grad_out.detach().to(gauss.dtype).contiguous().numpy()
