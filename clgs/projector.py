@@ -118,7 +118,7 @@ import numpy as np
 import torch
 
 from .gaussian_math import covariance, precision
-from clgs.runtime import real_name, round_up
+from .runtime import real_name, round_up
 
 MODES = ("affine", "exact")
 VP = 20
