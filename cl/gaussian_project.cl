@@ -494,22 +494,17 @@ __kernel void render(const int U, const int V, const int ntx, const int ntiles, 
 
 /* dL/dI of the 8 (16) pixels of row v from column s (lanes past the detector edge repeat its
  * last pixel; the caller masks lanes outside the Gaussian's box, which lies on the detector) */
-inline real8 load_row(__global const real *gimg, int U, int v, int s)
-{
-    __global const real *row = gimg + (size_t)v * U;
-    if (s + 8 <= U) return LD8G(row + s);
-    real tmp[8];
-    for (int i = 0; i < 8; i++) tmp[i] = row[min(s + i, U - 1)];
-    return vload8(0, tmp);
-}
-inline real16 load_row16(__global const real *gimg, int U, int v, int s)
-{
-    __global const real *row = gimg + (size_t)v * U;
-    if (s + 16 <= U) return LD16G(row + s);
-    real tmp[16];
-    for (int i = 0; i < 16; i++) tmp[i] = row[min(s + i, U - 1)];
-    return vload16(0, tmp);
-}
+#define DEFINE_LOAD_ROW(NAME, W)                                                                 \
+    inline real##W NAME(__global const real *gimg, int U, int v, int s)                           \
+    {                                                                                             \
+        __global const real *row = gimg + (size_t)v * U;                                          \
+        if (s + W <= U) return LD##W##G(row + s);                                                 \
+        real tmp[W];                                                                              \
+        for (int i = 0; i < W; i++) tmp[i] = row[min(s + i, U - 1)];                              \
+        return vload##W(0, tmp);                                                                  \
+    }
+DEFINE_LOAD_ROW(load_row, 8)
+DEFINE_LOAD_ROW(load_row16, 16)
 #if BW == 8
 #define load_rowB load_row
 #else

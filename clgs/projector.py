@@ -118,7 +118,7 @@ import numpy as np
 import torch
 
 from .gaussian_math import covariance, precision
-from .runtime import real_name, round_up
+from .runtime import launch, real_name, round_up
 
 MODES = ("affine", "exact")
 VP = 20
@@ -285,24 +285,8 @@ class GaussianProjector:
         return self._runtime.get_program("gaussian_project.cl", defines, self.ctx)
 
     def _launch(self, prog, name: str, gsize, lsize, *args):
-        """Enqueue a kernel, setting only the arguments that changed since its last launch:
-        pyopencl spends about 8-10 us per scalar argument, and most stay the same call after
-        call (kernels are shared by every projector of a context, hence the module-wide record)."""
-        import pyopencl as cl
-
-        k = prog.kernel(name)
-        with _launch_lock:
-            last = _kernel_args.get(id(k))
-            if last is None or len(last) != len(args):
-                last = _kernel_args[id(k)] = [None] * len(args)
-            for i, v in enumerate(args):
-                old = last[i]
-                if old is v:
-                    continue
-                if isinstance(v, cl.MemoryObjectHolder) or old is None or type(old) is not type(v) or old != v:
-                    k.set_arg(i, v)
-                last[i] = v
-            event = cl.enqueue_nd_range_kernel(self.queue, k, gsize, lsize)
+        """Enqueue a kernel (only changed arguments are set, see ``runtime.launch``)."""
+        event = launch(self.queue, prog.kernel(name), gsize, lsize, *args)
         if self.on_launch is not None:
             self.on_launch(name, event)
         return event
@@ -547,8 +531,6 @@ class GaussianProjector:
             return tuple(outs)
 
 
-_launch_lock = threading.Lock()
-_kernel_args: dict = {}  # id(kernel) -> the arguments it was last launched with (kernels are shared)
 _default: GaussianProjector | None = None
 _default_lock = threading.Lock()
 

@@ -37,7 +37,7 @@ import threading
 
 import numpy as np
 import torch
-from clgs.runtime import real_name, round_up
+from clgs.runtime import launch, real_name, round_up
 
 WINDOW, SIGMA = 11, 1.5
 C1, C2 = 0.01 ** 2, 0.03 ** 2
@@ -190,22 +190,8 @@ class ImageLoss:
         return buf
 
     def _launch(self, prog, name: str, gsize, *args):
-        """Enqueue a kernel, setting only the arguments that changed since its last launch:
-        pyopencl spends ~10 us per scalar argument, more than a small kernel runs."""
-        import pyopencl as cl
-
-        k = prog.kernel(name)
-        with _launch_lock:
-            last = _kernel_args.setdefault(id(k), [None] * len(args))
-            for i, v in enumerate(args):
-                old = last[i]
-                if isinstance(v, cl.MemoryObjectHolder):
-                    if old is not v:
-                        k.set_arg(i, v)
-                elif old is None or type(old) is not type(v) or old != v:
-                    k.set_arg(i, v)
-                last[i] = v
-            cl.enqueue_nd_range_kernel(self.queue, k, gsize, self.local)
+        """Enqueue a kernel (only changed arguments are set, see ``runtime.launch``)."""
+        launch(self.queue, prog.kernel(name), gsize, self.local, *args)
 
     def _check(self, a: np.ndarray, target: SSIMTarget) -> np.ndarray:
         if not isinstance(target, SSIMTarget):
@@ -307,8 +293,6 @@ class ImageLoss:
             return out
 
 
-_launch_lock = threading.Lock()
-_kernel_args: dict = {}  # id(kernel) -> the arguments it was last launched with (kernels are shared)
 _default: ImageLoss | None = None
 _default_lock = threading.Lock()
 

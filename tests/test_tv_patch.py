@@ -9,6 +9,7 @@ from clgs.geometry import Grid
 from clgs.reference import voxelization as ref
 from clgs.tv_patch import patch_field, patch_tv, tv_patch
 from clgs.voxelizer import cov_prec, voxelize_precision
+from test_voxelizer import scene as voxelizer_scene
 
 GRID = Grid((40, 37, 45), (-0.98, -0.96, -0.99), (0.05, 0.052, 0.045))
 NEEDS = ("means", "prec", "densities")
@@ -16,13 +17,7 @@ NEEDS = ("means", "prec", "densities")
 
 def scene(n, dtype=torch.float32, seed=0, spread=1.1, log_scale=(-3.6, -2.6)):
     """n Gaussians over GRID (some partly or wholly outside), boxes a few voxels wide."""
-    g = torch.Generator().manual_seed(seed)
-    means = (torch.rand(n, 3, generator=g, dtype=torch.float64) * 2 - 1) * spread
-    lo, hi = log_scale
-    scales = torch.exp(lo + (hi - lo) * torch.rand(n, 3, generator=g, dtype=torch.float64))
-    quats = torch.randn(n, 4, generator=g, dtype=torch.float64)
-    rho = torch.rand(n, generator=g, dtype=torch.float64) + 0.1
-    return [t.to(dtype) for t in (means, scales, quats, rho)]
+    return voxelizer_scene(n, dtype, seed, spread, log_scale)
 
 
 def matrices(params):
