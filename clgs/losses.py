@@ -159,9 +159,13 @@ class ImageTerms:
     gradient of whatever weighted sum the trainer formed; the result is kept per context (weakly:
     it goes with the context) so the second term costs nothing. Elsewhere (the torch backend, or
     a render the kernels do not take) they are :func:`l1` and :func:`dssim`. The target's filtered
-    maps are computed once per view in either case."""
+    maps are computed once per view in either case.
 
-    def __init__(self):
+    ``dssim=False`` (a D-SSIM weight of 0): ``l1`` is the plain L1 and no SSIM pass runs at all
+    (``dssim`` still works if called, on its own)."""
+
+    def __init__(self, dssim: bool = True):
+        self.fused = bool(dssim)
         self._maps: dict = {}  # (view, dtype) -> (mu_b, bb), torch path
         self._targets: dict = {}  # (view, dtype) -> clgs.ssim_cl.SSIMTarget, OpenCL path
         self._results = weakref.WeakKeyDictionary()  # context -> (l1, dssim), OpenCL path
@@ -194,7 +198,7 @@ class ImageTerms:
         return out
 
     def l1(self, ctx) -> torch.Tensor:
-        if self._use_cl(ctx, ctx.render):
+        if self.fused and self._use_cl(ctx, ctx.render):
             return self._both(ctx)[0]
         return l1(ctx.render, ctx.target)
 

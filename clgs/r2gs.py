@@ -171,7 +171,7 @@ def tv_term(size: int):
 
 
 def r2gs_losses(cfg: R2GSConfig) -> list:
-    image = L.ImageTerms()  # L1 and D-SSIM from one pass on the OpenCL backend
+    image = L.ImageTerms(dssim=cfg.lambda_dssim > 0)  # L1 and D-SSIM from one pass on the OpenCL backend
     return [
         LossTerm("l1", 1.0, image.l1),
         LossTerm("dssim", cfg.lambda_dssim, image.dssim),

@@ -340,7 +340,7 @@ def fit_initial_alpha(scan, shape_model, cfg: ShapeGuidedConfig, init, free=None
     sets = [bound]
     if free is not None and len(free) > 0:
         sets.append(_Frozen(free))
-    image = L.ImageTerms()
+    image = L.ImageTerms(dssim=cfg.lambda_dssim > 0)
     losses = [LossTerm("l1", 1.0, image.l1),
               LossTerm("dssim", cfg.lambda_dssim, image.dssim),
               LossTerm("shape", cfg.lambda_shape, shape_prior_term("registration"))]

@@ -204,6 +204,25 @@ def test_image_terms_share_one_computation_on_the_cl_backend(backend):
     assert len(terms._results) == 0  # results go with their context
 
 
+def test_image_terms_without_dssim_run_no_ssim_pass():
+    """A D-SSIM weight of 0 costs nothing: the L1 term alone, no SSIM target or fused pass."""
+    a, b = _pair((24, 21), torch.float32, seed=11)
+    terms = L.ImageTerms(dssim=False)
+    x = a.clone().requires_grad_(True)
+    v1 = terms.l1(_Ctx("cl", 2, x, b))
+    v1.backward()
+    assert float(v1.detach()) == pytest.approx(float((a - b).abs().mean()), rel=1e-6)
+    torch.testing.assert_close(x.grad, torch.sign(a - b) / a.numel())
+    assert len(terms._targets) == 0 and len(terms._results) == 0
+
+
+def test_r2gs_with_dssim_off_builds_l1_only_terms():
+    from clgs.r2gs import R2GSConfig, r2gs_losses
+
+    on, off = (r2gs_losses(R2GSConfig(lambda_dssim=w)) for w in (0.25, 0.0))
+    assert on[0].fn.__self__.fused and not off[0].fn.__self__.fused
+
+
 def test_trainer_stops_on_a_nan_render():
     """A non-finite render makes the loss NaN and the trainer raises a clear FloatingPointError."""
     from clgs.geometry import Geometry
