@@ -68,12 +68,11 @@ class JsonConfig:
 
 
 @dataclass
-class R2GSConfig(JsonConfig):
-    """R2-Gaussian's defaults (iterations, initialisation, loss weights, densification)."""
+class GaussianFitConfig(JsonConfig):
+    """Settings every Gaussian reconstruction shares (R2-Gaussian's defaults): loss weights,
+    FDK-based initialisation, densification, scale bounds, the projector and the run's logging."""
 
     iterations: int = 30_000
-    n_gaussians: int = 50_000  # initial count (fewer when fewer voxels pass the threshold)
-    init: str = "fdk"  # "fdk" | "random"
     init_threshold: float = 0.05  # of the FDK range
     density_factor: float = 0.15
     lambda_dssim: float = 0.25
@@ -95,6 +94,14 @@ class R2GSConfig(JsonConfig):
     log_every: int = 500
     checkpoint_every: int = 1000
     schedule_iterations: int | None = None  # length of the lr decays (default: iterations)
+
+
+@dataclass
+class R2GSConfig(GaussianFitConfig):
+    """R2-Gaussian's defaults (iterations, initialisation, loss weights, densification)."""
+
+    n_gaussians: int = 50_000  # initial count (fewer when fewer voxels pass the threshold)
+    init: str = "fdk"  # "fdk" | "random"
 
     KIND = "r2gs"
 

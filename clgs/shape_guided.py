@@ -48,7 +48,7 @@ import torch.nn.functional as F
 
 from clgs.evaluation import bone_surface  # the outer bone surface written with the outputs
 from clgs.gaussians import GaussianSet, Schedule, init_from_volume, r2gs_schedules
-from clgs.r2gs import (JsonConfig, fdk_volume, gaussians_in_scan_units, make_trainer, r2gs_losses, restore,
+from clgs.r2gs import (GaussianFitConfig, fdk_volume, gaussians_in_scan_units, make_trainer, r2gs_losses, restore,
                        run_config, scale_bounds_for, value_scale_from, volume_box, voxelize_volume)
 from clgs.trainer import LossTerm, Trainer
 
@@ -56,10 +56,10 @@ CHECKPOINT = "checkpoint.pt"
 
 
 @dataclass
-class ShapeGuidedConfig(JsonConfig):
-    """The paper's defaults (35k shape-guided + 15k free Gaussians, 30k iterations)."""
+class ShapeGuidedConfig(GaussianFitConfig):
+    """The paper's defaults (35k shape-guided + 15k free Gaussians, 30k iterations); the settings
+    shared with R2-Gaussian mode (densification, loss weights, ...) are :class:`GaussianFitConfig`'s."""
 
-    iterations: int = 30_000
     n_shape: int = 35_000
     n_free: int = 15_000
     tau: float = 0.5
@@ -73,32 +73,11 @@ class ShapeGuidedConfig(JsonConfig):
     lambda_density: float = 0.5
     density_s: float = 0.05
     density_points: int = 32  # sub-grid points per axis for L_density
-    lambda_dssim: float = 0.25
-    lambda_tv: float = 0.05
-    tv_size: int = 32
     lr_alpha: float = 0.1
     alpha_freeze: int = 50
     lr_density: float = 0.01
     lr_scale: float = 0.005
     lr_rotation: float = 0.01
-    init_threshold: float = 0.05
-    density_factor: float = 0.15
-    densify_start: int = 500
-    densify_until: int = 15_000
-    densify_interval: int = 100
-    grad_threshold: float = 5e-5
-    densify_scale_threshold: float = 0.1
-    min_density: float = 1e-5
-    max_gaussians: int = 500_000
-    scale_bounds: tuple | None = (0.0005, 0.5)
-    scale_floor: float | None = 0.4  # see R2GSConfig
-    projector_mode: str = "affine"
-    backend: str = "cl"
-    seed: int = 0
-    value_scale: float | None = None
-    log_every: int = 500
-    checkpoint_every: int = 1000
-    schedule_iterations: int | None = None
 
     KIND = "shape-guided"
 
