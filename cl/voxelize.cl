@@ -245,6 +245,16 @@ inline int count8(mask8 m)
     return c.x + c.y;
 }
 
+/* Trim [lo, hi] to the run of sample coordinates c[lo..hi] (increasing) within p +- e: the exact
+ * box test on the samples themselves, after an estimate of the range */
+#define TRIM_RUN(c, p, e, lo, hi)                  \
+    do {                                           \
+        while ((lo) <= (hi) && (c)[lo] - (p) < -(e)) \
+            (lo)++;                                \
+        while ((hi) >= (lo) && (c)[hi] - (p) > (e))  \
+            (hi)--;                                \
+    } while (0)
+
 /* ------------------------------------------------------------------------------------------ */
 /* Grid forward: one work-item per brick (8 x BRICK_Y x BRICK_Z voxels), one real8 per x row.
  * xs/ys/zs are the sample coordinates; xs is padded to a multiple of 8 (pads are never stored).
@@ -293,14 +303,8 @@ kernel void vox_grid(global const real *packed, global const int *start, global 
         int ylo = count8(vy - g.py < -g.ey), yhi = 7 - count8(vy - g.py > g.ey);
 #else
         int zlo = 0, zhi = nzb - 1, ylo = 0, yhi = nyb - 1;
-        while (zlo <= zhi && cz[zlo] - g.pz < -g.ez)
-            zlo++;
-        while (zhi >= zlo && cz[zhi] - g.pz > g.ez)
-            zhi--;
-        while (ylo <= yhi && cy[ylo] - g.py < -g.ey)
-            ylo++;
-        while (yhi >= ylo && cy[yhi] - g.py > g.ey)
-            yhi--;
+        TRIM_RUN(cz, g.pz, g.ez, zlo, zhi);
+        TRIM_RUN(cy, g.py, g.ey, ylo, yhi);
 #endif
         real a = (real)-0.5 * g.pxx;
         real8 adx = a * dx;
@@ -391,18 +395,9 @@ inline moments_t grid_moments(gauss_t g, global const real *xs, global const rea
           && sample_range(g.pz, g.ez, zs[0], (real)1 / hz, nz, &z0, &z1)))
         return m;
     /* trim the estimates to the exact runs of samples inside the box */
-    while (x0 <= x1 && xs[x0] - g.px < -g.ex)
-        x0++;
-    while (x1 >= x0 && xs[x1] - g.px > g.ex)
-        x1--;
-    while (y0 <= y1 && ys[y0] - g.py < -g.ey)
-        y0++;
-    while (y1 >= y0 && ys[y1] - g.py > g.ey)
-        y1--;
-    while (z0 <= z1 && zs[z0] - g.pz < -g.ez)
-        z0++;
-    while (z1 >= z0 && zs[z1] - g.pz > g.ez)
-        z1--;
+    TRIM_RUN(xs, g.px, g.ex, x0, x1);
+    TRIM_RUN(ys, g.py, g.ey, y0, y1);
+    TRIM_RUN(zs, g.pz, g.ez, z0, z1);
     real a = (real)-0.5 * g.pxx;
     /* per-lane sums, reduced once at the end; the y moments of a z plane are summed first and
      * weighted by dz once per plane */
