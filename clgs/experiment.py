@@ -225,14 +225,15 @@ def plot_curves(path, rows, views) -> None:
     colours = {"r2gs": "tab:blue", "shape": "tab:red", "init": "tab:gray", "init+shape": "tab:orange"}
     for ax, v in zip(axes[0], views):
         for r in rows:
-            if r["views"] != v or not r.get("history"):
+            if r["views"] != v:
                 continue
-            h = [x for x in r["history"] if x.get("psnr3d") is not None]
+            if r["method"] == "fdk":  # no curve: one point at its (sub-second) run time
+                ax.plot([r["seconds"]], [r["psnr3d"]], "s", color="tab:green", alpha=0.7, label=METHOD_LABELS["fdk"])
+                continue
+            h = [x for x in r.get("history") or [] if x.get("psnr3d") is not None]
             if h:
                 ax.plot([x["seconds"] for x in h], [x["psnr3d"] for x in h], color=colours.get(r["method"], "k"),
                         alpha=0.7, label=METHOD_LABELS[r["method"]])
-            elif r["method"] == "fdk":
-                ax.axhline(r["psnr3d"], color="tab:green", ls="--", alpha=0.5, label="FDK")
         handles, labels = ax.get_legend_handles_labels()
         uniq = dict(zip(labels, handles))
         ax.legend(uniq.values(), uniq.keys(), fontsize=8)
