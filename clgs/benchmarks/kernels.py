@@ -33,6 +33,9 @@ For each detector (128^2, 256^2), beam (cone, parallel) and mode (affine, exact)
 * ``--widths``: after each row, the same calls with the projector forced to 8 and to 16 lanes
   on every kernel, alternating call by call in this process (``--repeat`` rounds, medians): wall
   and CPU milliseconds and the 8/16 ratios, to decide per kernel which width pays.
+* ``--fastest``: after each row, the fastest of the ``--repeat`` calls each way and its rate: on
+  a shared machine the least disturbed call, a bound on what the code does unloaded (the table
+  keeps the medians).
 * ``--n``, ``--det``, ``--beam``: run only these cases (each may be repeated), e.g. the
   reference case ``--n 50000 --det 256 --beam cone`` (the voxelizer rows are then left out).
 
@@ -134,7 +137,7 @@ def _time_kernels(projector, m, mats, rho, geometry, mode, repeat):
         projector.backward(mn, mt, rn, geometry, [view], mode, gout, token=projector.last_token)
         tb.append(time.perf_counter() - t)
         cb.append(time.process_time() - c)
-    return [_median(x) * 1e3 for x in (tf, tb, cf, cb)] + [out[0]]
+    return [_median(x) * 1e3 for x in (tf, tb, cf, cb)] + [out[0], min(tf) * 1e3, min(tb) * 1e3]
 
 
 def _stages(projector, m, mats, rho, geometry, mode, repeat):
@@ -226,13 +229,14 @@ def _time_torch(m, mats, rho, geometry, mode, repeat):
 @click.option("--repeat", default=7, show_default=True, help="timed repeats per case (median)")
 @click.option("--torch-n", default=5000, show_default=True, help="largest N timed in torch (scaled above)")
 @click.option("--stages", is_flag=True, help="also print each kernel's device time and launches per call")
+@click.option("--fastest", is_flag=True, help="also print the fastest call of each row (least disturbed on a shared machine)")
 @click.option("--widths", "widths", is_flag=True,
               help="also time each case at 8 and at 16 lanes, alternating, and print the ratios")
 @click.option("--n", "sizes_opt", type=int, multiple=True, help="numbers of Gaussians (default 10000 and 50000)")
 @click.option("--det", "dets_opt", type=click.Choice(["128", "256"]), multiple=True, help="detector sizes (default both)")
 @click.option("--beam", "beams_opt", type=click.Choice(["cone", "parallel"]), multiple=True,
               help="beams (default both)")
-def main(quick, repeat, torch_n, stages, widths, sizes_opt, dets_opt, beams_opt):
+def main(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt, beams_opt):
     """Gaussian projector: ms, evaluations/s, fraction of the exp ceiling, speed-up over torch."""
     import torch
 
@@ -277,7 +281,7 @@ def main(quick, repeat, torch_n, stages, widths, sizes_opt, dets_opt, beams_opt)
                 res = {}
                 for mode in ("affine", "exact"):
                     mats = cov if mode == "affine" else prec
-                    fwd, bwd, cfwd, cbwd, img = _time_kernels(proj, m, mats, rho, g, mode, repeat)
+                    fwd, bwd, cfwd, cbwd, img, fwd_min, bwd_min = _time_kernels(proj, m, mats, rho, g, mode, repeat)
                     k = min(n, torch_n)
                     t_f, t_fb = _time_torch(m[:k], mats[:k], rho[:k], g, mode, max(1, repeat // 3))
                     t_fb *= n / k
@@ -292,6 +296,9 @@ def main(quick, repeat, torch_n, stages, widths, sizes_opt, dets_opt, beams_opt)
                         ratio = (fwd + bwd) / (res["affine"][0] + res["affine"][1])
                         line += f" {err:12.2e} {ratio:12.2f}"
                     click.echo(line)
+                    if fastest:
+                        click.echo(f"    fastest of {repeat} calls: fwd {fwd_min:.2f} ms ({useful / fwd_min / 1e6:.2f} Geval/s), "
+                                   f"bwd {bwd_min:.2f} ms ({useful / bwd_min / 1e6:.2f} Geval/s)")
                     if widths:
                         r = _compare_widths(wproj, m, mats, rho, g, mode, repeat)
                         a, b = r[8], r[16]
