@@ -118,7 +118,7 @@ import numpy as np
 import torch
 
 from .gaussian_math import covariance, precision
-from .runtime import launch, real_name, round_up
+from .runtime import launch, real_name, round_up, shared
 
 MODES = ("affine", "exact")
 VP = 20
@@ -531,17 +531,9 @@ class GaussianProjector:
             return tuple(outs)
 
 
-_default: GaussianProjector | None = None
-_default_lock = threading.Lock()
-
-
 def default_projector() -> GaussianProjector:
     """The process-wide projector (programs and buffers shared by every ``project`` call)."""
-    global _default
-    with _default_lock:
-        if _default is None:
-            _default = GaussianProjector()
-        return _default
+    return shared(GaussianProjector)
 
 
 def _np(t: torch.Tensor) -> np.ndarray:

@@ -149,6 +149,20 @@ def launch(queue, kernel, gsize, lsize, *args):
         return cl.enqueue_nd_range_kernel(queue, kernel, gsize, lsize)
 
 
+_shared: dict = {}
+_shared_lock = threading.Lock()
+
+
+def shared(cls):
+    """The process-wide instance of ``cls`` (an operator class: its compiled programs and pooled
+    buffers then serve every call), made on first use."""
+    with _shared_lock:
+        obj = _shared.get(cls)
+        if obj is None:
+            obj = _shared[cls] = cls()
+        return obj
+
+
 def round_up(n: int, m: int) -> int:
     """``n`` rounded up to a multiple of ``m`` (global sizes, padded rows)."""
     return (n + m - 1) // m * m

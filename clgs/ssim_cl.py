@@ -37,7 +37,7 @@ import threading
 
 import numpy as np
 import torch
-from clgs.runtime import launch, real_name, round_up
+from clgs.runtime import launch, real_name, round_up, shared
 
 WINDOW, SIGMA = 11, 1.5
 C1, C2 = 0.01 ** 2, 0.03 ** 2
@@ -293,17 +293,9 @@ class ImageLoss:
             return out
 
 
-_default: ImageLoss | None = None
-_default_lock = threading.Lock()
-
-
 def default_image_loss() -> ImageLoss:
     """The process-wide instance (programs and scratch buffers shared by every call)."""
-    global _default
-    with _default_lock:
-        if _default is None:
-            _default = ImageLoss()
-        return _default
+    return shared(ImageLoss)
 
 
 class _L1DSSIM(torch.autograd.Function):

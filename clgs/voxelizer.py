@@ -551,16 +551,9 @@ class Voxelizer:
 
 
 # ----------------------------------------------------------------------------- autograd ops
-_default: Voxelizer | None = None
-_default_lock = threading.Lock()
-
-
 def default_voxelizer() -> Voxelizer:
-    global _default
-    with _default_lock:
-        if _default is None:
-            _default = Voxelizer()
-        return _default
+    """The process-wide voxelizer (programs and scratch buffers shared by every call)."""
+    return runtime.shared(Voxelizer)
 
 
 def _want(needs) -> tuple:
