@@ -239,3 +239,15 @@ def test_trainer_stops_on_a_nan_render():
     t.backend.project = lambda *a, **k: project(*a, **k) * float("nan")
     with pytest.raises(FloatingPointError, match="loss became nan"):
         t.step()
+
+
+def test_gpu_configuration_gives_the_same_bits():
+    """The image loss as on a GPU (device buffers filled and read by copies, one row per
+    work-item, the driver's work-group size), run here: the same values and gradient bits."""
+    gpu = ImageLoss()
+    gpu.cpu, gpu.rb, gpu.local = False, gpu.RB_GPU, None
+    a, b = _pair((2, 37, 29), torch.float32, seed=21)
+    results = [_cl(op, a, b) for op in (ImageLoss(), gpu)]
+    assert results[0][1] > 0
+    assert results[0][:2] == results[1][:2]
+    assert torch.equal(results[0][2], results[1][2])

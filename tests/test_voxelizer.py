@@ -386,3 +386,29 @@ def test_cov_prec_degenerate_inputs():
     assert c0.shape == (0, 6) and p0.shape == (0, 6) and e0.shape == (0, 3)
     with pytest.raises(ValueError, match="quats"):
         cov_prec(torch.ones(4, 3), torch.ones(4, 3))
+
+
+def test_gpu_configuration_gives_the_same_bits():
+    """The voxelizer as on a GPU (inputs copied to device buffers, outputs copied back, not
+    wrapped host memory), run here: grid, points and their gradients, and the fused TV patch,
+    bit for bit as the CPU configuration."""
+    from clgs.tv_patch import tv_patch
+    from clgs.voxelizer import cov_prec
+
+    gpu = Voxelizer()
+    gpu.host_memory = False
+    pts = torch.rand(700, 3, generator=torch.Generator().manual_seed(4)) * 2 - 1
+    w = torch.randn(GRID.shape, generator=torch.Generator().manual_seed(5))
+    block = GRID.block((2, 3, 4), (9, 8, 10))
+    results = []
+    for vox in (Voxelizer(), gpu):
+        params = _requires_grad(scene(900, seed=12))
+        out = voxelize(*params, GRID, voxelizer=vox)
+        outp = voxelize_points(*params, pts, voxelizer=vox)
+        _, prec, extent = cov_prec(params[1], params[2], cov=False, extent=True, voxelizer=vox)
+        tv = tv_patch(params[0], prec, params[3], extent, block, voxelizer=vox)
+        grads = torch.autograd.grad((out * w).sum() + outp.sum() + tv, params)
+        results.append([out, outp, tv, *grads])
+    assert float(results[0][2].detach()) > 0
+    for a, b in zip(*results):
+        assert torch.equal(a, b)
