@@ -65,7 +65,7 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
             "model_surface": model_surface}
 
 
-def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: int = 30_000,
+def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: int = 1000,
                    ablation_views: int | None = 5, methods=("fdk", "r2gs", "shape"), seed: int = 0,
                    progress: bool = True, settings: dict | None = None, echo=print) -> dict:
     """Run (or resume) the experiment; returns the summary dict also written to ``summary.json``."""
@@ -103,7 +103,13 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
                 tag = f"{sid}_{v}_{method.replace('+', '-')}"
                 record_path = out / "runs" / f"{tag}.json"
                 if record_path.is_file():
-                    rows.append(json.loads(record_path.read_text()))
+                    row = json.loads(record_path.read_text())
+                    want = 0 if method == "fdk" else iterations
+                    if row.get("iterations", want) != want:
+                        raise ValueError(
+                            f"{record_path} was made with {row['iterations']} iterations, this run asks for {want}: "
+                            "give the same --iterations to resume, or another --out folder")
+                    rows.append(row)
                     echo(f"{tag}: done before, kept")
                     continue
                 echo(f"{tag}: reconstructing ({METHOD_LABELS[method]}, {v} views)")

@@ -273,6 +273,11 @@ def test_experiment_writes_tables_curves_and_resumes(template, shape_model, atla
     run_experiment(anatomy, tmp_path, views=(3,), iterations=10, ablation_views=3, progress=False,
                    settings=settings, echo=lines.append)
     assert sum("done before" in x for x in lines) == 10
+    # resuming with another budget would mix runs: a clear error, nothing overwritten
+    with pytest.raises(ValueError, match="made with 10 iterations, this run asks for 20"):
+        run_experiment(anatomy, tmp_path, views=(3,), iterations=20, ablation_views=3, progress=False,
+                       settings=settings, echo=lines.append)
+    assert len(list((tmp_path / "runs").glob("*.json"))) == 10
     # held-out subjects only
     with pytest.raises(ValueError, match="population"):
         run_experiment(anatomy, tmp_path / "x", views=(3,), subjects=["p"], iterations=2)

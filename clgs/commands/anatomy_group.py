@@ -288,8 +288,9 @@ def make_group(anatomy) -> click.Group:
                   help="view counts, e.g. --views 5 10 [default: 5 10]")
     @click.argument("more_views", nargs=-1, type=click.IntRange(min=1), metavar="")
     @click.option("--subjects", default=None, help="comma-separated held-out subject ids [default: all held out]")
-    @click.option("--iterations", default=30_000, show_default=True, type=click.IntRange(min=1),
-                  help="training iterations of every Gaussian run (the paper: 30000)")
+    @click.option("--iterations", default=1000, show_default=True, type=click.IntRange(min=1),
+                  help="training iterations of every Gaussian run (the README's table: 1000, a few "
+                       "minutes per subject on 2 cores; the paper: 30000, hours per run there)")
     @click.option("--ablation-views", default=5, show_default=True, type=int,
                   help="view count of the ablation (0: none)")
     @click.option("--out", required=True, type=click.Path(file_okay=False),
