@@ -59,8 +59,8 @@ its backward 1.12x. The exp probe runs about 1.5x faster per CPU-second at 16 la
 loops gain less because 16-wide tile rows and segments cover more pixels outside each footprint
 (28% of the render's lanes are useful at 16, 42% at 8, for Gaussians 4-16 pixels across).
 
-The splat loops use ``splat_exp2_8`` (``cl/project_setup.h``; ``splat_exp2_16`` in
-``cl/gaussian_project.cl``, the same polynomial on 16 lanes): ``fastexp.h``'s method with a
+The splat loops use ``splat_exp2_8`` / ``splat_exp2_16`` (``cl/project_setup.h``, one
+definition made at both widths): ``fastexp.h``'s method with a
 degree-5 fitted polynomial and no range handling at all (the loops fold ``log2(e)`` into their
 coefficients and select zero wherever ``q > 9``, the only lanes where the result is not valid).
 

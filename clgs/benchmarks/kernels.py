@@ -93,16 +93,14 @@ def _useful(means, cov, geometry, view):
     return total
 
 
-def _exp_ceiling(projector, repeat, width):
-    """exp/s of the probe kernel at ``width`` lanes: (per wall second, per CPU second of this process)."""
+def _exp_ceiling(projector, repeat):
+    """exp/s of the probe kernel at the projector's render width (``fast_exp8`` or ``fast_exp16``):
+    (per wall second, per CPU second of this process)."""
     import numpy as np
     import pyopencl as cl
 
-    from .. import runtime
-
-    th = (projector.TILE_CPU if projector.cpu else projector.TILE_GPU)[width][1]
-    prog = runtime.get_program("gaussian_project.cl", {"REAL": "float", "CONE": True, "TW": width, "BW": width,
-                                                       "TH": th}, projector.ctx)
+    prog = projector.program("cone", "affine", "float")
+    width = projector.widths("cone", "affine")[0]
     n, G = 4000, 8192
     buf = cl.Buffer(projector.ctx, cl.mem_flags.READ_WRITE, size=G * 4)
     k = prog.kernel("exp_probe")
@@ -250,11 +248,11 @@ def main(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt, b
         torch_n = min(torch_n, 2000)
     proj = GaussianProjector()
     wproj = {w: GaussianProjector(w) for w in (8, 16)} if widths else None
-    ceiling, ceiling_cpu = _exp_ceiling(proj, max(3, repeat), proj.width)
+    ceiling, ceiling_cpu = _exp_ceiling(proj, max(3, repeat))
     click.echo(f"device exp ceiling (fast_exp{proj.width} probe, the projector's width): {ceiling / 1e9:.2f} G exp/s "
                f"wall, {ceiling_cpu / 1e9:.2f} G exp per CPU-second")
     if proj.width != 8:
-        c8, c8_cpu = _exp_ceiling(proj, max(3, repeat), 8)
+        c8, c8_cpu = _exp_ceiling(GaussianProjector(8), max(3, repeat))
         click.echo(f"                   (fast_exp8 probe, for comparison): {c8 / 1e9:.2f} G exp/s wall, "
                    f"{c8_cpu / 1e9:.2f} G exp per CPU-second ({ceiling_cpu / c8_cpu:.2f}x per CPU-second at "
                    f"{proj.width})")
