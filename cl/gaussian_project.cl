@@ -457,8 +457,8 @@ __kernel void render(const int U, const int V, const int ntx, const int ntiles, 
             const realW Ndu = lk0 * du * du, NB = lk1 * du;
             const realW Adu = RC(1.0) + (RC(2.0) * a1 + a3 * du) * du, AB = RC(2.0) * (a4 * du + a2);
             const realW Ddu = d0 + (RC(2.0) * d1 + d3 * du) * du, DB = RC(2.0) * (d4 * du + d2);
-            for (int r = r0; r <= r1; r++) {
-                const realW dv = (realW)((real)(v0 + r) - vc);
+            realW dv = (realW)(row_offset(b.x, v0 + r0, vc));
+            for (int r = r0; r <= r1; r++, dv += RC(1.0)) {
                 const realW A = Adu + dv * (AB + a5 * dv);
                 const realW DD = Ddu + dv * (DB + d5 * dv);
                 const realW ia = RC(1.0) / A;
@@ -468,8 +468,8 @@ __kernel void render(const int U, const int V, const int ntx, const int ntiles, 
             }
 #else
             const realW P = lk0 * du * du, Q = lk1 * du; /* t = P + dv (Q + lk2 dv): the du parts once */
-            for (int r = r0; r <= r1; r++) {
-                const realW dv = (realW)((real)(v0 + r) - vc);
+            realW dv = (realW)(row_offset(b.x, v0 + r0, vc));
+            for (int r = r0; r <= r1; r++, dv += RC(1.0)) {
                 const realW t = P + dv * (Q + lk2 * dv);
                 acc[r] += (t >= TCUT ? amp * expW(t) : zero);
             }
@@ -539,12 +539,11 @@ inline void conic_moments(__global const real *gi, int U, int4 b, real uc, real 
         const realB du = uu - uc;
         const realB A8 = nk0 * du * du, B8 = nk1 * du;
         realB c0 = zero, cv = zero, cvv = zero;
-        for (int v = b.z; v <= b.w; v++) {
-            const real dv = (real)v - vc;
-            const realB dv8 = (realB)(dv);
+        realB dv8 = (realB)(row_offset(b.z, b.z, vc));
+        for (int v = b.z; v <= b.w; v++, dv8 += RC(1.0)) {
             const realB t = A8 + dv8 * (B8 + nk2 * dv8);
             const realB gE = ((lm & (t >= TCUT)) ? load_rowB(gi, U, v, s) * expB(t) : zero);
-            c0 += gE; cv += gE * dv; cvv += gE * (dv * dv);
+            c0 += gE; cv += gE * dv8; cvv += gE * (dv8 * dv8);
         }
         S0 += c0; Su += du * c0; Suu += du * du * c0;
         Sv += cv; Suv += du * cv; Svv += cvv;
@@ -654,8 +653,9 @@ inline void backward_one(const int g, const int N, const int nviews, const int U
                 const realB Adu = RC(1.0) + (RC(2.0) * sp.a1 + sp.a3 * du) * du, AB = RC(2.0) * (sp.a4 * du + sp.a2);
                 const realB Ddu = sp.d0 + (RC(2.0) * sp.d1 + sp.d3 * du) * du, DB = RC(2.0) * (sp.d4 * du + sp.d2);
                 realB H0 = zb, H1 = zb, H2 = zb, K0 = zb, K1 = zb, K2 = zb, K3 = zb, K4 = zb;
-                for (int v = b.z; v <= b.w; v++) {
-                    const real dv = (real)v - sp.vc, dv2 = dv * dv;
+                real dv = row_offset(b.z, b.z, sp.vc);
+                for (int v = b.z; v <= b.w; v++, dv += RC(1.0)) {
+                    const real dv2 = dv * dv;
                     const realB dv8 = (realB)(dv);
                     const realB A = Adu + dv8 * (AB + sp.a5 * dv8);
                     const realB ia = RC(1.0) / A;
