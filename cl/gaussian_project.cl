@@ -312,10 +312,10 @@ inline void preprocess8(const int g0, const int view, const int N, const int U, 
     const int8 ok = convert_int8(sp.ok) & (sp.u0 <= sp.u1) & (sp.v0 <= sp.v1); /* kept, box not empty */
     const int8 u0 = ok ? sp.u0 : (int8)(1), u1 = ok ? sp.u1 : (int8)(0);
     const int8 v0 = ok ? sp.v0 : (int8)(1), v1 = ok ? sp.v1 : (int8)(0);
-    /* the record: centre, amplitude, first row of the box, -q/2 coefficients, last row (the
-     * backward recomputes its set-up, so the record only serves the render) */
-    const real8 out[8] = {sp.uc, sp.vc, in[9] * sp.amp0, convert_real8(v0),
-                          RC(-0.5) * sp.k0, -sp.k1, RC(-0.5) * sp.k2, convert_real8(v1)};
+    /* the record: centre, amplitude, first row of the box, -q/2 log2(e) coefficients, last row
+     * (the backward recomputes its set-up, so the record only serves the render) */
+    const real8 out[8] = {sp.uc, sp.vc, in[9] * sp.amp0, convert_real8(v0), (RC(-0.5) * sp.k0) * RC(LOG2E),
+                          -sp.k1 * RC(LOG2E), (RC(-0.5) * sp.k2) * RC(LOG2E), convert_real8(v1)};
     const size_t idx0 = (size_t)view * N + g0;
     if (g0 + 8 <= N) {
         real8 r[8];
@@ -437,8 +437,13 @@ __kernel void render(const int U, const int V, const int ntx, const int ntiles, 
             const int2 b = (int2)((int)R[ROW0_SLOT], (int)R[ROW1_SLOT]);
             const int r0 = (b.x > v0 ? b.x : v0) - v0, r1 = (b.y < v0 + TH - 1 ? b.y : v0 + TH - 1) - v0;
             const real uc = R[0], vc = R[1], amp = R[2];
-            /* t = -q/2 log2(e), so that the exponential is expW(t) (splat_exp2_8 / _16) */
+            /* t = -q/2 log2(e), so that the exponential is expW(t) (splat_exp2_8 / _16); the
+             * affine record holds these coefficients already */
+#if defined(EXACT)
             const real lk0 = R[4] * RC(LOG2E), lk1 = R[5] * RC(LOG2E), lk2 = R[6] * RC(LOG2E);
+#else
+            const real lk0 = R[4], lk1 = R[5], lk2 = R[6];
+#endif
             const realW du = uu - uc;
 #if defined(EXACT) && defined(CONE)
             if (R[3] != RC(0.0)) {
