@@ -65,6 +65,34 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
             "model_surface": model_surface}
 
 
+def _made_with(method: str, iterations: int, seed: int, settings: dict) -> dict:
+    """What a run's result depends on besides the scan, as kept in its record: a resumed
+    experiment reuses a record only when these match (else its table would mix runs)."""
+    if method == "fdk":
+        return {"iterations": 0}
+    key = "r2gs" if method == "r2gs" else "shape"
+    chosen = {k: v for k, v in settings.get(key, {}).items() if k not in _BOOKKEEPING}
+    return {"iterations": iterations, "seed": seed,
+            "settings": json.loads(json.dumps(chosen, sort_keys=True, default=str))}
+
+
+# settings that change how often a run logs or saves, not its result
+_BOOKKEEPING = {"log_every", "checkpoint_every", "checkpoint_dir", "progress"}
+_OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings"}
+
+
+def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
+    """ValueError if the kept record ``row`` was made with other settings than ``made_with``
+    (records from before seeds and settings were kept count as seed 0 and no settings)."""
+    defaults = {"seed": 0, "settings": {}}
+    for key, want in made_with.items():
+        had = row.get(key, defaults.get(key, want))
+        if had != want:
+            raise ValueError(
+                f"{path} was made with {key} {had!r}, this run asks for {want!r}: give the same "
+                f"{_OPTION[key]} to resume, or another --out folder")
+
+
 def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: int = 1000,
                    ablation_views: int | None = 5, methods=("fdk", "r2gs", "shape"), seed: int = 0,
                    progress: bool = True, settings: dict | None = None, echo=print) -> dict:
@@ -102,13 +130,10 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
                     continue
                 tag = f"{sid}_{v}_{method.replace('+', '-')}"
                 record_path = out / "runs" / f"{tag}.json"
+                made_with = _made_with(method, iterations, seed, settings)
                 if record_path.is_file():
                     row = json.loads(record_path.read_text())
-                    want = 0 if method == "fdk" else iterations
-                    if row.get("iterations", want) != want:
-                        raise ValueError(
-                            f"{record_path} was made with {row['iterations']} iterations, this run asks for {want}: "
-                            "give the same --iterations to resume, or another --out folder")
+                    _check_same_run(record_path, row, made_with)
                     rows.append(row)
                     echo(f"{tag}: done before, kept")
                     continue
@@ -123,8 +148,7 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
                     sd = surface_distance(run["model_surface"], scan.surface)
                     metrics.update({f"model_surface_{k}_mm": v for k, v in sd.items()})
                     save_mesh(out / "runs" / f"{tag}_model.stl", *run["model_surface"])
-                row = {"subject": sid, "views": v, "method": method, "seconds": run["seconds"],
-                       "iterations": 0 if method == "fdk" else iterations,
+                row = {"subject": sid, "views": v, "method": method, "seconds": run["seconds"], **made_with,
                        **{k: (float(x) if isinstance(x, (int, float, np.floating)) else x) for k, x in metrics.items()},
                        "surface_file": None if surf is None else str(surf),
                        "history": [{k: r.get(k) for k in ("iteration", "seconds", "psnr3d", "ssim3d")}

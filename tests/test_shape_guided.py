@@ -274,9 +274,17 @@ def test_experiment_writes_tables_curves_and_resumes(template, shape_model, atla
                    settings=settings, echo=lines.append)
     assert sum("done before" in x for x in lines) == 10
     # resuming with another budget would mix runs: a clear error, nothing overwritten
-    with pytest.raises(ValueError, match="made with 10 iterations, this run asks for 20"):
+    with pytest.raises(ValueError, match="made with iterations 10, this run asks for 20"):
         run_experiment(anatomy, tmp_path, views=(3,), iterations=20, ablation_views=3, progress=False,
                        settings=settings, echo=lines.append)
+    # and so would another seed or other settings
+    with pytest.raises(ValueError, match="made with seed 0, this run asks for 1.*--seed"):
+        run_experiment(anatomy, tmp_path, views=(3,), iterations=10, ablation_views=3, progress=False,
+                       settings=settings, seed=1, echo=lines.append)
+    other = {**settings, "r2gs": {**settings["r2gs"], "tv_size": 6}}
+    with pytest.raises(ValueError, match="made with settings .*'tv_size': 8.*same settings"):
+        run_experiment(anatomy, tmp_path, views=(3,), iterations=10, ablation_views=3, progress=False,
+                       settings=other, echo=lines.append)
     assert len(list((tmp_path / "runs").glob("*.json"))) == 10
     # held-out subjects only
     with pytest.raises(ValueError, match="population"):
