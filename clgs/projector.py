@@ -117,6 +117,7 @@ import threading
 import numpy as np
 import torch
 
+from .buffers import BufferPool
 from .gaussian_math import covariance, precision
 from .runtime import launch, real_name, round_up, shared
 
@@ -220,12 +221,10 @@ class GaussianProjector:
         self._runtime = runtime
         self.ctx = runtime.get_context()
         self.queue = runtime.get_queue()
-        self.cpu = runtime.is_cpu_device()
+        self.io = BufferPool(self.ctx, self.queue, runtime.is_cpu_device())
         self.LOCAL_G = self.LOCAL_G_CPU if self.cpu else self.LOCAL_G_GPU
         self.LOCAL_TILE = self.LOCAL_TILE_CPU if self.cpu else self.LOCAL_TILE_GPU
         self.PER = self.PER_CPU if self.cpu else self.PER_GPU
-        self._pool: dict = {}
-        self._keep: list = []  # host arrays the queued commands still read
         self._token = 0  # counts forward calls; the records in the pool belong to call _rec_token
         self._rec_token = None
         self.last_token = None
@@ -247,6 +246,15 @@ class GaussianProjector:
         self._pair_ratio = 2.0  # Gaussian-tile pairs per Gaussian and view in the last forward
         self.on_launch = None  # profiling hook: called with (kernel name, event) for every launch
         self._lock = threading.Lock()
+
+    @property
+    def cpu(self) -> bool:
+        """A CPU device: host arrays are wrapped, not copied (tests set it to run the GPU paths)."""
+        return self.io.host_memory
+
+    @cpu.setter
+    def cpu(self, value: bool) -> None:
+        self.io.host_memory = bool(value)
 
     # ----------------------------------------------------------------------------- plumbing
     def widths(self, beam: str, mode: str) -> tuple[int, int]:
@@ -290,75 +298,6 @@ class GaussianProjector:
         if self.on_launch is not None:
             self.on_launch(name, event)
         return event
-
-    def _pooled(self, name: str, nbytes: int):
-        import pyopencl as cl
-
-        nbytes = max(int(nbytes), 16)
-        buf = self._pool.get(name)
-        if buf is None or buf.size < nbytes:
-            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, size=round_up(nbytes + nbytes // 4, 4096))
-            self._pool[name] = buf
-        return buf
-
-    def _in(self, name: str, arr: np.ndarray):
-        """Read-only buffer holding ``arr`` (wrapped on a CPU device, copied otherwise)."""
-        import pyopencl as cl
-
-        if arr.size == 0:
-            return self._pooled(name, 16)
-        if self.cpu:
-            if not (arr.flags.c_contiguous and arr.flags.writeable):
-                arr = np.array(arr, order="C")  # the driver wraps writable C-ordered memory only
-            self._keep.append(arr)  # alive until the call's results are read back
-            return cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
-        buf = self._pooled(name, arr.nbytes)
-        self._keep.append(arr)
-        cl.enqueue_copy(self.queue, buf, arr, is_blocking=False)
-        return buf
-
-    def _zeros(self, name: str, n: int):
-        """(buffer, array): n int32 zeros for the device to count into, and the host array that
-        ``_fetch_all`` reads them back to."""
-        import pyopencl as cl
-
-        arr = np.zeros(n, np.int32)
-        self._keep.append(arr)
-        if self.cpu:
-            return cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=arr), arr
-        buf = self._pooled(name, arr.nbytes)
-        cl.enqueue_copy(self.queue, buf, arr, is_blocking=False)
-        return buf, arr
-
-    def _out(self, name: str, arr: np.ndarray):
-        import pyopencl as cl
-
-        if self.cpu and arr.size:
-            return cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
-        return self._pooled(name, arr.nbytes)
-
-    def _fetch_all(self, pairs):
-        """Make every array hold its buffer's content, with one wait for all of them."""
-        import pyopencl as cl
-
-        pairs = [(buf, arr) for buf, arr in pairs if arr.size]
-        if not pairs:
-            return
-        if not self.cpu:
-            for buf, arr in pairs[:-1]:
-                cl.enqueue_copy(self.queue, arr, buf, is_blocking=False)
-            cl.enqueue_copy(self.queue, pairs[-1][1], pairs[-1][0], is_blocking=True)
-            return
-        maps = []
-        for buf, arr in pairs:
-            mapped, event = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ, 0, arr.shape, arr.dtype,
-                                                  is_blocking=False)
-            maps.append((mapped, arr))
-        event.wait()  # an in-order queue: the last map done means all are
-        for mapped, arr in maps:
-            if mapped.__array_interface__["data"][0] != arr.__array_interface__["data"][0]:
-                arr[...] = mapped  # the driver kept its own copy
-            mapped.base.release()
 
     @staticmethod
     def _check(means, mats, densities):
@@ -438,21 +377,21 @@ class GaussianProjector:
             i32 = np.int32
             rec_len = 20 if (mode == "exact" and beam == "cone") else 8
             uses_list = mode == "exact" and beam == "cone"
-            b_means = self._in("means", means)
-            b_mats = self._in("mats", mats)
-            b_rho = self._in("rho", densities)
-            b_vp = self._in("vp", vp)
-            b_rec = self._pooled(f"rec{dt.itemsize}", nv * N * rec_len * dt.itemsize)
-            b_box = self._pooled("box", nv * N * 16)
+            b_means = self.io.input(means, "means")
+            b_mats = self.io.input(mats, "mats")
+            b_rho = self.io.input(densities, "rho")
+            b_vp = self.io.input(vp, "vp")
+            b_rec = self.io.scratch(f"rec{dt.itemsize}", nv * N * rec_len * dt.itemsize)
+            b_box = self.io.scratch("box", nv * N * 16)
             ntx, nty = -(-U // TW), -(-V // TH)
             ntiles = ntx * nty
             nchunks = max(1, min(-(-N // 128), self.max_chunks, _HIST_BUDGET // (nv * ntiles)))
             chunk = round_up(-(-N // nchunks), 8)  # affine set-up: 8 Gaussians per vector
             nchunks = -(-N // chunk)
-            b_cnt = self._pooled("cnt", nv * nchunks * 4 * ntiles * 4)
-            b_cst = self._pooled("cst", nv * nchunks * (ntiles + 1) * 4)
-            b_rbase = self._pooled("rbase", nv * nchunks * 4)
-            b_out = self._out("out", out)
+            b_cnt = self.io.scratch("cnt", nv * nchunks * 4 * ntiles * 4)
+            b_cst = self.io.scratch("cst", nv * nchunks * (ntiles + 1) * 4)
+            b_rbase = self.io.scratch("rbase", nv * nchunks * 4)
+            b_out = self.io.output(out, "out")
             lt = self.LOCAL_TILE
             # The pair count is only known on the device; rather than wait for it between the
             # launches, the lists are sized from the last call's pairs per Gaussian and view (plus
@@ -462,19 +401,19 @@ class GaussianProjector:
             try:
                 while True:
                     # the Gaussian indices of the entries are only read for the exact cone's straddlers
-                    b_gidx = self._pooled("gidx", want * 4 if uses_list else 16)
-                    b_lst = self._pooled(f"lst{dt.itemsize}", want * rec_len * dt.itemsize)
+                    b_gidx = self.io.scratch("gidx", want * 4 if uses_list else 16)
+                    b_lst = self.io.scratch(f"lst{dt.itemsize}", want * rec_len * dt.itemsize)
                     cap = min(b_lst.size // (rec_len * dt.itemsize), 2**31 - 1)
                     if uses_list:
                         cap = min(cap, b_gidx.size // 4)
-                    b_alloc, alloc = self._zeros("alloc", 2)
+                    b_alloc, alloc = self.io.zeros("alloc", 2)
                     self._launch(prog, "preprocess", (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks),
                                  i32(U), i32(V), dt.type(scale), i32(ntx), i32(ntiles), i32(cap), b_means, b_mats,
                                  b_rho, b_vp, b_rec, b_box, b_cnt, b_cst, b_rbase, b_alloc, b_lst, b_gidx)
                     self._launch(prog, "render", (round_up(ntx, lt[0]), round_up(nty, lt[1]), nv), lt, i32(U),
                                  i32(V), i32(ntx), i32(ntiles), i32(nchunks), b_lst, b_cst, b_rbase, b_gidx,
                                  b_means, b_mats, b_rho, b_vp, dt.type(scale), b_out)
-                    self._fetch_all([(b_alloc, alloc), (b_out, out)])  # the call's one wait
+                    self.io.fetch([(b_alloc, alloc), (b_out, out)])  # the call's one wait
                     total = int(alloc[0])
                     if alloc[1] or total < 0:
                         raise ProjectorError("more Gaussian-tile pairs than 2^31: use fewer views per call")
@@ -482,7 +421,7 @@ class GaussianProjector:
                         break
                     want = total + total // 4
             finally:
-                self._keep.clear()
+                self.io.release()
             self._pair_ratio = total / (N * nv)
             self.last_pairs = total
             self._rec_token = self._token
@@ -510,24 +449,24 @@ class GaussianProjector:
             # the kernel writes every entry of the gradients it computes (and none of the others,
             # which get a placeholder buffer)
             outs = [np.empty(sh, dt) if k else None for sh, k in zip(shapes, needs)]
-            b = [self._out(f"grad{k}", o) if o is not None else self._pooled(f"grad{k}", 16)
+            b = [self.io.output(o, f"grad{k}") if o is not None else self.io.scratch(f"grad{k}", 16)
                  for k, o in enumerate(outs)]
             LG = self.LOCAL_G
             per = self.PER if mode == "exact" else round_up(self.PER, 8)  # affine: 8 Gaussians per vector
             nitems = -(-N // per)
             cached = token is not None and token == self._rec_token
             rec_len = 20 if (mode == "exact" and geometry.mode == "cone") else 8
-            b_rec = self._pooled(f"rec{dt.itemsize}", nv * N * rec_len * dt.itemsize)
-            b_box = self._pooled("box", nv * N * 16)
+            b_rec = self.io.scratch(f"rec{dt.itemsize}", nv * N * rec_len * dt.itemsize)
+            b_box = self.io.scratch("box", nv * N * 16)
             self._launch(prog, "backward", (round_up(nitems, LG),), (LG,), np.int32(N), np.int32(per),
                          np.int32(nv), np.int32(U), np.int32(V), dt.type(scale),
-                         np.int32(cached), b_rec, b_box, self._in("means", means),
-                         self._in("mats", mats), self._in("rho", densities), self._in("vp", vp),
-                         self._in("gimg", grad_out), *b)
+                         np.int32(cached), b_rec, b_box, self.io.input(means, "means"),
+                         self.io.input(mats, "mats"), self.io.input(densities, "rho"), self.io.input(vp, "vp"),
+                         self.io.input(grad_out, "gimg"), *b)
             try:
-                self._fetch_all([(buf, o) for buf, o in zip(b, outs) if o is not None])
+                self.io.fetch([(buf, o) for buf, o in zip(b, outs) if o is not None])
             finally:
-                self._keep.clear()
+                self.io.release()
             return tuple(outs)
 
 

@@ -37,7 +37,8 @@ import threading
 
 import numpy as np
 import torch
-from clgs.runtime import launch, real_name, round_up, shared
+from clgs.buffers import BufferPool
+from clgs.runtime import launch, real_name, shared
 
 WINDOW, SIGMA = 11, 1.5
 C1, C2 = 0.01 ** 2, 0.03 ** 2
@@ -120,20 +121,27 @@ class ImageLoss:
         self._runtime = runtime
         self.ctx = runtime.get_context()
         self.queue = runtime.get_queue()
-        self.cpu = runtime.is_cpu_device()
+        self.io = BufferPool(self.ctx, self.queue, runtime.is_cpu_device())
         self.rb = self.RB_CPU if self.cpu else self.RB_GPU
         self.local = (1, 1) if self.cpu else None
         w = L._window(WINDOW, SIGMA, torch.float64).tolist()
         self._w64 = w
         self._programs: dict = {}
-        self._pool: dict = {}
-        self._layout: dict = {}
-        self._keep: list = []
+        self._layout: dict = {}  # name -> (its buffer, the layout it was zeroed for)
         self._token = 0
         self._grad_token = None  # the forward whose coefficients the scratch T holds
         self._weights = None  # the last backward's (w_l1, w_ssim)
         self._spec = None  # (token, weights, inputs) of a backward pass the forward enqueued
         self._lock = threading.Lock()
+
+    @property
+    def cpu(self) -> bool:
+        """A CPU device: host arrays are wrapped, not copied (tests set it to run the GPU paths)."""
+        return self.io.host_memory
+
+    @cpu.setter
+    def cpu(self, value: bool) -> None:
+        self.io.host_memory = bool(value)
 
     # ------------------------------------------------------------------ plumbing
     def program(self, real: str):
@@ -158,35 +166,11 @@ class ImageLoss:
         """A pooled device buffer, all zeros whenever its layout changes (its halo rows must be 0)."""
         import pyopencl as cl
 
-        nbytes = max(int(nbytes), 64)
-        buf = self._pool.get(name)
-        if buf is None or buf.size < nbytes:
-            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, size=round_up(nbytes + nbytes // 4, 4096))
-            self._pool[name] = buf
-            self._layout[name] = None
-        if self._layout[name] != layout:
+        buf = self.io.scratch(name, nbytes)
+        zeroed = self._layout.get(name)
+        if zeroed is None or zeroed[0] is not buf or zeroed[1] != layout:
             cl.enqueue_fill_buffer(self.queue, buf, np.zeros(1, np.float64), 0, buf.size)
-            self._layout[name] = layout
-        return buf
-
-    def _in(self, arr: np.ndarray):
-        """Read-only buffer of ``arr``: the array's own memory on a CPU device, a copy otherwise."""
-        import pyopencl as cl
-
-        mf = cl.mem_flags
-        self._keep.append(arr)
-        if self.cpu:
-            return cl.Buffer(self.ctx, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=arr)
-        return cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=arr)
-
-    def _pooled(self, name: str, nbytes: int):
-        import pyopencl as cl
-
-        nbytes = max(int(nbytes), 64)
-        buf = self._pool.get(name)
-        if buf is None or buf.size < nbytes:
-            buf = self._pool[name] = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE,
-                                               size=round_up(nbytes + nbytes // 4, 4096))
+            self._layout[name] = (buf, layout)
         return buf
 
     def _launch(self, prog, name: str, gsize, *args):
@@ -219,9 +203,9 @@ class ImageLoss:
         T = self._scratch(f"T{dt.itemsize}", nbytes, layout)
         tb = target.buffers(self.ctx, self.queue, self.cpu)
         rows = np.empty((2, B, H), dt)
-        b_rows = self._pooled(f"rows{dt.itemsize}", rows.nbytes)
+        b_rows = self.io.scratch(f"rows{dt.itemsize}", rows.nbytes)
         gsize = (-(-H // self.rb), B)
-        self._launch(prog, "ssim_h", gsize, i32(H), i32(W), i32(nseg), self._in(a), tb["b"], S, b_rows)
+        self._launch(prog, "ssim_h", gsize, i32(H), i32(W), i32(nseg), self.io.input(a), tb["b"], S, b_rows)
         self._launch(prog, "ssim_v", gsize, i32(H), i32(W), i32(nseg), i32(bool(grad)), S, tb["mub"], tb["bbm"],
                      T, b_rows)
         cl.enqueue_copy(self.queue, rows, b_rows, is_blocking=True)
@@ -235,10 +219,10 @@ class ImageLoss:
         layout = (B, H, target.nseg, dt.str)
         T = self._scratch(f"T{dt.itemsize}", B * (H + 10) * target.nseg * 3 * 8 * dt.itemsize, layout)
         tb = target.buffers(self.ctx, self.queue, self.cpu)
-        b_out = self._pooled(f"out{dt.itemsize}", a.nbytes)
+        b_out = self.io.scratch(f"out{dt.itemsize}", a.nbytes)
         i32 = np.int32
         self._launch(self.program(real_name(dt, "images", SSIMError)), "ssim_grad", (-(-H // self.rb), B), i32(H), i32(W),
-                     i32(target.nseg), dt.type(w_l1 / n), dt.type(w_ssim / n), T, self._in(a), tb["b"], b_out)
+                     i32(target.nseg), dt.type(w_l1 / n), dt.type(w_ssim / n), T, self.io.input(a), tb["b"], b_out)
         return b_out
 
     def forward(self, a: np.ndarray, target: SSIMTarget, grad: bool = False):
@@ -253,7 +237,7 @@ class ImageLoss:
             try:
                 rows = self._forward(a, target, grad)
             finally:
-                self._keep.clear()
+                self.io.release()
                 self._spec = None  # its pass is done (in-order queue): its inputs may go
             self._token += 1
             self.last_token = self._token
@@ -261,9 +245,9 @@ class ImageLoss:
             if grad and self._weights is not None:
                 try:
                     self._grad_pass(a, target, *self._weights)
-                    self._spec = (self._token, self._weights, list(self._keep))  # inputs alive till collected
+                    self._spec = (self._token, self._weights, list(self.io.keep))  # inputs alive till collected
                 finally:
-                    self._keep.clear()
+                    self.io.release()
             n = a.size
             return (float(np.sum(rows[0], dtype=np.float64)) / n, float(np.sum(rows[1], dtype=np.float64)) / n)
 
@@ -283,12 +267,12 @@ class ImageLoss:
                     self._grad_token = None
                     spec = None
                 if spec is not None and spec[0] == token and spec[1] == weights:
-                    b_out = self._pool[f"out{a.dtype.itemsize}"]  # already enqueued by the forward
+                    b_out = self.io.pooled(f"out{a.dtype.itemsize}")  # already enqueued by the forward
                 else:
                     b_out = self._grad_pass(a, target, *weights)
                 cl.enqueue_copy(self.queue, out, b_out, is_blocking=True)
             finally:
-                self._keep.clear()
+                self.io.release()
             self._weights = weights
             return out
 

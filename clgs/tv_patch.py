@@ -142,15 +142,15 @@ class PatchTV:
         hi = origin + bsize * np.array([nbx, nby, nbz])
         far = [dt(v) for v in hi]
         slack = dt(0.01 * bsize.min() + 16 * np.finfo(dt).eps * (np.abs(origin).max() + np.abs(hi).max()))
-        hist = vox._buffer("p_hist", 4 * ncells * nchunks)
-        count = vox._buffer("p_count", 4 * nchunks)
-        koff = vox._buffer("p_koff", 4 * nchunks)
-        kept = vox._buffer("p_kept", 4 * n)
-        start = vox._buffer("p_start", 4 * (ncells + 1))
-        packed = vox._buffer("p_packed", item * GSTRIDE * n)
+        hist = vox.io.scratch("p_hist", 4 * ncells * nchunks)
+        count = vox.io.scratch("p_count", 4 * nchunks)
+        koff = vox.io.scratch("p_koff", 4 * nchunks)
+        kept = vox.io.scratch("p_kept", 4 * n)
+        start = vox.io.scratch("p_start", 4 * (ncells + 1))
+        packed = vox.io.scratch("p_packed", item * GSTRIDE * n)
         fsize = item * ((nz * ny + 1) * pitch + 16)
-        fbuf = vox._buffer("p_field", fsize)
-        gbuf = vox._buffer("p_gout", fsize)
+        fbuf = vox.io.scratch("p_field", fsize)
+        gbuf = vox.io.scratch("p_gout", fsize)
         sections = [(np.int32, 4), (dt, 3 * nz), (np.int32, n)] + ([(dt, n * GRADSTRIDE)] if want else [])
         views, subs, block, block_b, nbytes = self._outputs(sections)
         meta, part, kidx = views[:3]
@@ -161,7 +161,7 @@ class PatchTV:
         w = _tv_weights((nz, ny, nx), dt)
         for _attempt in range(3):
             cap = self._cap_list
-            lst = vox._buffer("p_list", 4 * cap)
+            lst = vox.io.scratch("p_list", 4 * cap)
             vox._run(prog.kernel("patch_cull"), nchunks, mb, eb, np.int32(n), np.int32(chunk), np.int32(nchunks),
                      *cell_args, *far, slack, hist, count, kept)
             vox._run(prog.kernel("patch_scan"), 1, count, hist, np.int32(nchunks), np.int32(ncells), np.int32(cap),

@@ -73,6 +73,7 @@ import numpy as np
 import torch
 
 from . import runtime
+from .buffers import BufferPool
 from .geometry import Grid
 from .runtime import round_up
 
@@ -247,8 +248,16 @@ class Voxelizer:
         self.ctx = ctx or runtime.get_context()
         self.queue = queue or runtime.get_queue()
         self.brick_y, self.brick_z = int(brick[0]), int(brick[1])
-        self.host_memory = bool(self.ctx.devices[0].type & runtime.cl.device_type.CPU)
-        self._scratch: dict = {}
+        self.io = BufferPool(self.ctx, self.queue, self.ctx.devices[0].type & runtime.cl.device_type.CPU)
+
+    @property
+    def host_memory(self) -> bool:
+        """A CPU device: host arrays are wrapped, not copied (tests set it to run the GPU paths)."""
+        return self.io.host_memory
+
+    @host_memory.setter
+    def host_memory(self, value: bool) -> None:
+        self.io.host_memory = bool(value)
 
     # ------------------------------------------------------------------------- plumbing
     def _program(self, np_dtype, grads=()):
@@ -259,40 +268,12 @@ class Voxelizer:
         return runtime.get_program(SOURCE, defines, ctx=self.ctx)
 
     def _input(self, arr: np.ndarray):
-        cl = runtime.cl
+        """(buffer, array): a read-only buffer of ``arr`` and the array it reads, which the caller
+        keeps until the kernels are done (empty arrays become one element: no zero-size buffers)."""
         arr = np.ascontiguousarray(arr)
         if arr.size == 0:
             arr = np.zeros(1, arr.dtype)
-        host = cl.mem_flags.USE_HOST_PTR if self.host_memory else cl.mem_flags.COPY_HOST_PTR
-        return cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | host, hostbuf=arr), arr
-
-    def _output(self, arr: np.ndarray, zero: bool = False):
-        """A buffer the kernels write into ``arr`` through; ``zero``: start from ``arr``'s contents
-        (the kernel writes only some entries)."""
-        cl = runtime.cl
-        if self.host_memory:
-            return cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
-        if zero:
-            return cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=arr)
-        return cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, size=max(arr.nbytes, 1))
-
-    def _fetch(self, buf, arr: np.ndarray):
-        """Make the kernel's output visible in ``arr`` (a map on host memory, else a copy)."""
-        cl = runtime.cl
-        if self.host_memory:
-            mapped, _ = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ, 0, arr.shape, arr.dtype)
-            mapped.base.release(self.queue)
-        else:
-            cl.enqueue_copy(self.queue, arr, buf)
-        self.queue.finish()
-
-    def _buffer(self, name: str, nbytes: int):
-        """A device scratch buffer of at least ``nbytes``, reused across calls."""
-        buf = self._scratch.get(name)
-        if buf is None or buf.size < nbytes:
-            size = 1 << max(int(nbytes - 1).bit_length(), 6)
-            buf = self._scratch[name] = runtime.cl.Buffer(self.ctx, runtime.cl.mem_flags.READ_WRITE, size=size)
-        return buf
+        return self.io.wrap(arr), arr
 
     def _run(self, kernel, n_items: int, *args):
         _declare_scalars(kernel, args)
@@ -311,11 +292,11 @@ class Voxelizer:
         chunk = math.ceil(n / nchunks)
         cell_args = [real(origin[0]), real(origin[1]), real(origin[2]), real(inv[0]), real(inv[1]), real(inv[2]),
                      np.int32(nc[0]), np.int32(nc[1]), np.int32(nc[2])]
-        hist = self._buffer("hist", 4 * ncells * nchunks)
-        total = self._buffer("total", 4 * ncells)
-        start = self._buffer("start", 4 * (ncells + 1))
+        hist = self.io.scratch("hist", 4 * ncells * nchunks)
+        total = self.io.scratch("total", 4 * ncells)
+        start = self.io.scratch("start", 4 * (ncells + 1))
         cl.enqueue_fill_buffer(self.queue, hist, np.int32(0), 0, 4 * ncells * nchunks)
-        ranges = self._buffer("ranges", 32 * n)
+        ranges = self.io.scratch("ranges", 32 * n)
         self._run(prog.kernel("bin_count"), nchunks, gbuf, np.int32(n), np.int32(chunk), np.int32(nchunks),
                   np.int32(bool(home)), *cell_args, hist, ranges)
         self._run(prog.kernel("bin_cell_offsets"), ncells, hist, np.int32(nchunks), np.int32(ncells), total)
@@ -330,8 +311,8 @@ class Voxelizer:
                 "Gaussian-cell pairs): the Gaussians are very large for this grid; voxelize a coarser grid "
                 "or smaller blocks, or bound the scales"
             )
-        lst = self._buffer("list", 4 * max(length, 1))
-        packed = self._buffer("packed", GSTRIDE * np.dtype(real).itemsize * max(length, 1)) if copy else lst
+        lst = self.io.scratch("list", 4 * max(length, 1))
+        packed = self.io.scratch("packed", GSTRIDE * np.dtype(real).itemsize * max(length, 1)) if copy else lst
         if length > 0:
             self._run(prog.kernel("bin_fill"), nchunks, gbuf, np.int32(n), np.int32(chunk), np.int32(nchunks),
                       np.int32(nc[0]), np.int32(nc[1]), hist, ranges, start, lst, np.int32(bool(copy)), packed)
@@ -379,8 +360,8 @@ class Voxelizer:
         nbricks = nbx * nby * nbz
         if nbricks <= _SMALL_CELLS and nbricks * n <= _SMALL_PAIRS:
             # a small grid (a TV patch): lists by one work-item, no host round trip
-            start = self._buffer("start", 4 * (nbricks + 1))
-            lst = self._buffer("list", 4 * nbricks * n)
+            start = self.io.scratch("start", 4 * (nbricks + 1))
+            lst = self.io.scratch("list", 4 * nbricks * n)
             self._run(prog.kernel("bin_small"), 1, gbuf, np.int32(n), real(origin[0]), real(origin[1]),
                       real(origin[2]), real(inv[0]), real(inv[1]), real(inv[2]), np.int32(nbx), np.int32(nby),
                       np.int32(nbz), start, lst)
@@ -389,11 +370,11 @@ class Voxelizer:
             start, packed, length = self._bin(prog, gbuf, n, real, origin, inv, (nbx, nby, nbz), copy=True)
             lst, indexed = start, 0
         if length:
-            obuf = self._output(out)
+            obuf = self.io.output(out)
             self._run(prog.kernel("vox_grid"), nbricks, packed, start, lst, np.int32(indexed), xb, yb, zb,
                       np.int32(nx), np.int32(ny), np.int32(nz), np.int32(nbx), np.int32(nby), np.int32(nbricks), obuf,
                       np.int32(nx), np.int32(0))
-            self._fetch(obuf, out)
+            self.io.fetch([(obuf, out)])
         else:
             self.queue.finish()
         del gkeep, xk, yk, zk
@@ -426,28 +407,16 @@ class Voxelizer:
             _, order, kept = self._bin(prog, gbuf, n, dt, *self._brick_cells(grid), home=True)
             sort = 1
         if kept:
-            rbuf = self._output(grad, zero=True)
+            rbuf = self.io.output(grad, initial=True)
             self._run(prog.kernel("vox_grid_grad"), kept, gbuf, order, np.int32(sort), np.int32(kept), xb, yb, zb,
                       np.int32(nx), np.int32(ny), np.int32(nz), ob, rbuf)
-            self._fetch(rbuf, grad)
+            self.io.fetch([(rbuf, grad)])
         else:
             self.queue.finish()
         del gkeep, xk, yk, zk, ok
         return torch.from_numpy(grad)
 
     # ------------------------------------------------------------------------- matrices
-    def _fetch_all(self, pairs):
-        """``_fetch`` for several (buffer, array) pairs with a single wait."""
-        cl = runtime.cl
-        if self.host_memory:
-            for buf, arr in pairs:
-                mapped, _ = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ, 0, arr.shape, arr.dtype)
-                mapped.base.release(self.queue)
-        else:
-            for buf, arr in pairs:
-                cl.enqueue_copy(self.queue, arr, buf)
-        self.queue.finish()
-
     def cov_prec_forward(self, scales: torch.Tensor, quats: torch.Tensor, want: int):
         """(covariance, precision, 3-sigma half-widths) of N Gaussians, (N, 6), (N, 6), (N, 3), each
         computed when bit 0, 1, 2 of ``want`` is set (else an empty tensor); no autograd."""
@@ -459,9 +428,9 @@ class Voxelizer:
             prog = self._program(dt)
             sb, sk = self._input(scales.detach().numpy())
             qb, qk = self._input(quats.detach().numpy())
-            bufs = [self._output(o) if o.size else sb for o in outs]
+            bufs = [self.io.output(o) if o.size else sb for o in outs]
             self._run(prog.kernel("cov_prec"), -(-n // 8), sb, qb, np.int32(n), np.int32(want), dt(_tiny(dt)), *bufs)
-            self._fetch_all([(b, o) for b, o in zip(bufs, outs) if o.size])
+            self.io.fetch([(b, o) for b, o in zip(bufs, outs) if o.size])
             del sk, qk
         return tuple(torch.from_numpy(o) for o in outs)
 
@@ -484,9 +453,9 @@ class Voxelizer:
                 gb, gk = self._input(g.detach().to(scales.dtype).contiguous().numpy())
                 gbufs.append(gb)
                 keep.append(gk)
-            dsb, dqb = self._output(ds), self._output(dq)
+            dsb, dqb = self.io.output(ds), self.io.output(dq)
             self._run(prog.kernel("cov_prec_grad"), -(-n // 8), sb, qb, np.int32(n), np.int32(has), dt(_tiny(dt)), *gbufs, dsb, dqb)
-            self._fetch_all([(dsb, ds), (dqb, dq)])
+            self.io.fetch([(dsb, ds), (dqb, dq)])
             del sk, qk, keep
         return torch.from_numpy(ds), torch.from_numpy(dq)
 
@@ -514,10 +483,10 @@ class Voxelizer:
             yb, yk = self._input(bins.Y)
             zb, zk = self._input(bins.Z)
             cb, ck = self._input(bins.chunk_cell)
-            obuf = self._output(out)
+            obuf = self.io.output(out)
             nchunks = bins.total // 8
             self._run(prog.kernel("vox_points"), nchunks, packed, start, xb, yb, zb, cb, np.int32(nchunks), obuf)
-            self._fetch(obuf, out)
+            self.io.fetch([(obuf, out)])
             del xk, yk, zk, ck
         else:
             self.queue.finish()
@@ -540,12 +509,12 @@ class Voxelizer:
         zb, zk = self._input(bins.Z)
         pb, pk = self._input(gp)
         sb, sk = self._input(bins.cell_pstart)
-        rbuf = self._output(grad)
+        rbuf = self.io.output(grad)
         o, nc = bins.origin, bins.nc
         self._run(prog.kernel("vox_points_grad"), n, gbuf, np.int32(n),
                   dt(o[0]), dt(o[1]), dt(o[2]), dt(bins.inv), dt(bins.inv), dt(bins.inv),
                   np.int32(nc[0]), np.int32(nc[1]), np.int32(nc[2]), sb, xb, yb, zb, pb, rbuf)
-        self._fetch(rbuf, grad)
+        self.io.fetch([(rbuf, grad)])
         del gkeep, xk, yk, zk, pk, sk
         return torch.from_numpy(grad)
 
