@@ -221,7 +221,8 @@ class GaussianProjector:
         self._runtime = runtime
         self.ctx = runtime.get_context()
         self.queue = runtime.get_queue()
-        self.io = BufferPool(self.ctx, self.queue, runtime.is_cpu_device())
+        self.cpu = runtime.is_cpu_device()
+        self.io = BufferPool(self.ctx, self.queue, self.cpu)
         self.LOCAL_G = self.LOCAL_G_CPU if self.cpu else self.LOCAL_G_GPU
         self.LOCAL_TILE = self.LOCAL_TILE_CPU if self.cpu else self.LOCAL_TILE_GPU
         self.PER = self.PER_CPU if self.cpu else self.PER_GPU
@@ -246,15 +247,6 @@ class GaussianProjector:
         self._pair_ratio = 2.0  # Gaussian-tile pairs per Gaussian and view in the last forward
         self.on_launch = None  # profiling hook: called with (kernel name, event) for every launch
         self._lock = threading.Lock()
-
-    @property
-    def cpu(self) -> bool:
-        """A CPU device: host arrays are wrapped, not copied (tests set it to run the GPU paths)."""
-        return self.io.host_memory
-
-    @cpu.setter
-    def cpu(self, value: bool) -> None:
-        self.io.host_memory = bool(value)
 
     # ----------------------------------------------------------------------------- plumbing
     def widths(self, beam: str, mode: str) -> tuple[int, int]:

@@ -121,7 +121,8 @@ class ImageLoss:
         self._runtime = runtime
         self.ctx = runtime.get_context()
         self.queue = runtime.get_queue()
-        self.io = BufferPool(self.ctx, self.queue, runtime.is_cpu_device())
+        self.cpu = runtime.is_cpu_device()
+        self.io = BufferPool(self.ctx, self.queue, self.cpu)
         self.rb = self.RB_CPU if self.cpu else self.RB_GPU
         self.local = (1, 1) if self.cpu else None
         w = L._window(WINDOW, SIGMA, torch.float64).tolist()
@@ -133,15 +134,6 @@ class ImageLoss:
         self._weights = None  # the last backward's (w_l1, w_ssim)
         self._spec = None  # (token, weights, inputs) of a backward pass the forward enqueued
         self._lock = threading.Lock()
-
-    @property
-    def cpu(self) -> bool:
-        """A CPU device: host arrays are wrapped, not copied (tests set it to run the GPU paths)."""
-        return self.io.host_memory
-
-    @cpu.setter
-    def cpu(self, value: bool) -> None:
-        self.io.host_memory = bool(value)
 
     # ------------------------------------------------------------------ plumbing
     def program(self, real: str):
@@ -201,7 +193,7 @@ class ImageLoss:
         nbytes = B * (H + 10) * nseg * 3 * 8 * dt.itemsize
         S = self._scratch(f"S{dt.itemsize}", nbytes, layout)
         T = self._scratch(f"T{dt.itemsize}", nbytes, layout)
-        tb = target.buffers(self.ctx, self.queue, self.cpu)
+        tb = target.buffers(self.ctx, self.queue, self.io.host_memory)
         rows = np.empty((2, B, H), dt)
         b_rows = self.io.scratch(f"rows{dt.itemsize}", rows.nbytes)
         gsize = (-(-H // self.rb), B)
@@ -218,7 +210,7 @@ class ImageLoss:
         n = a.size
         layout = (B, H, target.nseg, dt.str)
         T = self._scratch(f"T{dt.itemsize}", B * (H + 10) * target.nseg * 3 * 8 * dt.itemsize, layout)
-        tb = target.buffers(self.ctx, self.queue, self.cpu)
+        tb = target.buffers(self.ctx, self.queue, self.io.host_memory)
         b_out = self.io.scratch(f"out{dt.itemsize}", a.nbytes)
         i32 = np.int32
         self._launch(self.program(real_name(dt, "images", SSIMError)), "ssim_grad", (-(-H // self.rb), B), i32(H), i32(W),

@@ -76,7 +76,7 @@ class PatchTV:
             raw = np.zeros(size + _ALIGN, np.uint8)
             off = -raw.ctypes.data % _ALIGN
             arr = raw[off:off + size]
-            if self.vox.host_memory:
+            if self.vox.io.host_memory:
                 buf = cl.Buffer(self.vox.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
             else:
                 buf = cl.Buffer(self.vox.ctx, cl.mem_flags.READ_WRITE, size=size)
@@ -99,7 +99,7 @@ class PatchTV:
         """Make the kernels' writes to the first ``nbytes`` of a host block visible, and wait."""
         cl = runtime.cl
         q = self.vox.queue
-        if self.vox.host_memory:
+        if self.vox.io.host_memory:
             mapped, _ = cl.enqueue_map_buffer(q, buf, cl.map_flags.READ, 0, (nbytes,), np.uint8)
             mapped.base.release(q)
         else:

@@ -250,15 +250,6 @@ class Voxelizer:
         self.brick_y, self.brick_z = int(brick[0]), int(brick[1])
         self.io = BufferPool(self.ctx, self.queue, self.ctx.devices[0].type & runtime.cl.device_type.CPU)
 
-    @property
-    def host_memory(self) -> bool:
-        """A CPU device: host arrays are wrapped, not copied (tests set it to run the GPU paths)."""
-        return self.io.host_memory
-
-    @host_memory.setter
-    def host_memory(self, value: bool) -> None:
-        self.io.host_memory = bool(value)
-
     # ------------------------------------------------------------------------- plumbing
     def _program(self, np_dtype, grads=()):
         defines = {"REAL": "double" if np_dtype == np.float64 else "float",

@@ -508,7 +508,7 @@ def test_clear_errors():
 def _as_on_a_gpu(proj):
     """The projector configured as on a GPU (device buffers filled by copies and read back by
     copies, GPU work-group sizes, one Gaussian per backward work-item, GPU tiles), on this device."""
-    proj.cpu = False
+    proj.cpu = proj.io.host_memory = False
     proj.LOCAL_G, proj.LOCAL_TILE, proj.PER = proj.LOCAL_G_GPU, proj.LOCAL_TILE_GPU, proj.PER_GPU
     proj.max_chunks = 256
     return proj

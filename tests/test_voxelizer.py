@@ -396,7 +396,7 @@ def test_gpu_configuration_gives_the_same_bits():
     from clgs.voxelizer import cov_prec
 
     gpu = Voxelizer()
-    gpu.host_memory = False
+    gpu.io.host_memory = False
     pts = torch.rand(700, 3, generator=torch.Generator().manual_seed(4)) * 2 - 1
     w = torch.randn(GRID.shape, generator=torch.Generator().manual_seed(5))
     block = GRID.block((2, 3, 4), (9, 8, 10))
