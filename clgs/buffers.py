@@ -19,11 +19,19 @@ class BufferPool:
     """An operator's device buffers: pooled scratch, wrapped or copied inputs and outputs, and
     the host arrays that queued commands still read (kept referenced until :meth:`release`)."""
 
-    def __init__(self, ctx, queue, host_memory: bool):
-        self.ctx, self.queue = ctx, queue
+    def __init__(self, owner, host_memory: bool):
+        self._owner = owner  # the operator: its context and queue, read at each use (a benchmark may swap the queue)
         self.host_memory = bool(host_memory)  # wrap host arrays (CPU devices) or copy them
         self._pool: dict = {}
         self.keep: list = []
+
+    @property
+    def ctx(self):
+        return self._owner.ctx
+
+    @property
+    def queue(self):
+        return self._owner.queue
 
     # ------------------------------------------------------------------------ scratch
     def scratch(self, name: str, nbytes: int):

@@ -222,7 +222,7 @@ class GaussianProjector:
         self.ctx = runtime.get_context()
         self.queue = runtime.get_queue()
         self.cpu = runtime.is_cpu_device()
-        self.io = BufferPool(self.ctx, self.queue, self.cpu)
+        self.io = BufferPool(self, self.cpu)
         self.LOCAL_G = self.LOCAL_G_CPU if self.cpu else self.LOCAL_G_GPU
         self.LOCAL_TILE = self.LOCAL_TILE_CPU if self.cpu else self.LOCAL_TILE_GPU
         self.PER = self.PER_CPU if self.cpu else self.PER_GPU

@@ -122,7 +122,7 @@ class ImageLoss:
         self.ctx = runtime.get_context()
         self.queue = runtime.get_queue()
         self.cpu = runtime.is_cpu_device()
-        self.io = BufferPool(self.ctx, self.queue, self.cpu)
+        self.io = BufferPool(self, self.cpu)
         self.rb = self.RB_CPU if self.cpu else self.RB_GPU
         self.local = (1, 1) if self.cpu else None
         w = L._window(WINDOW, SIGMA, torch.float64).tolist()

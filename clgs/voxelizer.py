@@ -248,7 +248,7 @@ class Voxelizer:
         self.ctx = ctx or runtime.get_context()
         self.queue = queue or runtime.get_queue()
         self.brick_y, self.brick_z = int(brick[0]), int(brick[1])
-        self.io = BufferPool(self.ctx, self.queue, self.ctx.devices[0].type & runtime.cl.device_type.CPU)
+        self.io = BufferPool(self, self.ctx.devices[0].type & runtime.cl.device_type.CPU)
 
     # ------------------------------------------------------------------------- plumbing
     def _program(self, np_dtype, grads=()):

@@ -29,3 +29,32 @@ def test_bench_train_prints_rates_and_the_breakdown():
                "--iterations", "3", "--torch-iterations", "1")
     assert re.search(r"OpenCL: [0-9.]+ it/s", out)
     assert "speed-up over torch" in out and "projection kernels" in out
+
+
+def test_stage_timing_waits_on_the_profiling_queue():
+    """``--stages`` runs the projector on a profiling queue of its own: the call must read its
+    results back on that queue too, so every call's wall time holds its kernels' device time
+    (a read-back on another queue returned before the kernels ended: negative "outside" times)."""
+    import numpy as np
+
+    from clgs.benchmarks.kernels import _scene, _stages
+    from clgs.geometry import Geometry
+    from clgs.projector import GaussianProjector
+    from clgs.voxelizer import cov_prec
+
+    geo = Geometry.default(n_views=4, mode="cone", n_detector=128, n_voxel=32)
+    m, s, q, r = _scene(3000)
+    proj = GaussianProjector()
+    queue = proj.queue
+    ms, launches, outside = _stages(proj, m, cov_prec(s, q)[0], r, geo, "affine", 3)
+    assert launches == {"fwd": 2, "bwd": 1}
+    assert ms["fwd"]["render"] > 0 and ms["bwd"]["backward"] > 0
+    assert outside["fwd"] >= 0 and outside["bwd"] >= 0
+    assert proj.queue is queue and proj.io.queue is queue
+    # the operator's buffers follow whatever queue it runs on
+    import pyopencl as cl
+
+    proj.queue = cl.CommandQueue(proj.ctx)
+    assert proj.io.queue is proj.queue
+    out = proj.forward(m.numpy(), cov_prec(s, q)[0].numpy(), r.numpy(), geo, [0], "affine")
+    assert np.isfinite(out).all() and out.max() > 0
