@@ -110,12 +110,10 @@ typedef int8 mask8;
 #define splat_exp2_8(t) exp2(t)
 #define splat_exp2_16(t) exp2(t)
 #else
-#define CLGS_DEFINE_SPLAT_EXP2(W)                                                                 \
-    inline float##W splat_exp2_##W(float##W t)                                                    \
+/* 2^n 2^f for f in [-1/2, 1/2] and an integer n */
+#define CLGS_DEFINE_EXP2_SPLIT(W)                                                                 \
+    inline float##W exp2_split_##W(float##W f, int##W n)                                          \
     {                                                                                             \
-        const float##W y = t + 12582912.0f;                                                       \
-        const float##W f = t - (y - 12582912.0f);                                                 \
-        const int##W n = as_int##W(y); /* 1.5 2^23's bits + n: shifted by 23, only n is left */    \
         float##W p = 0.00132764725f;                                                              \
         p = p * f + 0.00967554189f;                                                               \
         p = p * f + 0.0555071309f;                                                                \
@@ -124,8 +122,43 @@ typedef int8 mask8;
         p = p * f + 1.00000012f;                                                                  \
         return as_float##W(as_int##W(p) + (n << 23));                                             \
     }
+CLGS_DEFINE_EXP2_SPLIT(8)
+CLGS_DEFINE_EXP2_SPLIT(16)
+#define CLGS_DEFINE_SPLAT_EXP2(W)                                                                 \
+    inline float##W splat_exp2_##W(float##W t)                                                    \
+    {                                                                                             \
+        const float##W y = t + 12582912.0f;                                                       \
+        /* y's bits are 1.5 2^23's + n: shifted by 23, only n is left */                          \
+        return exp2_split_##W(t - (y - 12582912.0f), as_int##W(y));                               \
+    }
+#if defined(__AVX512DQ__) && defined(__AVX512VL__) && !defined(PORTABLE_EXP)
+/* On AVX-512 CPUs (PoCL compiles for the host, whose features clang announces) two instructions
+ * give the same n and f: vreduceps (f = t - rint(t)) and vcvtps2dq (n = rint(t)), one fewer per
+ * 2^t (render 4-7 %, backward 2-4 % faster side by side). Bit for bit the same as the portable
+ * version above (round to nearest even both ways; tested by building with -DPORTABLE_EXP). The
+ * vector types of x86 builtins and of OpenCL do not convert into each other, hence the unions. */
+#define CLGS_DEFINE_SPLAT_EXP2_X86(W, RED, CVT)                                                   \
+    typedef float v##W##sf_x86 __attribute__((vector_size(4 * W)));                               \
+    typedef int v##W##si_x86 __attribute__((vector_size(4 * W)));                                 \
+    inline float##W splat_exp2_##W(float##W t)                                                    \
+    {                                                                                             \
+        union { float##W o; v##W##sf_x86 x; } ut, uf, uz;                                         \
+        union { int##W o; v##W##si_x86 x; } un, uzi;                                              \
+        ut.o = t;                                                                                 \
+        uz.o = (float##W)(0.0f);                                                                  \
+        uzi.o = (int##W)(0);                                                                      \
+        uf.x = RED;                                                                               \
+        un.x = CVT;                                                                               \
+        return exp2_split_##W(uf.o, un.o);                                                        \
+    }
+CLGS_DEFINE_SPLAT_EXP2_X86(8, __builtin_ia32_reduceps256_mask(ut.x, 8, uz.x, (unsigned char)0xff),
+                           __builtin_ia32_cvtps2dq256(ut.x))
+CLGS_DEFINE_SPLAT_EXP2_X86(16, __builtin_ia32_reduceps512_mask(ut.x, 8, uz.x, (unsigned short)0xffff, 4),
+                           __builtin_ia32_cvtps2dq512_mask(ut.x, uzi.x, (unsigned short)0xffff, 4))
+#else
 CLGS_DEFINE_SPLAT_EXP2(8)
 CLGS_DEFINE_SPLAT_EXP2(16)
+#endif
 #endif
 /* dv = v - vc of row v0, reached by adding 1 row by row from the box's first row b0 (<= v0): the
  * splat loops step dv by one vector addition per row (instead of an integer-to-real conversion,
