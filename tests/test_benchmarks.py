@@ -22,6 +22,7 @@ def test_bench_kernels_prints_its_table_and_the_fastest_calls():
     assert len(rows) == 2
     assert out.count("fastest of 2 calls: fwd") == 2
     assert "exp ceiling" in out and "Geval/s" in out
+    assert re.search(r"machine during the run: load average [0-9.]+ on [0-9]+ cores; [0-9]+% of the CPU time", out)
 
 
 def test_bench_train_prints_rates_and_the_breakdown():
@@ -29,6 +30,7 @@ def test_bench_train_prints_rates_and_the_breakdown():
                "--iterations", "3", "--torch-iterations", "1")
     assert re.search(r"OpenCL: [0-9.]+ it/s", out)
     assert "speed-up over torch" in out and "projection kernels" in out
+    assert "machine during the run" in out
 
 
 def test_stage_timing_waits_on_the_profiling_queue():

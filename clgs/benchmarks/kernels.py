@@ -47,6 +47,8 @@ import time
 
 import click
 
+from .host import HostWatch
+
 
 def _median(xs):
     xs = sorted(xs)
@@ -243,6 +245,7 @@ def main(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt, b
     from ..projector import GaussianProjector
 
     torch.manual_seed(0)
+    watch = HostWatch()
     if quick:
         repeat = min(repeat, 3)
         torch_n = min(torch_n, 2000)
@@ -312,6 +315,7 @@ def main(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt, b
                                        f"(sum {sum(ms[ph].values()):.2f}); outside the kernels {outside[ph]:.2f}")
     scaled = " (torch on the first %d Gaussians, time scaled by N/%d)" % (torch_n, torch_n)
     click.echo(f"useful evaluations: pixels within 3 sigma, summed over Gaussians; torch = fwd + autograd bwd{scaled}")
+    click.echo(watch.summary())
     if sizes_opt or dets_opt or beams_opt:
         return  # a restricted run: the projector cases only
     try:

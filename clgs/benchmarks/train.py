@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import click
 
+from .host import HostWatch
+
 
 def _scene(n: int, n_detector: int, n_voxel: int, n_views: int, mode: str, seed: int):
     import numpy as np
@@ -157,6 +159,7 @@ def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, se
 
     from clgs import runtime
 
+    watch = HostWatch()
     geo, scan, gaussians = _scene(n, n_detector, n_voxel, n_views, mode, seed)
     click.echo(f"scene: {n} Gaussians, {n_detector}^2 detector, {n_voxel}^3 volume, {n_views} {mode}-beam views; "
                f"loss L1 + 0.25 D-SSIM + 0.05 TV(32^3 patch), Adam")
@@ -190,3 +193,4 @@ def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, se
                + ", ".join(f"{k} {v * 1e3:.1f}" for k, v in parts.items())
                + f", the rest (autograd, bookkeeping, load) {rest * 1e3:.1f}")
     click.echo(f"30 000 iterations (R2-Gaussian's default) would take {30_000 * t_cl / 60:.1f} min here")
+    click.echo(watch.summary())
