@@ -705,19 +705,16 @@ inline void backward_one(const int g, const int N, const int nviews, const int U
             const real c = dot3(e, symv(S, e));
             const real f = RC(1.0) / (sp.kap * sp.kap * c);
             const real q0 = Hb.s2, qu = Hb.s3, qv = Hb.s4, quu = Hb.s5, quv = Hb.s6, qvv = Hb.s7;
-            const real3 m = qu * gu + qv * gv;
+            /* G = B C B^T with B = [e gu gv]: the sums above give C's entries (the e m^T term,
+             * m = qu gu + qv gv, goes into C's e-gu and e-gv entries); three outer products
+             * instead of eleven */
+            const real fk = f * sp.kap;
+            const real cee = Ha.s4 + fk * sp.kap * q0, ceu = Ha.s5 - fk * qu, cev = Ha.s6 - fk * qv;
+            const real cuu = Ha.s7 + f * quu, cuv = Hb.s0 + f * quv, cvv = Hb.s1 + f * qvv;
             real G[6] = {RC(0.0), RC(0.0), RC(0.0), RC(0.0), RC(0.0), RC(0.0)};
-            add_sym_outer(G, Ha.s4, e, e);
-            add_sym_outer(G, RC(2.0) * Ha.s5, e, gu);
-            add_sym_outer(G, RC(2.0) * Ha.s6, e, gv);
-            add_sym_outer(G, Ha.s7, gu, gu);
-            add_sym_outer(G, RC(2.0) * Hb.s0, gu, gv);
-            add_sym_outer(G, Hb.s1, gv, gv);
-            add_sym_outer(G, f * sp.kap * sp.kap * q0, e, e);
-            add_sym_outer(G, RC(-2.0) * f * sp.kap, e, m);
-            add_sym_outer(G, f * quu, gu, gu);
-            add_sym_outer(G, RC(2.0) * f * quv, gu, gv);
-            add_sym_outer(G, f * qvv, gv, gv);
+            add_sym_outer(G, RC(1.0), e, cee * e + ceu * gu + cev * gv);
+            add_sym_outer(G, RC(1.0), gu, ceu * e + cuu * gu + cuv * gv);
+            add_sym_outer(G, RC(1.0), gv, cev * e + cuv * gu + cvv * gv);
             for (int k = 0; k < 6; k++) gM[k] += RC(-0.5) * rh * G[k];
             grho += Ha.s0;
         }
