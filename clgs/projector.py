@@ -60,9 +60,11 @@ loops gain less because 16-wide tile rows and segments cover more pixels outside
 (28% of the render's lanes are useful at 16, 42% at 8, for Gaussians 4-16 pixels across).
 
 The splat loops use ``splat_exp2_8`` / ``splat_exp2_16`` (``cl/project_setup.h``, one
-definition made at both widths): ``fastexp.h``'s method with a
-degree-5 fitted polynomial and no range handling at all (the loops fold ``log2(e)`` into their
-coefficients and select zero wherever ``q > 9``, the only lanes where the result is not valid).
+definition made at both widths): 2^t as 2^n 2^f with n = t rounded to nearest even (by adding
+and taking away 1.5 2^23, or by ``vreduceps`` / ``vcvtps2dq`` on AVX-512 CPUs, the same bits), a
+degree-5 fitted polynomial for 2^f and no range handling at all (the loops fold ``log2(e)`` into
+their coefficients and select zero wherever ``q > 9``, the only lanes where the result is not
+valid).
 
 Pipeline of one forward call: two launches and a single wait, at the end.
 ``preprocess`` (a work-item per chunk of consecutive Gaussians and view: centre, conic or

@@ -95,17 +95,6 @@ class PatchTV:
         subs = [buf.get_sub_region(o, np.dtype(d).itemsize * max(c, 1)) for o, (d, c) in zip(offs, sections)]
         return views, subs, arr, buf, end
 
-    def _read(self, arr, buf, nbytes: int):
-        """Make the kernels' writes to the first ``nbytes`` of a host block visible, and wait."""
-        cl = runtime.cl
-        q = self.vox.queue
-        if self.vox.io.host_memory:
-            mapped, _ = cl.enqueue_map_buffer(q, buf, cl.map_flags.READ, 0, (nbytes,), np.uint8)
-            mapped.base.release(q)
-        else:
-            cl.enqueue_copy(q, arr[:nbytes], buf)
-        q.finish()
-
     def forward(self, means, prec, densities, extent, grid: Grid, want=(), field: bool = False):
         """(TV value (python float in the inputs' precision), kept indices (K,) int64, gradient rows
         (K, 10) for a unit upstream gradient or None, the field (Z, Y, X) or None).
@@ -176,7 +165,7 @@ class PatchTV:
             if want:
                 vox._run(prog.kernel("patch_grad"), _GRAD_ITEMS, packed, meta_b, xb, yb, zb, np.int32(nx),
                          np.int32(ny), np.int32(nz), np.int32(pitch), gbuf, grad_b)
-            self._read(block, block_b, nbytes)  # the one wait
+            self.vox.io.fetch([(block_b, block[:nbytes])])  # the one wait
             if not meta[2]:
                 break
             pairs = int(meta[1])
@@ -201,7 +190,7 @@ class PatchTV:
         if field:
             fh, fh_b = self._host_array("field", fsize)
             cl.enqueue_copy(vox.queue, fh_b, fbuf, byte_count=fsize)
-            self._read(fh, fh_b, fsize)
+            self.vox.io.fetch([(fh_b, fh[:fsize])])
             rows_f = fh[:fsize].view(dt)[8:8 + nz * ny * pitch].reshape(nz, ny, pitch)[:, :, :nx]
             out_field = torch.from_numpy(np.ascontiguousarray(rows_f))
         del bufs, axes, ins
