@@ -1,6 +1,8 @@
 """What else the machine did while a benchmark ran. On a shared virtual machine the host can take
 CPU time away ("steal") while the load average stays low, and every figure slows with it; the
-benchmarks print this next to their figures so that a slow run can be told from slow code."""
+benchmarks print both next to their figures. Neither catches every slow spell (cores shared
+with other guests slow a run without steal: seen here at 0-9 % steal and half speed), so the
+kernel benchmark's exp probe, against its quiet figure, is the better gauge of the machine."""
 from __future__ import annotations
 
 import os
@@ -42,4 +44,4 @@ class HostWatch:
         if steal is None:
             return f"machine during the run: {load}"
         return (f"machine during the run: {load}; {100 * steal:.0f}% of the CPU time went to other "
-                f"virtual machines (steal: every figure above is slower by about that much or more)")
+                f"virtual machines (steal; a shared host can also run slow without any)")
