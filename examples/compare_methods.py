@@ -30,6 +30,8 @@ def main():
     ap.add_argument("--log-every", type=int, default=1000)
     ap.add_argument("--out", default="compare")
     ap.add_argument("--scan", default=None, help="a scan folder with its truth instead of the phantom")
+    ap.add_argument("--set", dest="settings", action="append", default=[], metavar="KEY=VALUE",
+                    help="an R2-Gaussian option (R2GSConfig field), e.g. grad_threshold=3e-5; repeatable")
     args = ap.parse_args()
 
     from clgs import metrics
@@ -38,6 +40,15 @@ def main():
     from clgs.io import atomic
     from clgs.r2gs import reconstruct_r2gs
 
+    settings = {}
+    for pair in args.settings:
+        key, sep, value = pair.partition("=")
+        if not sep:
+            raise SystemExit(f"--set expects KEY=VALUE, got {pair!r}")
+        try:
+            settings[key.replace("-", "_")] = json.loads(value)
+        except json.JSONDecodeError:
+            settings[key.replace("-", "_")] = value
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.scan:
@@ -66,7 +77,7 @@ def main():
     sart(scan.projections, scan.geometry, n_iter=args.sart_iterations, subsets=5, callback=log_sart)
 
     res = reconstruct_r2gs(scan, out_dir=out / "r2gs", iterations=args.iterations, log_every=args.log_every,
-                           progress=False, checkpoint_every=5000)
+                           progress=False, checkpoint_every=5000, **settings)
     rows = [r for r in res.log.rows if r.get("psnr3d") is not None]
     r2_curve = [(r["seconds"], r["psnr3d"], r["iteration"]) for r in rows]
     at = {r["iteration"]: r["psnr3d"] for r in rows}
@@ -74,7 +85,8 @@ def main():
     summary = {"scan": name, "views": scan.n_views, "fdk_psnr": fdk_point[1], "fdk_seconds": fdk_point[0],
                "sart_psnr": sart_curve[-1][1], "sart_seconds": sart_curve[-1][0],
                "r2gs_psnr": r2_curve[-1][1], "r2gs_seconds": r2_curve[-1][0],
-               "r2gs_psnr_at_10k": at.get(10_000), "iterations": res.trainer.iteration}
+               "r2gs_psnr_at_10k": at.get(10_000), "iterations": res.trainer.iteration,
+               "r2gs_gaussians": len(res.gaussians["means"]), "settings": settings}
     atomic.write_json(out / "summary.json", summary)
 
     import matplotlib
