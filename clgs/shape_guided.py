@@ -91,8 +91,9 @@ class ShapeGuidedSet(GaussianSet):
     MIN_SQUARINGS = 2
 
     def __init__(self, p_ref_mm, scales, quats, densities, *, shape_model, geometry, box, scale_bounds,
-                 schedules, alpha=None, name: str = "shape", raw: bool = False):
+                 schedules, alpha=None, name: str = "shape", raw: bool = False, sampler=None):
         dt = torch.float32
+        self.sampler = sampler  # a FieldSampler (OpenCL) or None (torch's grid_sample)
         self.shape_model = shape_model.to(dt) if shape_model.dtype != dt else shape_model
         self.p_ref = torch.as_tensor(np.asarray(p_ref_mm, np.float64), dtype=dt)
         self._origin = torch.as_tensor(np.asarray(geometry.offOrigin[::-1], np.float64), dtype=dt)
@@ -120,13 +121,13 @@ class ShapeGuidedSet(GaussianSet):
         from clgs.shape_model import exp_velocity
 
         u = exp_velocity(self.shape_model.velocity(self.alpha), self.shape_model.spacing,
-                         min_squarings=self.MIN_SQUARINGS)
+                         min_squarings=self.MIN_SQUARINGS, sampler=self.sampler)
         self.last_u = u.detach()
         return u
 
     def centres_mm(self, u=None) -> torch.Tensor:
         u = self.displacement() if u is None else u
-        return self.p_ref + self.shape_model.sample(u, self.p_ref)
+        return self.p_ref + self.shape_model.sample(u, self.p_ref, self.sampler)
 
     def tensors(self):
         p = self.params
@@ -140,7 +141,7 @@ class ShapeGuidedSet(GaussianSet):
                 self.displacement()
         x = points_mm
         for _ in range(2):
-            x = points_mm - self.shape_model.sample(self.last_u, x)
+            x = points_mm - self.shape_model.sample(self.last_u, x, self.sampler)
         return x
 
     def to_numpy(self) -> dict:
@@ -287,6 +288,15 @@ def _free_init_volume(fdk, geometry, template) -> np.ndarray:
     return vol
 
 
+def field_sampler(backend: str):
+    """The deformation's sampler for a run's backend: OpenCL with ``cl``, torch's otherwise."""
+    if backend == "cl":
+        from clgs.field_sampler import default_sampler
+
+        return default_sampler()
+    return None
+
+
 def fit_initial_alpha(scan, shape_model, cfg: ShapeGuidedConfig, init, free=None) -> np.ndarray:
     """alpha of the atlas-based start registered to the projections: the shape set's start
     ``init`` (a ShapeInit, mm and atlas units) moves with alpha, the free set's start ``free``
@@ -313,7 +323,7 @@ def fit_initial_alpha(scan, shape_model, cfg: ShapeGuidedConfig, init, free=None
                            (init.densities * cfg.value_scale).astype(np.float32), shape_model=shape_model,
                            geometry=geo, box=volume_box(geo),
                            scale_bounds=scale_bounds_for(geo, cfg.scale_bounds, cfg.scale_floor), schedules=sched,
-                           name="registration")
+                           name="registration", sampler=field_sampler(cfg.backend))
     for name in ("densities", "scales", "quats"):  # no gradients wanted: a cheaper backward
         bound.params[name].requires_grad_(False)
     sets = [bound]
@@ -417,7 +427,7 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
     if bound:
         shape_set = ShapeGuidedSet(centres, scales.astype(np.float32), quats.astype(np.float32),
                                    dens.astype(np.float32), shape_model=shape_model, geometry=geo,
-                                   schedules=sched, alpha=alpha0, **common)
+                                   schedules=sched, alpha=alpha0, sampler=field_sampler(cfg.backend), **common)
     else:
         shape_set = GaussianSet(geo.world_to_scene(centres).astype(np.float32), scales.astype(np.float32),
                                 quats.astype(np.float32), dens.astype(np.float32), schedules=sched,

@@ -68,14 +68,22 @@ def _sample_norm(field: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
     return out.reshape(field.shape[0], -1).transpose(0, 1).reshape(*lead, field.shape[0])
 
 
-def sample_field(field: torch.Tensor, points: torch.Tensor, spacing, origin) -> torch.Tensor:
+def sample_field(field: torch.Tensor, points: torch.Tensor, spacing, origin, sampler=None) -> torch.Tensor:
     """Trilinear samples (N, C) of a (C, Z, Y, X) field at points (N, 3) (x, y, z mm).
 
-    Differentiable in the field and in the points. Outside the grid: clamped to the border."""
+    Differentiable in the field and in the points. Outside the grid: clamped to the border.
+    ``sampler``: a :class:`clgs.field_sampler.FieldSampler` computes it in OpenCL (same values to
+    rounding); None uses torch's ``grid_sample``."""
     shape = tuple(field.shape[1:])
     origin_xyz = torch.tensor(_triple("origin", origin)[::-1], dtype=field.dtype, device=field.device)
-    scale = _norm_scale(shape, _triple("spacing", spacing), field)
     points = torch.as_tensor(points, dtype=field.dtype, device=field.device)
+    if sampler is not None:
+        from clgs.field_sampler import sample
+
+        dz, dy, dx = _triple("spacing", spacing)
+        step = torch.tensor([dx, dy, dz], dtype=field.dtype)
+        return sample(field, ((points - origin_xyz) / step).T.contiguous(), sampler).T
+    scale = _norm_scale(shape, _triple("spacing", spacing), field)
     return _sample_norm(field, (points - origin_xyz) * scale - 1.0)
 
 
@@ -95,14 +103,17 @@ def squarings_for(v: torch.Tensor, spacing, min_squarings: int = MIN_SQUARINGS) 
 
 
 def exp_velocity(v: torch.Tensor, spacing, n_squarings: Optional[int] = None,
-                 min_squarings: int = MIN_SQUARINGS) -> torch.Tensor:
+                 min_squarings: int = MIN_SQUARINGS, sampler=None) -> torch.Tensor:
     """Displacement u = exp(v) - id (3, Z, Y, X) in mm of a stationary velocity field v (3, Z, Y, X)
-    in mm (components x, y, z), by scaling and squaring. Differentiable in v."""
+    in mm (components x, y, z), by scaling and squaring. Differentiable in v. ``sampler``: as
+    :func:`sample_field` (the squarings then run in voxel units, in OpenCL)."""
     if v.dim() != 4 or v.shape[0] != 3:
         raise ValueError(f"velocity must be (3, Z, Y, X), got {tuple(v.shape)}")
     shape = tuple(v.shape[1:])
     if n_squarings is None:
         n_squarings = squarings_for(v, spacing, min_squarings)
+    if sampler is not None:
+        return _exp_in_voxels(v, spacing, n_squarings, sampler)
     scale = _norm_scale(shape, _triple("spacing", spacing), v).view(3, 1, 1, 1)
     ident = _identity_grid(shape, v)
     u = v * (scale / (2.0 ** n_squarings))  # normalised units
@@ -110,6 +121,20 @@ def exp_velocity(v: torch.Tensor, spacing, n_squarings: Optional[int] = None,
         moved = ident + u.permute(1, 2, 3, 0)
         u = u + _sample_norm(u, moved).permute(3, 0, 1, 2)
     return u / scale
+
+
+def _exp_in_voxels(v: torch.Tensor, spacing, n_squarings: int, sampler) -> torch.Tensor:
+    from clgs.field_sampler import sample
+
+    dz, dy, dx = _triple("spacing", spacing)
+    step = torch.tensor([dx, dy, dz], dtype=v.dtype).view(3, 1, 1, 1)
+    axes = [torch.arange(n, dtype=v.dtype) for n in v.shape[1:]]
+    k, j, i = torch.meshgrid(*axes, indexing="ij")
+    ident = torch.stack([i, j, k]).reshape(3, -1)
+    u = v / (step * 2.0 ** n_squarings)  # voxels
+    for _ in range(n_squarings):
+        u = u + sample(u, ident + u.reshape(3, -1), sampler).reshape(u.shape)
+    return u * step
 
 
 def jacobian_determinant(u, spacing) -> np.ndarray:
@@ -199,9 +224,9 @@ class ShapeModel:
         v = self.velocity(alpha)
         return exp_velocity(-v if inverse else v, self.spacing, n_squarings)
 
-    def sample(self, u: torch.Tensor, points) -> torch.Tensor:
+    def sample(self, u: torch.Tensor, points, sampler=None) -> torch.Tensor:
         """A field u (3, Z, Y, X) at points (N, 3) (x, y, z mm) -> (N, 3); clamped outside the grid."""
-        return sample_field(u, points, self.spacing, self.origin)
+        return sample_field(u, points, self.spacing, self.origin, sampler)
 
     def deform(self, points, alpha=None, u: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Template points (N, 3) mm mapped to the subject: p + u(alpha)(p). Pass ``u`` to reuse it."""
