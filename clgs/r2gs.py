@@ -274,25 +274,36 @@ def make_trainer(scan, cfg, sets, losses, out_dir=None, progress=False) -> Train
     )
 
 
-def run_config(config_cls, iterations: int, settings: dict, resume: bool, out_dir):
+def run_config(config_cls, iterations: int | None, settings: dict, resume: bool, out_dir):
     """(settings, checkpoint or None) of a new run, or of a run resumed from ``out_dir``: a resumed
-    run keeps its checkpoint's settings (only ``iterations`` may grow and ``backend`` change)."""
+    run keeps its checkpoint's settings (only ``iterations`` may grow and ``backend`` change).
+
+    ``iterations=None``: the default (30 000) for a new run; for a resumed one, the iterations it
+    was started with (an interrupted run is finished, not extended)."""
     from clgs import checkpoint as ckpt
 
-    if iterations < 1:
+    if iterations is not None and int(iterations) < 1:
         raise ValueError(f"iterations must be at least 1, got {iterations}")
     settings = dict(settings)
     if not resume:
-        return config_cls.from_json({**config_cls().to_json(), **settings, "iterations": int(iterations)}), None
+        n = config_cls().iterations if iterations is None else int(iterations)
+        return config_cls.from_json({**config_cls().to_json(), **settings, "iterations": n}), None
     if out_dir is None:
         raise ValueError("resume needs out_dir (the folder holding checkpoint.pt)")
     state = ckpt.load(Path(out_dir) / CHECKPOINT)
-    saved = ckpt.loads(state["config"])
+    try:
+        saved = ckpt.loads(state["config"])
+        if not isinstance(saved, dict):
+            raise TypeError(type(saved).__name__)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ckpt.CheckpointError(f"{Path(out_dir) / CHECKPOINT} holds no readable run settings ({exc}): it "
+                                   "cannot be resumed; start a new run") from None
     if "scale_floor" not in saved and any(f.name == "scale_floor" for f in fields(config_cls)):
         saved["scale_floor"] = None  # written before the floor existed: keep the bounds it trained with
     cfg = config_cls.from_json(saved)
     cfg.schedule_iterations = cfg.schedule_iterations or cfg.iterations
-    cfg.iterations = max(int(iterations), int(state["iteration"]))
+    planned = cfg.iterations if iterations is None else int(iterations)
+    cfg.iterations = max(planned, int(state["iteration"]))
     if "backend" in settings:  # where to compute does not change the run's meaning
         cfg.backend = settings.pop("backend")
     if settings:
@@ -346,14 +357,15 @@ def write_outputs(trainer: Trainer, out_dir, value_scale: float, volume=None) ->
 
 
 # ---------------------------------------------------------------------- the method
-def reconstruct_r2gs(scan, out_dir=None, iterations: int = 30_000, *, resume: bool = False,
+def reconstruct_r2gs(scan, out_dir=None, iterations: int | None = None, *, resume: bool = False,
                      progress: bool = True, fdk=None, **settings) -> R2GSResult:
     """Reconstruct ``scan`` (a :class:`clgs.io.scan.Scan` or a scan folder) with R2-Gaussian.
 
     ``settings`` are :class:`R2GSConfig` fields (``backend``, ``seed``, ``lambda_tv``, ...).
     ``out_dir`` gets the outputs and checkpoints (none without it). ``resume=True`` continues the
-    run in ``out_dir`` from its checkpoint, with the checkpoint's settings; ``iterations`` may be
-    raised to train longer. ``fdk``: a ready FDK volume (else computed). Ctrl-C stops cleanly:
+    run in ``out_dir`` from its checkpoint, with the checkpoint's settings, to the iterations it
+    was started with, or to ``iterations`` when given (to train longer). ``iterations=None`` on a
+    new run: 30 000, R2-Gaussian's. ``fdk``: a ready FDK volume (else computed). Ctrl-C stops cleanly:
     outputs so far are written and ``result.interrupted`` is True.
     """
     from clgs.io.scan import Scan
@@ -376,7 +388,7 @@ def reconstruct_r2gs(scan, out_dir=None, iterations: int = 30_000, *, resume: bo
 
 
 # ---------------------------------------------------------------------- `clgs reconstruct --method r2gs`
-def run_method(scan, out_dir=None, iterations: int = 30_000, resume: bool = False, progress: bool = True,
+def run_method(scan, out_dir=None, iterations: int | None = None, resume: bool = False, progress: bool = True,
                **settings) -> dict:
     """The ``r2gs`` entry of :mod:`clgs.methods`: returns the volume, the files written and figures."""
     import click

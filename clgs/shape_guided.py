@@ -467,7 +467,7 @@ def deformed_template_surface(template, shape_set) -> tuple:
     return moved.numpy().astype(np.float64), np.asarray(template.faces)
 
 
-def reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int = 30_000, *, resume: bool = False,
+def reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | None = None, *, resume: bool = False,
                              progress: bool = True, fdk=None, level: float | None = None,
                              **settings) -> ShapeGuidedResult:
     """Reconstruct ``scan`` with the shape-guided method and the parts of ``anatomy``.
@@ -541,7 +541,7 @@ def _anatomy_for(scan, anatomy):
     return plugins.get_anatomy(name)
 
 
-def run_method(scan, out_dir=None, iterations: int = 30_000, anatomy=None, resume: bool = False,
+def run_method(scan, out_dir=None, iterations: int | None = None, anatomy=None, resume: bool = False,
                progress: bool = True, **settings) -> dict:
     """The ``shape`` entry of :mod:`clgs.methods`."""
     import click
@@ -557,7 +557,7 @@ def run_method(scan, out_dir=None, iterations: int = 30_000, anatomy=None, resum
             "training_seconds": result.trainer.seconds, "seconds": result.seconds,
             "value_scale": result.value_scale, "interrupted": result.interrupted,
             "alpha": [float(a) for a in result.alpha], "history": result.log.rows}
-    files = sorted(str(p) for p in Path(out_dir).iterdir()) if out_dir is not None else []
+    files = {p.name: str(p) for p in sorted(Path(out_dir).iterdir())} if out_dir is not None else {}
     return {"volume": result.volume, "files": files, "info": info}
 
 

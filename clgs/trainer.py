@@ -32,6 +32,7 @@ import signal
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -39,6 +40,8 @@ import torch
 
 from clgs import checkpoint as ckpt
 from clgs.training_log import Progress, TrainingLog
+
+FINITE_CHECK_EVERY = 100  # iterations between checks that every parameter is finite
 
 
 @dataclass
@@ -316,6 +319,8 @@ class Trainer:
                 for p in group["params"]:
                     p.grad = None  # frozen: Adam's moments must not move either
         self.optimizer.step()
+        if (it + 1) % FINITE_CHECK_EVERY == 0:
+            self.check_finite()
         if hasattr(self.backend, "forget"):
             self.backend.forget()
         self.iteration += 1
@@ -365,6 +370,7 @@ class Trainer:
             progress.close()
         if self._stop:
             self.interrupted = True
+        self.check_finite()
         # checkpoint first: the closing row below is off the logging schedule, and a resumed run
         # must log exactly what an uninterrupted one does
         self.save_checkpoint(t_wall)
@@ -391,8 +397,6 @@ class Trainer:
         self.log.add(row)
         self._sums, self._count = {}, 0
         if self.checkpoint_path is not None:  # the run folder's log.csv follows a long run live
-            from pathlib import Path
-
             self.log.write_csv(Path(self.checkpoint_path).parent / "log.csv")
 
     # ------------------------------------------------------------------ checkpoints
@@ -414,9 +418,29 @@ class Trainer:
             "wall": wall,
             "seed": self.seed,
             "config": ckpt.dumps(self.config),
+            "data": self.data_id,
         }
 
+    @property
+    def data_id(self) -> str:
+        """A digest of the projections (as trained on) and the views' geometry: a checkpoint made on
+        other data is refused on resume."""
+        if getattr(self, "_data_id", None) is None:
+            import hashlib
+
+            h = hashlib.sha256(np.ascontiguousarray(self.projections.numpy()).tobytes())
+            h.update(np.ascontiguousarray(self.geometry.view_vectors(scene=True), np.float64).tobytes())
+            self._data_id = h.hexdigest()
+        return self._data_id
+
     def load_state_dict(self, state: dict) -> None:
+        missing = [k for k in ("iteration", "sets", "optimizer", "hooks", "torch_rng", "numpy_rng", "view_stack",
+                               "log", "sums", "count", "seconds", "wall") if k not in state]
+        if missing:
+            raise ckpt.CheckpointError(f"checkpoint lacks {', '.join(missing)}: not a complete clgs checkpoint")
+        if state.get("data") is not None and state["data"] != self.data_id:
+            raise ckpt.CheckpointError("checkpoint was made on other projections or another scan geometry: resume "
+                                       "it on the scan it was started on, or start a new run")
         names = sorted(s.name for s in self.sets)
         if sorted(state["sets"]) != names:
             raise ckpt.CheckpointError(f"checkpoint holds sets {sorted(state['sets'])}, this run has {names}")
@@ -434,13 +458,39 @@ class Trainer:
         self._sums = ckpt.loads(state["sums"])
         self._count = int(state["count"])
         self.iteration = int(state["iteration"])
+        if self.iteration < 0:
+            raise ckpt.CheckpointError(f"checkpoint iteration must be >= 0, got {self.iteration}")
+        bad = self._bad_parameters()
+        if bad:
+            raise ckpt.CheckpointError(f"checkpoint parameters {', '.join(bad)} hold NaN or Inf: it cannot be "
+                                       "resumed; start the run again")
         self.seconds = float(state["seconds"])
         self.wall_offset = float(state["wall"])
 
     def save_checkpoint(self, t_wall: float | None = None):
         if self.checkpoint_path is None:
             return None
+        self.check_finite()  # a checkpoint is never overwritten by a broken state
         return ckpt.save(self.checkpoint_path, self.state_dict(t_wall))
+
+    def _bad_parameters(self) -> list:
+        with torch.no_grad():
+            return [f"{s.name}.{name}" for s in self.sets for name, t, _ in s.parameters()
+                    if t.numel() and not bool(torch.isfinite(t).all())]
+
+    def check_finite(self) -> None:
+        """Raise FloatingPointError when a parameter holds NaN or Inf. The kernels skip such
+        Gaussians, so the loss can stay finite while the model is broken; checked every
+        ``FINITE_CHECK_EVERY`` iterations, before each checkpoint and at the end of a run, so the
+        last checkpoint on disk always holds finite parameters."""
+        bad = self._bad_parameters()
+        if bad:
+            kept = ""
+            if self.checkpoint_path is not None and Path(self.checkpoint_path).is_file():
+                kept = f"; the last checkpoint ({self.checkpoint_path}) is kept"
+            raise FloatingPointError(
+                f"parameters {', '.join(bad)} became NaN or Inf by iteration {self.iteration}{kept}: lower the "
+                "learning rates or check the projections and settings")
 
     def resume(self, path=None) -> "Trainer":
         """Load the checkpoint at ``path`` (default: ``checkpoint_path``)."""

@@ -228,6 +228,32 @@ def test_reconstruct_r2gs_writes_outputs_and_resumes(scene, tmp_path):
         reconstruct_r2gs(scene, tmp_path / "nothing", 10, resume=True)
 
 
+def test_resume_without_iterations_finishes_the_interrupted_run(scene, tmp_path, monkeypatch):
+    """An interrupted run resumed with no iterations given ends where it was planned to end, not at
+    the 30 000 default; given iterations extend it."""
+    from clgs import trainer as T
+
+    out = tmp_path / "run"
+    kw = dict(progress=False, fdk=scene.truth, **{**SMALL, "n_gaussians": 100})
+    real_step = T.Trainer.step
+
+    def step(self):
+        if self.iteration == 12:
+            raise KeyboardInterrupt
+        return real_step(self)
+
+    monkeypatch.setattr(T.Trainer, "step", step)
+    first = reconstruct_r2gs(scene, out, 20, **kw)
+    assert first.interrupted and first.trainer.iteration == 12
+    monkeypatch.setattr(T.Trainer, "step", real_step)
+    done = reconstruct_r2gs(scene, out, resume=True, progress=False, fdk=scene.truth)
+    assert done.trainer.iteration == 20 and not done.interrupted
+    again = reconstruct_r2gs(scene, out, resume=True, progress=False, fdk=scene.truth)
+    assert again.trainer.iteration == 20  # finished: nothing more to do
+    longer = reconstruct_r2gs(scene, out, 25, resume=True, progress=False, fdk=scene.truth)
+    assert longer.trainer.iteration == 25
+
+
 @pytest.mark.parametrize("kw", [dict(projector_mode="exact"), dict(scale_bounds=None)])
 def test_variants_train(scene, kw):
     """The exact ray-integral projector and exp-activated scales run through the same loop."""
@@ -390,3 +416,49 @@ def test_resume_of_a_checkpoint_without_a_floor_keeps_its_bounds(scene, tmp_path
     ckpt.save(tmp_path / "checkpoint.pt", state)
     cfg, _ = run_config(R2GSConfig, 12, {}, True, tmp_path)
     assert cfg.scale_floor is None
+
+
+def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(scene, tmp_path):
+    """The kernels skip NaN Gaussians, so the loss can stay finite while the model breaks: the
+    trainer checks the parameters and never writes a broken checkpoint."""
+    from clgs import trainer as T
+
+    class Poison:
+        def on_iteration(self, trainer):
+            if trainer.iteration == 33:  # after densification ends (it would prune a NaN Gaussian)
+                with torch.no_grad():
+                    trainer.sets[0].params["scales"][3, 1] = float("nan")
+
+    t = _trainer(scene, 60, tmp_path, checkpoint_every=10)
+    t.hooks.append(Poison())
+    with pytest.raises(FloatingPointError, match=r"free\.scales.* became NaN or Inf by iteration 40.*last checkpoint"):
+        t.fit()
+    state = ckpt.load(tmp_path / "checkpoint.pt")
+    assert state["iteration"] == 30  # the last good one, not overwritten
+    assert all(torch.isfinite(v).all() for v in state["sets"]["free"].values() if torch.is_tensor(v))
+    assert T.FINITE_CHECK_EVERY <= 100  # a broken run stops within this many iterations
+
+
+def test_broken_or_foreign_checkpoints_are_refused(scene, tmp_path):
+    t = _trainer(scene, 10, tmp_path)
+    t.fit()
+    good = ckpt.load(tmp_path / "checkpoint.pt")
+
+    def resume_with(state):
+        path = tmp_path / "edited.pt"
+        ckpt.save(path, state)
+        _trainer(scene, 10).resume(path)
+
+    bad = dict(good, sets={k: dict(v) for k, v in good["sets"].items()})
+    bad["sets"]["free"]["means"] = bad["sets"]["free"]["means"].clone()
+    bad["sets"]["free"]["means"][0, 0] = float("inf")
+    with pytest.raises(ckpt.CheckpointError, match=r"free\.means hold NaN or Inf"):
+        resume_with(bad)
+    with pytest.raises(ckpt.CheckpointError, match="lacks optimizer"):
+        resume_with({k: v for k, v in good.items() if k != "optimizer"})
+    with pytest.raises(ckpt.CheckpointError, match="iteration must be >= 0"):
+        resume_with(dict(good, iteration=-5))
+    other = Scan(scene.geometry, scene.projections * 1.01, scene.truth)
+    with pytest.raises(ckpt.CheckpointError, match="other projections or another scan geometry"):
+        build_trainer(other, _cfg(10, init="random", value_scale=60.0)).resume(tmp_path / "checkpoint.pt")
+    resume_with(good)  # the untouched one still loads

@@ -102,6 +102,8 @@ def view_weights(geometry: Geometry, short_scan="auto"):
     if n == 1:
         return np.array([np.pi]), np.ones((1, nu))
     order, un, gaps, full = _sorted_arc(angles)
+    if not np.any(gaps[:-1] > 0):  # every view at one angle: each is a copy of a one-view scan
+        return np.full(n, np.pi / n), np.ones((n, nu))
     step = np.empty(n)
     if full and short_scan is not True:
         step[order] = 0.5 * (gaps + np.roll(gaps, 1))
@@ -117,6 +119,7 @@ def view_weights(geometry: Geometry, short_scan="auto"):
     if short_scan is False:
         return step, np.full((n, nu), min(1.0, np.pi / arc))
     eps = float(np.clip(arc - np.pi, 2 * np.median(inner), 0.5 * arc))
+    eps = max(eps, 1e-9)  # many repeated angles make the median gap 0: keep the taper finite
 
     def taper(beta):
         d = np.minimum(beta - a0, a1 - beta)
