@@ -33,18 +33,38 @@ class GeometryError(ValueError):
     """A scanner geometry that cannot describe a real acquisition."""
 
 
-def _triple(name, value, kind=float):
-    arr = np.asarray(value, dtype=np.float64).reshape(-1)
-    if arr.size != 3:
-        raise GeometryError(f"{name} must have 3 entries (Z, Y, X), got {arr.size}: {value!r}")
+def _numbers(name, value) -> np.ndarray:
+    """``value`` as a flat float64 array, or a GeometryError naming the field."""
+    if isinstance(value, (str, bytes, dict)):
+        raise GeometryError(f"{name} must be numbers, got {value!r}")
+    try:
+        return np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise GeometryError(f"{name} must be numbers, got {value!r} ({exc})") from None
+
+
+def _entries(name, value, n, axes, kind):
+    arr = _numbers(name, value)
+    if arr.size != n:
+        raise GeometryError(f"{name} must have {n} entries ({axes}), got {arr.size}: {value!r}")
+    if kind is int and not np.all(np.isfinite(arr) & (arr == np.round(arr))):
+        raise GeometryError(f"{name} must be whole numbers of pixels or voxels, got {value!r}")
     return tuple(kind(v) for v in arr)
+
+
+def _triple(name, value, kind=float):
+    return _entries(name, value, 3, "Z, Y, X", kind)
 
 
 def _pair(name, value, kind=float):
-    arr = np.asarray(value, dtype=np.float64).reshape(-1)
-    if arr.size != 2:
-        raise GeometryError(f"{name} must have 2 entries (V, U), got {arr.size}: {value!r}")
-    return tuple(kind(v) for v in arr)
+    return _entries(name, value, 2, "V, U", kind)
+
+
+def _scalar(name, value) -> float:
+    arr = _numbers(name, value)
+    if arr.size != 1:
+        raise GeometryError(f"{name} must be one number, got {value!r}")
+    return float(arr[0])
 
 
 @dataclass(frozen=True)
@@ -72,9 +92,11 @@ class Geometry:
         set_("dVoxel", _triple("dVoxel", self.dVoxel))
         set_("offOrigin", _triple("offOrigin", self.offOrigin))
         set_("offDetector", _pair("offDetector", self.offDetector))
-        set_("DSD", float(self.DSD))
-        set_("DSO", float(self.DSO))
-        angles = np.asarray(self.angles, dtype=np.float64).reshape(-1)
+        set_("DSD", _scalar("DSD", self.DSD))
+        set_("DSO", _scalar("DSO", self.DSO))
+        if self.angles is None:
+            raise GeometryError("angles are missing (null): a scan needs one angle (radians) per view")
+        angles = _numbers("angles", self.angles)
         set_("angles", angles)
         angles.setflags(write=False)
         self.validate()

@@ -147,6 +147,44 @@ def test_scan_load_errors(tmp_path, rng):
         Scan.load(tmp_path / "u")
 
 
+@pytest.mark.parametrize("edit,message", [
+    (lambda d: d["geometry"].update(DSO="abc"), "DSO must be numbers"),
+    (lambda d: d["geometry"].update(nDetector="48x48"), "nDetector must be numbers"),
+    (lambda d: d["geometry"].update(nDetector=[6.5, 8]), "nDetector must be whole numbers"),
+    (lambda d: d["geometry"].update(nVoxel=[4, float("nan"), 6]), "nVoxel must be whole numbers"),
+    (lambda d: d["geometry"].update(angles="abc"), "angles must be numbers"),
+    (lambda d: d["geometry"].update(angles=None), "angles are missing"),
+    (lambda d: d.update(files=[]), "'files' must map names"),
+    (lambda d: d.update(files={"projections": 123}), "'files' must map names"),
+    (lambda d: d.update(meta=[1, 2]), "'meta' must be an object"),
+    (lambda d: d.update(meta="x"), "'meta' must be an object"),
+])
+def test_scan_json_with_wrong_types_is_a_scan_error(tmp_path, rng, edit, message):
+    small_scan(rng).save(tmp_path / "s")
+    doc = json.loads((tmp_path / "s" / "scan.json").read_text())
+    edit(doc)
+    (tmp_path / "s" / "scan.json").write_text(json.dumps(doc))
+    with pytest.raises(ScanError, match=message):
+        Scan.load(tmp_path / "s")
+
+
+def test_files_null_means_the_default_names(tmp_path, rng):
+    small_scan(rng).save(tmp_path / "s")
+    doc = json.loads((tmp_path / "s" / "scan.json").read_text())
+    doc["files"] = None
+    (tmp_path / "s" / "scan.json").write_text(json.dumps(doc))
+    assert Scan.load(tmp_path / "s").truth is None  # projections.npy found by its default name
+
+
+def test_complex_or_all_negative_projections_are_refused(rng):
+    g = small_geometry(3)
+    p = rng.random((3, 6, 8))
+    with pytest.raises(ScanError, match="real numbers"):
+        check_projections(p + 1j, g)
+    with pytest.raises(ScanError, match="every line integral is <= 0"):
+        check_projections(-p, g)
+
+
 # ------------------------------------------------------------------------------ volumes
 @pytest.mark.parametrize("suffix", [".nii.gz", ".nii"])
 def test_nifti_affine_matches_geometry(tmp_path, rng, suffix):

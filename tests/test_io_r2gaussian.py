@@ -159,3 +159,15 @@ def test_bad_folders(tmp_path, rng):
     (tmp_path / "e" / "meta_data.json").write_text(json.dumps(meta))
     with pytest.raises(ScanError, match="missing DSO"):
         Scan.load(tmp_path / "e")
+
+
+@pytest.mark.parametrize("key,value,message", [("DSD", "abc", "DSD must be numbers"),
+                                               ("nDetector", [float("nan"), 8], "whole numbers"),
+                                               ("nVoxel", [4, 4.5, 4], "whole numbers")])
+def test_scanner_values_of_the_wrong_kind_are_scan_errors(key, value, message):
+    from clgs.io.scan import ScanError
+
+    scanner = {"DSD": 1500.0, "DSO": 1000.0, "nDetector": [6, 8], "dDetector": [1.0, 1.0],
+               "nVoxel": [4, 4, 4], "dVoxel": [1.0, 1.0, 1.0], "mode": "cone", key: value}
+    with pytest.raises(ScanError, match=message):
+        geometry_from_scanner(scanner, [0.0, 1.0])

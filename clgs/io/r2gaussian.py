@@ -80,9 +80,9 @@ def geometry_from_scanner(scanner: dict, angles) -> Geometry:
     off_det_uv = _vec(scanner, "offDetector", 2) if "offDetector" in scanner else np.zeros(2)
     try:
         return Geometry(
-            DSD=float(scanner["DSD"]), DSO=float(scanner["DSO"]),
-            nDetector=tuple(int(round(v)) for v in n_det), dDetector=tuple(d_det),
-            nVoxel=tuple(int(round(v)) for v in n_vox_xyz[::-1]), dVoxel=tuple(d_vox_xyz[::-1]),
+            DSD=scanner["DSD"], DSO=scanner["DSO"],
+            nDetector=tuple(n_det), dDetector=tuple(d_det),
+            nVoxel=tuple(n_vox_xyz[::-1]), dVoxel=tuple(d_vox_xyz[::-1]),
             offOrigin=tuple(off_origin_xyz[::-1]), offDetector=tuple(off_det_uv[::-1]),
             angles=np.asarray(angles, dtype=np.float64), mode=str(scanner.get("mode", "cone")),
         )

@@ -69,8 +69,8 @@ def check_projections(projections, geometry: Geometry, neg_tolerance: float = NE
     (n_views, nDetector), NaN/Inf, line integrals below ``-neg_tolerance * max``.
     """
     p = np.asarray(projections)
-    if p.dtype == object or not np.issubdtype(p.dtype, np.number):
-        raise ScanError(f"{source}: not a numeric array (dtype {p.dtype})")
+    if p.dtype == object or not np.issubdtype(p.dtype, np.number) or np.issubdtype(p.dtype, np.complexfloating):
+        raise ScanError(f"{source}: not an array of real numbers (dtype {p.dtype}); line integrals are real")
     if p.ndim != 3:
         raise ScanError(f"{source}: expected (n_views, V, U) line integrals, got an array of shape {p.shape}")
     if p.shape[0] == 0:
@@ -90,6 +90,9 @@ def check_projections(projections, geometry: Geometry, neg_tolerance: float = NE
     if lo < 0:
         top = float(p.max())
         tol = neg_tolerance * top if top > 0 else 0.0
+        if top <= 0:
+            raise ScanError(f"{source}: every line integral is <= 0 (down to {lo:.4g}); projections must be "
+                            "-log(I/I0) >= 0: were intensities or their logarithm stored with the sign flipped?")
         if lo < -tol:
             raise ScanError(
                 f"{source}: line integrals go down to {lo:.4g}, below the tolerance -{tol:.4g} "
@@ -232,7 +235,14 @@ class Scan:
             geometry = Geometry.from_dict(doc["geometry"])
         except (KeyError, TypeError, GeometryError) as exc:
             raise ScanError(f"{folder / SCAN_JSON}: invalid geometry: {exc}") from exc
-        files = doc.get("files", {})
+        files = doc.get("files")
+        files = {} if files is None else files
+        if not isinstance(files, dict) or not all(isinstance(v, str) or v is None for v in files.values()):
+            raise ScanError(f"{folder / SCAN_JSON}: 'files' must map names (projections, truth, truth_surface) "
+                            f"to file names in the folder, got {files!r}")
+        meta = doc.get("meta") or {}
+        if not isinstance(meta, dict):
+            raise ScanError(f"{folder / SCAN_JSON}: 'meta' must be an object (key: value), got {meta!r}")
         proj = read_npy(folder / files.get("projections", PROJECTIONS), "projections")
         with warnings.catch_warnings():
             warnings.simplefilter("always", ScanWarning)
@@ -248,7 +258,6 @@ class Scan:
                 surface = load_mesh(folder / files["truth_surface"])
             except MeshError as exc:
                 raise ScanError(str(exc)) from exc
-        meta = doc.get("meta", {}) or {}
         return cls(geometry, proj, truth, meta, surface)
 
 
