@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import math
+import zipfile
 from typing import Optional
 
 import numpy as np
@@ -34,6 +35,8 @@ from clgs.template import _atomic_save_npz, _json_array, _json_from_array, _trip
 
 MODEL_FORMAT = "clgs.shape_model"
 MODEL_VERSION = 1
+# what a damaged or foreign npz raises on reading (truncated zip, object arrays, bad JSON, short data)
+_UNREADABLE = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, json.JSONDecodeError)
 MIN_SQUARINGS = 4
 MAX_SQUARINGS = 40
 
@@ -367,10 +370,11 @@ def read_metadata(path) -> dict:
             meta = _json_from_array(z["metadata"])
     except FileNotFoundError:
         raise ModelFileError(f"model file {path} does not exist: build it first (clgs <anatomy> build-model)")
-    except (OSError, ValueError, json.JSONDecodeError) as exc:
-        if isinstance(exc, ModelFileError):
-            raise
-        raise ModelFileError(f"cannot read model file {path}: {exc}") from exc
+    except ModelFileError:
+        raise
+    except _UNREADABLE as exc:
+        raise ModelFileError(f"cannot read model file {path} ({exc}): rebuild it (clgs <anatomy> build-model "
+                             "--force) or download it again") from exc
     if meta.get("format") != MODEL_FORMAT:
         raise ModelFileError(f"{path} is not a clgs shape model (format {meta.get('format')!r})")
     version = meta.get("version")
@@ -383,6 +387,16 @@ def read_metadata(path) -> dict:
 def load_model(path, need_shape_model: bool = True):
     """(ShapeModel or None, DensityAtlas or None) from one model file; shapes and version checked."""
     meta = read_metadata(path)
+    try:
+        return _load_arrays(path, meta, need_shape_model)
+    except ModelFileError:
+        raise
+    except _UNREADABLE as exc:
+        raise ModelFileError(f"cannot read model file {path} ({exc}): rebuild it (clgs <anatomy> build-model "
+                             "--force) or download it again") from exc
+
+
+def _load_arrays(path, meta: dict, need_shape_model: bool):
     with np.load(path, allow_pickle=False) as z:
         files = set(z.files)
         sm = atlas = None
@@ -403,4 +417,7 @@ def load_model(path, need_shape_model: bool = True):
                 raise ModelFileError(f"{path}: atlas arrays missing: {sorted(need - files)}")
             atlas = DensityAtlas(z["atlas_mean"], z["atlas_var"], tuple(z["atlas_spacing"]),
                                  tuple(z["atlas_origin"]), meta=meta)
+            if list(atlas.shape) != list(meta.get("atlas_shape", atlas.shape)):
+                raise ModelFileError(f"{path}: atlas arrays do not match the metadata (grid {atlas.shape} vs "
+                                     f"{meta.get('atlas_shape')})")
     return sm, atlas

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import zipfile
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -280,6 +281,16 @@ class Template:
 
     @classmethod
     def load(cls, path) -> "Template":
+        try:
+            return cls._load(path)
+        except ValueError:
+            raise
+        except (OSError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            raise ValueError(f"cannot read template file {path} ({exc}): reinstall the anatomy plugin or "
+                             "rebuild the template") from exc
+
+    @classmethod
+    def _load(cls, path) -> "Template":
         with np.load(path, allow_pickle=False) as z:
             if "metadata" not in z.files:
                 raise ValueError(f"{path} is not a clgs template (no metadata)")

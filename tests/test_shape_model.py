@@ -227,6 +227,25 @@ def test_load_rejects_bad_files(tmp_path, rng):
     np.save(tmp_path / "plain.npy", np.zeros(3))
     with pytest.raises(ModelFileError):
         load_model(tmp_path / "plain.npy")
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    with pytest.raises(ModelFileError, match="cannot read model file.*rebuild it"):
+        read_metadata(truncated)
+    objects = tmp_path / "objects.npz"
+    np.savez(objects, **{**arrays, "sigma": np.array([{"a": 1}, None], dtype=object)})
+    with pytest.raises(ModelFileError, match="cannot read model file"):
+        load_model(objects)
+    mean = rng.random((6, 7, 8)).astype(np.float32)
+    with_atlas = tmp_path / "atlas.npz"
+    save_model(with_atlas, model, DensityAtlas(mean, 0.1 * mean, (3.0, 3.0, 3.0), (1.0, 2.0, 3.0)))
+    with np.load(with_atlas, allow_pickle=False) as z:
+        a = {k: z[k] for k in z.files}
+    m = json.loads(bytes(a["metadata"]).decode())
+    m["atlas_shape"] = [6, 7, 9]
+    a["metadata"] = np.frombuffer(json.dumps(m).encode(), np.uint8)
+    np.savez(tmp_path / "atlas_meta.npz", **a)
+    with pytest.raises(ModelFileError, match="atlas arrays do not match the metadata"):
+        load_model(tmp_path / "atlas_meta.npz")
 
 
 def test_density_atlas_sampling(rng):
@@ -243,3 +262,20 @@ def test_density_atlas_sampling(rng):
     assert torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0
     with pytest.raises(ModelFileError):
         DensityAtlas(mean, -mean, (1, 1, 1), (0, 0, 0))
+
+
+def test_anatomies_lists_an_unreadable_model_as_such(tmp_path, monkeypatch):
+    from types import SimpleNamespace
+
+    from click.testing import CliRunner
+
+    from clgs import plugins
+    from clgs.commands.anatomies import anatomies
+
+    bad = tmp_path / "model.npz"
+    bad.write_bytes(b"PK\x03\x04 not really a zip")
+    fake = SimpleNamespace(summary="a bone", version="1", package="pkg", model_path=str(bad))
+    monkeypatch.setattr(plugins, "anatomies", lambda: {"bone": fake})
+    out = CliRunner().invoke(anatomies, []).output
+    assert "model (unreadable)" in out and "rebuild it" in out
+    assert '"built": false' in CliRunner().invoke(anatomies, ["--json"]).output

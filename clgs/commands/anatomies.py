@@ -14,8 +14,16 @@ def anatomies(as_json):
     rows = []
     for name, a in found.items():
         path = a.model_path
+        built, problem = bool(path) and os.path.exists(path), None
+        if built:
+            from clgs.shape_model import ModelFileError, read_metadata
+
+            try:
+                read_metadata(path)
+            except ModelFileError as exc:
+                built, problem = False, str(exc)
         rows.append({"name": name, "summary": a.summary, "version": a.version, "package": a.package,
-                     "model_path": path, "built": bool(path) and os.path.exists(path)})
+                     "model_path": path, "built": built, "problem": problem})
     if as_json:
         import json
 
@@ -26,6 +34,8 @@ def anatomies(as_json):
                    "see examples/toy_plugin for how to write one")
         return
     for r in rows:
-        state = "built" if r["built"] else "not built"
+        state = "built" if r["built"] else ("unreadable" if r["problem"] else "not built")
         click.echo(f"{r['name']:12s} {r['summary']}")
         click.echo(f"{'':12s} package {r['package']} {r['version']}; model ({state}): {r['model_path'] or '-'}")
+        if r["problem"]:
+            click.echo(f"{'':12s} {r['problem']}")
