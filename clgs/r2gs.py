@@ -45,9 +45,53 @@ CHECKPOINT = "checkpoint.pt"
 
 
 class JsonConfig:
-    """JSON round trip of a method's settings (a dataclass); unknown keys are a clear error."""
+    """JSON round trip of a method's settings (a dataclass); unknown keys and values of the wrong
+    kind or out of range are a clear error (checked when the settings are made)."""
 
     KIND = "method"
+    CHOICES: dict = {}  # setting -> allowed strings
+    POSITIVE: frozenset = frozenset()  # numbers that must be > 0 (every number must be >= 0)
+    AT_LEAST: dict = {}  # setting -> smallest allowed value
+
+    def __post_init__(self):
+        for f in fields(self):
+            setattr(self, f.name, self._checked(f.name, str(f.type), getattr(self, f.name)))
+
+    def _checked(self, name: str, kind: str, value):
+        where = f"{self.KIND} setting {name}"
+        if value is None:
+            if "None" in kind:
+                return None
+            raise ValueError(f"{where} must be given (got null)")
+        base = kind.split("|")[0].strip()
+        if base == "bool":
+            if not isinstance(value, (bool, np.bool_)):
+                raise ValueError(f"{where} must be true or false, got {value!r}")
+            return bool(value)
+        if base == "str":
+            if not isinstance(value, str):
+                raise ValueError(f"{where} must be a string, got {value!r}")
+            allowed = self.CHOICES.get(name)
+            if allowed and value not in allowed:
+                raise ValueError(f"{where} must be one of {', '.join(allowed)}, got {value!r}")
+            return value
+        if base == "tuple":
+            return value
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+            raise ValueError(f"{where} must be a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ValueError(f"{where} must be finite, got {value!r}")
+        if base == "int":
+            if value != int(value):
+                raise ValueError(f"{where} must be a whole number, got {value!r}")
+            value = int(value)
+        else:
+            value = float(value)
+        low = self.AT_LEAST.get(name, 0)
+        if value < low or (name in self.POSITIVE and value <= 0):
+            need = f"> 0" if name in self.POSITIVE else f">= {low:g}"
+            raise ValueError(f"{where} must be {need}, got {value!r}")
+        return value
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -95,6 +139,22 @@ class GaussianFitConfig(JsonConfig):
     checkpoint_every: int = 1000
     schedule_iterations: int | None = None  # length of the lr decays (default: iterations)
 
+    CHOICES = {"projector_mode": ("affine", "exact"), "backend": ("cl", "torch")}
+    POSITIVE = frozenset({"value_scale"})
+    AT_LEAST = {"iterations": 1, "densify_interval": 1, "max_gaussians": 1, "tv_size": 2, "schedule_iterations": 1}
+
+    def __post_init__(self):
+        super().__post_init__()
+        b = self.scale_bounds
+        if b is not None:
+            try:
+                lo, hi = (float(x) for x in b)
+            except (TypeError, ValueError):
+                raise ValueError(f"{self.KIND} setting scale_bounds must be two numbers (or null), got {b!r}") from None
+            if not (0 < lo < hi and math.isfinite(hi)):
+                raise ValueError(f"{self.KIND} setting scale_bounds must satisfy 0 < low < high, got {b!r}")
+            self.scale_bounds = (lo, hi)
+
 
 @dataclass
 class R2GSConfig(GaussianFitConfig):
@@ -104,6 +164,8 @@ class R2GSConfig(GaussianFitConfig):
     init: str = "fdk"  # "fdk" | "random"
 
     KIND = "r2gs"
+    CHOICES = {**GaussianFitConfig.CHOICES, "init": ("fdk", "random")}
+    AT_LEAST = {**GaussianFitConfig.AT_LEAST, "n_gaussians": 1}
 
 
 @dataclass

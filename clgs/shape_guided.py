@@ -80,6 +80,9 @@ class ShapeGuidedConfig(GaussianFitConfig):
     lr_rotation: float = 0.01
 
     KIND = "shape-guided"
+    CHOICES = {**GaussianFitConfig.CHOICES, "free_init": ("atlas", "fdk"), "density_prior_field": ("all", "shape")}
+    POSITIVE = GaussianFitConfig.POSITIVE | {"tau", "density_s"}
+    AT_LEAST = {**GaussianFitConfig.AT_LEAST, "density_points": 2}
 
 
 # ---------------------------------------------------------------------- the shape-guided set

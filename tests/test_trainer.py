@@ -462,3 +462,27 @@ def test_broken_or_foreign_checkpoints_are_refused(scene, tmp_path):
     with pytest.raises(ckpt.CheckpointError, match="other projections or another scan geometry"):
         build_trainer(other, _cfg(10, init="random", value_scale=60.0)).resume(tmp_path / "checkpoint.pt")
     resume_with(good)  # the untouched one still loads
+
+
+@pytest.mark.parametrize("setting,message", [
+    (dict(value_scale=-1), "value_scale must be > 0"), (dict(n_gaussians=0), "n_gaussians must be >= 1"),
+    (dict(iterations="abc"), "iterations must be a number"), (dict(iterations=2.5), "whole number"),
+    (dict(backend="gpu"), "backend must be one of cl, torch"), (dict(seed=-1), "seed must be >= 0"),
+    (dict(densify_interval=0), "densify_interval must be >= 1"), (dict(lambda_tv=float("inf")), "finite"),
+    (dict(scale_bounds=[0.5, 0.1]), "0 < low < high"), (dict(lambda_dssim=True), "must be a number"),
+])
+def test_settings_of_the_wrong_kind_or_range_are_refused(setting, message):
+    with pytest.raises(ValueError, match=f"r2gs setting {message}"):
+        R2GSConfig.from_json(setting)
+
+
+def test_shape_guided_settings_are_checked_too():
+    from clgs.shape_guided import ShapeGuidedConfig
+
+    with pytest.raises(ValueError, match="shape_prior must be true or false"):
+        ShapeGuidedConfig.from_json({"shape_prior": "yes"})
+    with pytest.raises(ValueError, match="tau must be > 0"):
+        ShapeGuidedConfig.from_json({"tau": 0})
+    with pytest.raises(ValueError, match="lr_alpha must be >= 0"):
+        ShapeGuidedConfig.from_json({"lr_alpha": -1})
+    assert ShapeGuidedConfig.from_json({"iterations": 1e3}).iterations == 1000  # JSON's 1e3 is a count
