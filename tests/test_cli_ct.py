@@ -240,3 +240,229 @@ def test_registered_methods_run_from_the_cli(scan_dir, tmp_path):
     assert (tmp_path / "run" / "extra.txt").read_text() == "resume=True"
     res = run("reconstruct", scan_dir / "scan", "-m", "resumable", "--out", tmp_path / "run", ok=False)
     assert "already exists" in res.output
+
+
+# ------------------------------------------------------------------------------ robustness of the inputs
+def _tree(folder):
+    """{relative path: bytes} of every file under ``folder``."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _register(name, run_fn, options=(), atomic_dir=True):
+    from clgs import methods
+
+    methods.register(methods.Method(name, run_fn, options=list(options), atomic_dir=atomic_dir, help="test"),
+                     replace=True)
+
+
+def test_output_may_not_replace_or_overwrite_the_input_scan(scan_dir, tmp_path):
+    import click
+
+    from clgs.io.r2gaussian import to_r2gaussian_folder
+
+    scan = tmp_path / "data" / "scan"
+    Scan.load(scan_dir / "scan").save(scan)
+    before = _tree(scan)
+    for out, json_out in [(scan, None),                      # the scan folder itself (atomic folder replace)
+                          (tmp_path / "data", None),         # a folder holding the scan
+                          (tmp_path, None),
+                          (scan / "truth.npy", None),        # a file of the scan
+                          (scan / "projections.npy", None),
+                          (tmp_path / "v.npy", scan / "scan.json")]:  # the report over the scan's description
+        args = ["reconstruct", scan, "--out", out, "--force"] + (["--json", json_out] if json_out else [])
+        res = run(*args, ok=False)
+        assert res.exit_code == 1 and "input scan" in res.output and "Traceback" not in res.output, res.output
+        assert _tree(scan) == before
+    assert not (tmp_path / "v.npy").exists()  # refused before the run: nothing half-done
+    res = run("reconstruct", scan / "scan.json", "--out", scan, "--force", ok=False)  # the scan named by its json
+    assert res.exit_code == 1 and "input scan" in res.output and _tree(scan) == before
+    # a method that writes into its folder (resumable) may not use the scan folder either
+    _register("resumable_t", _constant, [click.Option(["--resume"], is_flag=True, default=None)], atomic_dir=False)
+    res = run("reconstruct", scan, "-m", "resumable_t", "--resume", "--out", scan, ok=False)
+    assert res.exit_code == 1 and "input scan folder" in res.output and _tree(scan) == before
+    # a new file next to the scan's files is fine
+    run("reconstruct", scan, "--out", scan / "fdk.npy")
+    assert (scan / "fdk.npy").is_file() and {k: v for k, v in _tree(scan).items() if k != "fdk.npy"} == before
+    # an R2-Gaussian folder's files are protected too
+    to_r2gaussian_folder(Scan.load(scan_dir / "scan"), tmp_path / "r2")
+    r2_before = _tree(tmp_path / "r2")
+    for out in (tmp_path / "r2" / "proj_train", tmp_path / "r2" / "vol_gt.npy"):
+        res = run("reconstruct", tmp_path / "r2", "--out", out, "--force", ok=False)
+        assert res.exit_code == 1 and "input scan" in res.output
+    assert _tree(tmp_path / "r2") == r2_before
+    # simulate: --out may not be (or hold) the input volume
+    (tmp_path / "vols").mkdir()
+    np.save(tmp_path / "vols" / "v.npy", ball_volume())
+    res = run("simulate", tmp_path / "vols" / "v.npy", "--spacing", 2, "--views", 2, "--detector", 16,
+              "--out", tmp_path / "vols", "--force", ok=False)
+    assert res.exit_code == 1 and "input volume" in res.output and (tmp_path / "vols" / "v.npy").is_file()
+
+
+def test_non_finite_and_out_of_range_method_options_are_refused_at_parse_time(scan_dir, tmp_path):
+    from clgs import methods
+
+    out = tmp_path / "run"
+    for method, option, value in [("r2gs", "--tv", "nan"), ("r2gs", "--tv", "inf"), ("r2gs", "--dssim", "inf"),
+                                  ("r2gs", "--scale-floor", "inf"), ("sart", "--relaxation", "nan"),
+                                  ("constant_t", "--value", "inf"), ("constant_t", "--value", "1e999")]:
+        _register("constant_t", _constant, CONSTANT_OPTIONS)
+        res = run("reconstruct", scan_dir / "scan", "-m", method, option, value, "--out", out, ok=False)
+        assert res.exit_code == 2 and f"'{option}'" in res.output and "finite" in res.output, res.output
+        assert not out.exists() and list(tmp_path.iterdir()) == []  # no stray log.csv, no folder
+    res = run("reconstruct", scan_dir / "scan", "-m", "r2gs", "--tv", "nan", "--out", out, ok=False)
+    assert "x>=0" in res.output  # the option's own range is named
+    # the type for method options (usable by any method's click_options)
+    ff = methods.FiniteFloat(min=0)
+    assert ff.convert("0.5", None, None) == 0.5
+    for bad in ("nan", "inf", "-inf", "1e999", "-1", "x"):
+        with pytest.raises(__import__("click").BadParameter):
+            ff.convert(bad, None, None)
+    assert methods.FiniteFloat()._describe_range() == "" and methods.FiniteFloat().name == "float"
+
+
+def test_seeds_name_the_option_and_its_range(scan_dir, tmp_path):
+    np.save(tmp_path / "v.npy", ball_volume())
+    res = run("simulate", tmp_path / "v.npy", "--spacing", 2, "--views", 2, "--detector", 16, "--seed", -1,
+              "--out", tmp_path / "s", ok=False)
+    assert res.exit_code == 2 and "'--seed'" in res.output and "0 to 2**64 - 1" in res.output
+    assert not (tmp_path / "s").exists()
+    for seed in (-1, 2 ** 64):
+        res = run("reconstruct", scan_dir / "scan", "-m", "r2gs", "--seed", seed, "--out", tmp_path / "r", ok=False)
+        assert res.exit_code == 2 and "'--seed'" in res.output and "0 to 2**64 - 1" in res.output, res.output
+        assert not (tmp_path / "r").exists()
+    from clgs.ct.noise import add_noise
+
+    with pytest.raises(ValueError, match="seed"):
+        add_noise(np.ones((1, 2, 2)), seed=-1)
+
+
+@pytest.mark.skipif(not __import__("os").path.isdir("/proc/self"), reason="needs Linux /proc")
+def test_unwritable_outputs_fail_before_the_run(scan_dir, tmp_path):
+    for args in (["--out", "/proc/x.npy"], ["--out", "/proc/dir"],
+                 ["--out", tmp_path / "v.npy", "--json", "/proc/j.json"]):
+        res = run("reconstruct", scan_dir / "scan", *args, ok=False)
+        assert res.exit_code == 1 and "cannot write" in res.output and "/proc" in res.output, res.output
+        assert "fdk:" not in res.output  # nothing ran
+    assert not (tmp_path / "v.npy").exists()  # the volume is not written when the report cannot be
+    (tmp_path / "afile").write_text("x")
+    for args in (["--out", tmp_path / "afile" / "v.npy"], ["--out", tmp_path / "afile" / "sub" / "rec"],
+                 ["--out", tmp_path / "w.npy", "--json", tmp_path / "afile" / "r.json"]):
+        res = run("reconstruct", scan_dir / "scan", *args, ok=False)
+        assert res.exit_code == 1 and "is a file, not a folder" in res.output, res.output
+    res = run("reconstruct", scan_dir / "scan", "--out", tmp_path / "same.json", "--json", tmp_path / "same.json",
+              ok=False)
+    assert res.exit_code == 2 and "same file" in res.output
+    np.save(tmp_path / "v.npy", ball_volume())
+    res = run("simulate", tmp_path / "v.npy", "--spacing", 2, "--out", "/proc/s", ok=False)
+    assert res.exit_code == 1 and "cannot write" in res.output
+    res = run("evaluate", tmp_path / "v.npy", "--spacing", 2, "--truth", scan_dir / "scan", "--json", "/proc/e.json",
+              ok=False)
+    assert res.exit_code == 1 and "cannot write" in res.output
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no probe left
+
+
+def _out_of_memory(scan, out_dir=None):
+    raise MemoryError()
+
+
+def test_out_of_memory_names_the_volume_size(scan_dir, tmp_path):
+    _register("oom_t", _out_of_memory)
+    res = run("reconstruct", scan_dir / "scan", "-m", "oom_t", "--out", tmp_path / "r", ok=False)
+    assert res.exit_code == 1 and "not enough memory" in res.output and "24x24x24 voxels" in res.output, res.output
+    assert not (tmp_path / "r").exists()
+
+
+def _fails_early(scan, out_dir=None, resume=False, interrupt=False, write=False):
+    if write:
+        (out_dir / "log.csv").write_text("iteration\n")
+    if interrupt:
+        raise KeyboardInterrupt
+    raise ValueError("no checkpoint to resume from")
+
+
+def test_a_failed_run_leaves_no_empty_output_folder(scan_dir, tmp_path):
+    import click
+
+    _register("early_t", _fails_early, [click.Option(["--resume"], is_flag=True, default=None),
+                                        click.Option(["--interrupt"], is_flag=True, default=None),
+                                        click.Option(["--write"], is_flag=True, default=None)], atomic_dir=False)
+    out = tmp_path / "a" / "b" / "run"
+    for extra in (["--resume"], ["--interrupt"]):  # an error, or Ctrl-C while starting
+        res = run("reconstruct", scan_dir / "scan", "-m", "early_t", *extra, "--out", out, ok=False)
+        assert res.exit_code == 1, res.output
+        assert not (tmp_path / "a").exists()  # the folders this command made are gone again
+    # a folder that existed before stays, and so does one the run wrote into
+    out.mkdir(parents=True)
+    run("reconstruct", scan_dir / "scan", "-m", "early_t", "--resume", "--out", out, ok=False)
+    assert out.is_dir()
+    res = run("reconstruct", scan_dir / "scan", "-m", "early_t", "--write", "--out", tmp_path / "w", ok=False)
+    assert res.exit_code == 1 and (tmp_path / "w" / "log.csv").is_file()
+    # atomic methods: a failure in a new nested folder leaves nothing either
+    _register("oom_t", _out_of_memory)
+    run("reconstruct", scan_dir / "scan", "-m", "oom_t", "--out", tmp_path / "x" / "y" / "rec", ok=False)
+    run("reconstruct", scan_dir / "scan", "-m", "oom_t", "--out", tmp_path / "x" / "y" / "rec.npy",
+        "--json", tmp_path / "j" / "r.json", ok=False)
+    assert not (tmp_path / "x").exists() and not (tmp_path / "j").exists()
+
+
+def test_simulate_refuses_impossible_noise(scan_dir, tmp_path):
+    np.save(tmp_path / "v.npy", ball_volume())
+    base = ["simulate", tmp_path / "v.npy", "--spacing", 2, "--views", 2, "--detector", 16, "--out", tmp_path / "s"]
+    for option, value in [("--I0", "inf"), ("--I0", "nan"), ("--sigma", "inf"), ("--scatter", "nan"),
+                          ("--I0", "0.001"), ("--I0", "1"), ("--arc", "nan"), ("--DSD", "inf"), ("--pixel", "inf"),
+                          ("--surface-level", "nan")]:
+        res = run(*base, option, value, ok=False)
+        assert res.exit_code == 2 and f"'{option}'" in res.output, res.output
+        assert not (tmp_path / "s").exists()
+    res = run(*base, "--I0", "0.001", ok=False)
+    assert "every projection is 0" in res.output
+    # a low dose that saturates part of the detector is allowed, with a warning
+    res = CliRunner().invoke(main, [str(a) for a in base] + ["--I0", "5"])
+    assert res.exit_code == 0 and "warning:" in res.stderr and "raise --I0" in res.stderr
+    acq = Scan.load(tmp_path / "s").meta["acquisition"]
+    assert acq["saturated"] > 0
+    res = CliRunner().invoke(main, [str(a) for a in base] + ["--force"])
+    assert res.exit_code == 0 and "warning:" not in res.stderr
+    assert Scan.load(tmp_path / "s").meta["acquisition"]["saturated"] == 0
+
+
+def _recording(scan, out_dir=None, **kwargs):
+    """Writes the keyword arguments it got; returns files as a list of paths (not a dict)."""
+    (out_dir / "kwargs.json").write_text(json.dumps(kwargs))
+    return {"volume": np.zeros(scan.geometry.nVoxel, np.float32), "files": [str(out_dir / "kwargs.json")]}
+
+
+def test_resume_without_iterations_passes_none_and_files_may_be_a_list(scan_dir, tmp_path):
+    import click
+
+    _register("rec_t", _recording, [click.Option(["--iterations"], type=click.IntRange(min=1), default=None),
+                                    click.Option(["--resume"], is_flag=True, default=None)], atomic_dir=False)
+    out = tmp_path / "run"
+    run("reconstruct", scan_dir / "scan", "-m", "rec_t", "--out", out)
+    assert json.loads((out / "kwargs.json").read_text()) == {}  # a new run: the method's defaults
+    report = json.loads((out / "report.json").read_text())
+    assert report["files"] == {"kwargs.json": str(out / "kwargs.json")}
+    run("reconstruct", scan_dir / "scan", "-m", "rec_t", "--resume", "--out", out)
+    assert json.loads((out / "kwargs.json").read_text()) == {"resume": True, "iterations": None}
+    assert json.loads((out / "report.json").read_text())["options"] == {"resume": True}
+    run("reconstruct", scan_dir / "scan", "-m", "rec_t", "--resume", "--iterations", 40, "--out", out)
+    assert json.loads((out / "kwargs.json").read_text()) == {"resume": True, "iterations": 40}
+
+
+@pytest.mark.slow
+def test_r2gs_resume_continues_to_the_planned_iterations(scan_dir, tmp_path):
+    """--resume alone finishes an interrupted run at the iterations it was started with (not 30000);
+    --resume --iterations N extends it. (A run stopped at 20 stands for an interrupted one.)"""
+    out = tmp_path / "r2"
+
+    def cli(*args):
+        cmd = [sys.executable, "-m", "clgs.cli", "reconstruct", str(scan_dir / "scan"), "-m", "r2gs",
+               "--out", str(out), "--no-progress", *map(str, args)]
+        # a resume that wrongly trained to 30000 iterations fails on the timeout instead of hanging
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
+        assert done.returncode == 0, done.stderr[-2000:]
+        return json.loads((out / "report.json").read_text())["info"]["iterations"]
+
+    assert cli("--iterations", 20, "--gaussians", 300, "--log-every", 0, "--checkpoint-every", 0) == 20
+    assert cli("--resume") == 20
+    assert cli("--resume", "--iterations", 40) == 40

@@ -7,11 +7,14 @@ atomically (a temporary sibling renamed into place); an existing output needs ``
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 from pathlib import Path
 
 import click
+
+from clgs.methods import FiniteFloat, Seed, check_option_values
 
 VOLUME_SUFFIXES = (".npy", ".nii", ".nii.gz")
 
@@ -32,6 +35,133 @@ def _check_output(path: Path, force: bool, param: str = "--out") -> None:
     if path.exists() and path.is_dir() != (not _is_volume_path(path)):
         kind = "a folder" if path.is_dir() else "a file"
         raise click.ClickException(f"{path} exists and is {kind}; remove it or choose another {param}")
+
+
+def _nearest_existing(path: Path) -> Path:
+    """``path`` or its closest ancestor that exists."""
+    path = Path(os.path.abspath(path))
+    while not os.path.lexists(path) and path.parent != path:
+        path = path.parent
+    return path
+
+
+def _check_writable(path: Path, param: str = "--out", into: bool = False) -> None:
+    """Fail now, before any work, if ``path`` cannot be written: its folder (``into``: the folder
+    ``path`` itself, written into) must exist or be creatable, be a folder, and accept new files.
+    Tested by creating and removing an empty folder there (permission bits say nothing to root,
+    nor on read-only or virtual file systems such as /proc)."""
+    import tempfile
+
+    where = Path(path) if into else Path(os.path.abspath(path)).parent
+    base = _nearest_existing(where)
+    if not base.is_dir():
+        raise click.ClickException(f"cannot write {param} {path}: {base} is a file, not a folder; "
+                                   f"choose another {param}")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".clgs-write-test-", dir=base))
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        raise click.ClickException(f"cannot write {param} {path}: files cannot be created in {base} ({reason}); "
+                                   f"choose another {param}") from None
+
+
+def _new_folders(folder: Path) -> list:
+    """The folders, innermost first, that writing into ``folder`` would create (none if it exists)."""
+    folder = Path(os.path.abspath(folder))
+    made = []
+    while not os.path.lexists(folder) and folder.parent != folder:
+        made.append(folder)
+        folder = folder.parent
+    return made
+
+
+def _remove_empty(folders) -> None:
+    """Remove those of ``folders`` (innermost first) this command created and left empty; a folder
+    holding anything (a checkpoint, a log, another program's files) is kept, and so are its parents."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
+
+
+def _scan_root(scan: Path):
+    """The folder of the input scan (``scan`` may name its scan.json / meta_data.json), resolved."""
+    scan = Path(scan)
+    if scan.is_file() and scan.name in ("scan.json", "meta_data.json"):
+        scan = scan.parent
+    return scan.resolve() if scan.is_dir() else None
+
+
+def _scan_files(root: Path) -> list:
+    """Every file and folder the scan in ``root`` is made of (resolved). A scan description that
+    cannot be read protects everything in the folder."""
+    import json
+
+    found = []
+    try:
+        if (root / "scan.json").is_file():
+            found += [root / "scan.json", root / "projections.npy", root / "truth.npy", root / "truth.nii.gz",
+                      root / "truth_surface.stl"]
+            doc = json.loads((root / "scan.json").read_text(encoding="utf-8"))
+            found += [root / v for v in (doc.get("files") or {}).values() if isinstance(v, str)]
+        if (root / "meta_data.json").is_file():
+            found.append(root / "meta_data.json")
+            doc = json.loads((root / "meta_data.json").read_text(encoding="utf-8"))
+            found += [root / doc[k] for k in ("vol", "ct") if isinstance(doc.get(k), str)]
+            for split in ("proj_train", "proj_test"):
+                found += [root / str(e["file_path"]) for e in doc.get(split) or [] if isinstance(e, dict)
+                          and "file_path" in e]
+                found.append(root / split)
+        if not found:
+            found = list(root.iterdir())
+    except (OSError, ValueError, TypeError, AttributeError):
+        found = list(root.iterdir())
+    return [f.resolve() for f in found]
+
+
+def _check_not_input(path: Path, inputs, param: str = "--out") -> None:
+    """Refuse an output that is, contains, or would overwrite an input: ``inputs`` are
+    (label, path, is_scan) -- a scan folder is protected as a whole and file by file."""
+    target = Path(path).resolve()
+    for label, given, is_scan in inputs:
+        if given is None:
+            continue
+        if is_scan:
+            root = _scan_root(given)
+            if root is None:
+                continue
+            if target == root:
+                raise click.ClickException(f"{param} {path} is the input scan folder {given}; writing there would "
+                                           f"replace the scan. Choose another {param}")
+            if target in root.parents:
+                raise click.ClickException(f"{param} {path} contains the input scan {given}; writing there would "
+                                           f"delete the scan. Choose another {param}")
+            for f in _scan_files(root):
+                if f == target or target in f.parents:
+                    raise click.ClickException(f"{param} {path} would overwrite {f.name} of the input scan {given}. "
+                                               f"Choose another {param}")
+        else:
+            src = Path(given).resolve()
+            if target == src or target in src.parents:
+                what = "is" if target == src else "contains"
+                raise click.ClickException(f"{param} {path} {what} the input {label} {given}; writing there would "
+                                           f"destroy it. Choose another {param}")
+
+
+def _out_of_memory(what: str, shape=None) -> click.ClickException:
+    if shape is None:
+        return click.ClickException(f"not enough memory {what}")
+    n = math.prod(int(s) for s in shape)
+    return click.ClickException(
+        f"not enough memory {what}: the volume is {'x'.join(str(int(s)) for s in shape)} voxels "
+        f"({n * 4 / 2 ** 30:.1f} GiB per float32 copy, and a method needs several); use a coarser grid "
+        "(fewer voxels in the geometry's nVoxel) or a machine with more memory")
+
+
+def _is_out_of_memory(exc: BaseException) -> bool:
+    """MemoryError, or torch's allocation failure (a RuntimeError)."""
+    return isinstance(exc, MemoryError) or (isinstance(exc, RuntimeError) and "can't allocate memory" in str(exc))
 
 
 def _load_volume(path: Path, spacing=None, label="volume"):
@@ -102,27 +232,29 @@ def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, 
 @click.argument("volume", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--out", "-o", "out", type=click.Path(path_type=Path), required=True, help="scan folder to write")
 @click.option("--views", type=click.IntRange(min=1), default=50, show_default=True, help="number of projections")
-@click.option("--arc", type=click.FloatRange(min=0, min_open=True, max=360), default=180.0, show_default=True,
+@click.option("--arc", type=FiniteFloat(min=0, min_open=True, max=360), default=180.0, show_default=True,
               help="angular range in degrees, views evenly spaced, last one short of the end")
 @click.option("--mode", type=click.Choice(["cone", "parallel"]), default="cone", show_default=True)
-@click.option("--DSD", "DSD", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--DSD", "DSD", type=FiniteFloat(min=0, min_open=True), default=None,
               help="source-detector distance, mm [default: 1500]")
-@click.option("--DSO", "DSO", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--DSO", "DSO", type=FiniteFloat(min=0, min_open=True), default=None,
               help="source-rotation axis distance, mm [default: 1000]")
 @click.option("--detector", type=click.IntRange(min=1), default=256, show_default=True,
               help="detector pixels per side (square detector)")
-@click.option("--pixel", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--pixel", type=FiniteFloat(min=0, min_open=True), default=None,
               help="detector pixel size, mm [default: the detector just sees the whole volume]")
 @click.option("--spacing", default=None, help="voxel size in mm, 'd' or 'dZ,dY,dX' (needed for .npy; overrides NIfTI)")
-@click.option("--I0", "I0", type=click.FloatRange(min=0, min_open=True), default=1e5, show_default=True,
-              help="photons per pixel of the flat field (Poisson noise)")
-@click.option("--sigma", type=click.FloatRange(min=0), default=10.0, show_default=True,
+@click.option("--I0", "I0", type=FiniteFloat(min=1, min_open=True, hint="photons per pixel of an unattenuated ray; "
+                                                 "counts are floored at 1, so at I0 <= 1 every projection is 0"),
+              default=1e5, show_default=True,
+              help="photons per pixel of the flat field (Poisson noise); more than 1")
+@click.option("--sigma", type=FiniteFloat(min=0), default=10.0, show_default=True,
               help="electronic (Gaussian) noise, in photon counts")
-@click.option("--scatter", type=click.FloatRange(min=0), default=0.0, show_default=True,
+@click.option("--scatter", type=FiniteFloat(min=0), default=0.0, show_default=True,
               help="scatter as a fraction of the primary signal")
-@click.option("--seed", type=int, default=0, show_default=True, help="noise seed")
+@click.option("--seed", type=Seed(), default=0, show_default=True, help="noise seed, 0 to 2**64 - 1")
 @click.option("--no-noise", is_flag=True, help="noiseless line integrals")
-@click.option("--surface-level", type=float, default=None,
+@click.option("--surface-level", type=FiniteFloat(), default=None,
               help="also store the truth's iso-surface at this value as truth_surface.stl")
 @click.option("--force", is_flag=True, help="overwrite an existing --out")
 def simulate(volume, out, views, arc, mode, DSD, DSO, detector, pixel, spacing, I0, sigma, scatter, seed,
@@ -137,7 +269,9 @@ def simulate(volume, out, views, arc, mode, DSD, DSO, detector, pixel, spacing, 
     from clgs.geometry import GeometryError
     from clgs.io.scan import Scan, ScanError
 
+    _check_not_input(out, [("volume", volume, False)])
     _check_output(out, force)
+    _check_writable(out)
     sp_override = _spacing(spacing)
     vol, sp, org = _load_volume(volume, sp_override)
     if sp is None:
@@ -166,17 +300,28 @@ def simulate(volume, out, views, arc, mode, DSD, DSO, detector, pixel, spacing, 
     chunks = [list(range(s, min(s + step, views))) for s in range(0, views, step)]
     from tqdm.auto import tqdm
 
-    with tqdm(total=views, desc="simulate", unit="view", leave=False, disable=None) as bar:
-        parts = []
-        for chunk in chunks:
-            parts.append(np.asarray(projector.forward(volume32, views=chunk), np.float32))
-            bar.update(len(chunk))
-    proj = np.concatenate(parts, axis=0)
+    try:
+        with tqdm(total=views, desc="simulate", unit="view", leave=False, disable=None) as bar:
+            parts = []
+            for chunk in chunks:
+                parts.append(np.asarray(projector.forward(volume32, views=chunk), np.float32))
+                bar.update(len(chunk))
+        proj = np.concatenate(parts, axis=0)
+    except MemoryError:
+        raise _out_of_memory(f"to project {views} views of {detector}x{detector} pixels", vol.shape) from None
     acquisition = {"noise": not no_noise, "I0": I0, "sigma": sigma, "scatter": scatter, "seed": seed}
     if not no_noise:
         from clgs.ct.noise import add_noise
 
+        max_p = float(proj.max()) if float(proj.max()) > 0 else 1.0  # add_noise's normalisation
         proj = np.asarray(add_noise(proj, I0=I0, sigma=sigma, scatter=scatter, seed=seed), np.float32)
+        # a pixel whose count fell to the floor of 1 photon reads log(I0) * max_p: saturated
+        saturated = int((proj >= np.float32(math.log(I0) * max_p) * np.float32(1 - 1e-5)).sum())
+        acquisition["saturated"] = saturated
+        if saturated > 0.01 * proj.size:
+            click.echo(f"warning: {100.0 * saturated / proj.size:.1f} % of the detector pixels fell to the floor of "
+                       f"1 photon count (at --I0 {I0:g} with --sigma {sigma:g}): their line integrals saturate and "
+                       "carry no information; raise --I0", err=True)
         neg = proj < 0
         acquisition["clamped_negative"] = int(neg.sum())
         proj[neg] = 0.0  # photon counts above the flat field: clamp as R2-Gaussian's generator does
@@ -288,29 +433,58 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, show_help):
     extra = list(ctx.args)
     try:
         mctx = mcmd.make_context(mcmd.name, extra, parent=ctx)
+    except click.BadParameter as exc:  # a known option with a bad value: the message says it all
+        raise click.UsageError(exc.format_message(), ctx) from None
     except click.UsageError as exc:
         known = ", ".join(o for p in mcmd.params for o in p.opts) or "none"
         raise click.UsageError(f"{exc.format_message()} (options of --method {method.name}: {known}; "
                                "they go after SCAN)", ctx) from None
+    try:  # NaN / inf floats and impossible seeds are refused now, whatever type the method's options declared
+        check_option_values(mcmd.params, mctx.params, mctx)
+    except click.UsageError as exc:
+        raise click.UsageError(exc.format_message(), ctx) from None
     options = {k: v for k, v in mctx.params.items() if v is not None}
-    resuming = bool(options.get("resume")) and not method.atomic_dir and out.is_dir()
+    kwargs = dict(options)
+    if options.get("resume") and "iterations" in mctx.params and "iterations" not in options:
+        kwargs["iterations"] = None  # a resumed run goes on to the iterations it was started with
+    into_folder = not _is_volume_path(out) and not method.atomic_dir
+    resuming = bool(options.get("resume")) and into_folder and out.is_dir()
+    _check_not_input(out, [("scan", scan, True)])
+    if json_out is not None:
+        _check_not_input(json_out, [("scan", scan, True)], "--json")
+        if Path(json_out).resolve() == Path(out).resolve():
+            raise click.UsageError("--json and --out name the same file; give the report another name")
     if not resuming:
         _check_output(out, force)
     if json_out is not None:
         _check_output(json_out, force, "--json")
+    # every output location is checked before the run, so no result is lost at the end
+    _check_writable(out, into=into_folder and out.is_dir())
+    if json_out is not None:
+        _check_writable(json_out, "--json")
+    # folders this command creates; removed again if the run fails before writing anything in them
+    created = _new_folders(out if into_folder else Path(os.path.abspath(out)).parent)
+    if json_out is not None:
+        created_json = _new_folders(Path(os.path.abspath(json_out)).parent)
+    else:
+        created_json = []
 
     import numpy as np
 
     from clgs.io import atomic
     from clgs.io.volume import save_volume
 
-    sc = _load_scan(scan, split)
-    click.echo(f"{method.name}: {sc.n_views} views, {'x'.join(map(str, sc.geometry.nVoxel))} voxels", err=True)
-    try:
-        run = method.callable()
-    except (ImportError, AttributeError) as exc:
-        raise click.ClickException(f"method {method.name!r} could not be loaded: {exc}") from None
-    report = {"method": method.name, "options": options, "scan": str(scan), "n_views": sc.n_views}
+    def files_report(files) -> dict:
+        """A method's ``files``: a dict name -> path, or a list of paths (keyed by file name)."""
+        if isinstance(files, dict):
+            return {str(k): str(v) for k, v in files.items()}
+        if isinstance(files, (str, os.PathLike)):
+            files = [files]
+        out_files = {}
+        for f in files:
+            name = Path(f).name if isinstance(f, (str, os.PathLike)) else str(f)
+            out_files[name if name not in out_files else str(f)] = str(f)
+        return out_files
 
     def finish(result, t0, folder):
         if not isinstance(result, dict) or "volume" not in result:
@@ -325,7 +499,10 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, show_help):
         if result.get("info"):
             report["info"] = result["info"]
         if result.get("files"):
-            report["files"] = {str(k): str(v) for k, v in dict(result["files"]).items()}
+            try:
+                report["files"] = files_report(result["files"])
+            except TypeError:
+                report["files"] = str(result["files"])
         if sc.truth is not None:
             from clgs import metrics
 
@@ -338,22 +515,47 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, show_help):
             atomic.save_npy(folder / "volume.npy", vol)
             atomic.write_json(folder / "report.json", report)
 
+    sc = None
+    report = {"method": method.name, "options": options, "scan": str(scan)}
     try:
-        if _is_volume_path(out):
-            t0 = time.perf_counter()
-            finish(run(sc, None, **options), t0, None)
-        elif method.atomic_dir:
-            with atomic.atomic_dir(out, overwrite=force) as tmp:
+        try:
+            sc = _load_scan(scan, split)
+            report["n_views"] = sc.n_views
+            click.echo(f"{method.name}: {sc.n_views} views, {'x'.join(map(str, sc.geometry.nVoxel))} voxels",
+                       err=True)
+            try:
+                run = method.callable()
+            except (ImportError, AttributeError) as exc:
+                raise click.ClickException(f"method {method.name!r} could not be loaded: {exc}") from None
+            if _is_volume_path(out):
                 t0 = time.perf_counter()
-                finish(run(sc, tmp, **options), t0, tmp)
-        else:
-            out.mkdir(parents=True, exist_ok=True)
-            t0 = time.perf_counter()
-            finish(run(sc, out, **options), t0, out)
-    except (ValueError, FileExistsError) as exc:
-        raise _fail(exc, f"{method.name} failed") from None
+                finish(run(sc, None, **kwargs), t0, None)
+            elif method.atomic_dir:
+                with atomic.atomic_dir(out, overwrite=force) as tmp:
+                    t0 = time.perf_counter()
+                    finish(run(sc, tmp, **kwargs), t0, tmp)
+            else:
+                out.mkdir(parents=True, exist_ok=True)
+                t0 = time.perf_counter()
+                finish(run(sc, out, **kwargs), t0, out)
+        except (MemoryError, RuntimeError) as exc:
+            if not _is_out_of_memory(exc):
+                raise
+            if sc is None:
+                raise _out_of_memory(f"to load the scan {scan}") from None
+            raise _out_of_memory(f"for {method.name}", sc.geometry.nVoxel) from None
+        except (ValueError, OSError, FloatingPointError) as exc:
+            raise _fail(exc, f"{method.name} failed") from None
+    except BaseException:  # errors and Ctrl-C alike: no empty output folder stays behind
+        _remove_empty(created)
+        _remove_empty(created_json)
+        raise
     if json_out is not None:
-        atomic.write_json(json_out, report)
+        try:
+            atomic.write_json(json_out, report)
+        except OSError as exc:
+            raise click.ClickException(f"wrote {out}, but the report could not be written to --json {json_out}: "
+                                       f"{exc}") from None
     line = f"{method.name}: {report['seconds']:.2f} s"
     if "metrics" in report:
         m = report["metrics"]
@@ -383,11 +585,11 @@ def _truth_from(path: Path, spacing):
               help="the true volume (.npy/.nii/.nii.gz) or a scan folder holding it")
 @click.option("--mask", "mask_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="a label volume; metrics are also computed over its non-zero voxels")
-@click.option("--mask-level", type=float, default=None,
+@click.option("--mask-level", type=FiniteFloat(), default=None,
               help="mask = truth above this value (e.g. a bone threshold, 1/mm)")
 @click.option("--dilate", type=click.IntRange(min=0), default=0, show_default=True,
               help="grow the mask by this many voxels")
-@click.option("--level", type=float, default=None,
+@click.option("--level", type=FiniteFloat(), default=None,
               help="iso-level for the surface distance (mm) between VOLUME's and the truth's surfaces")
 @click.option("--surface", "surface_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="true surface mesh (STL/PLY/OBJ/npz) to compare with instead of the truth's iso-surface")
@@ -404,7 +606,10 @@ def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, 
     from clgs.io import atomic
 
     if json_out is not None:
+        _check_not_input(json_out, [("volume", volume, False), ("truth", truth, truth.is_dir()),
+                                    ("mask", mask_path, False), ("surface", surface_path, False)], "--json")
         _check_output(json_out, force, "--json")
+        _check_writable(json_out, "--json")
     if mask_path is not None and mask_level is not None:
         raise click.UsageError("give either --mask or --mask-level, not both")
     if volume.is_dir():

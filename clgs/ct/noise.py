@@ -20,6 +20,8 @@ A seeded NumPy Generator draws everything, so the same ``seed`` gives the same b
 """
 from __future__ import annotations
 
+import numbers
+
 import numpy as np
 
 
@@ -65,6 +67,8 @@ def expected_counts(projections, I0=1e5, scatter=0.0, max_p=None) -> np.ndarray:
 def simulate_counts(projections, I0=1e5, sigma=10.0, scatter=0.0, seed=0, max_p=None):
     """Noisy detector counts (n_views, V, U) float64, clipped to >= 1, and the ``max_p`` used."""
     p, max_p = _check(projections, I0, sigma, scatter, max_p)
+    if isinstance(seed, numbers.Integral) and not isinstance(seed, bool) and seed < 0:
+        raise ValueError(f"seed must be None or a non-negative integer, got {seed}")
     mean = expected_counts(p, I0, scatter, max_p)
     rng = np.random.default_rng(seed)
     counts = rng.poisson(mean).astype(np.float64)
