@@ -469,6 +469,8 @@ def run_method(scan, out_dir=None, iterations: int | None = None, resume: bool =
 def click_options() -> list:
     import click
 
+    from clgs.methods import FiniteFloat, Seed
+
     return [
         click.Option(["--iterations", "iterations"], type=click.IntRange(min=1), default=None,
                      help="training iterations (one view each) [default: 30000]"),
@@ -480,17 +482,17 @@ def click_options() -> list:
                      help="cap on the number of Gaussians while densifying [default: 500000]"),
         click.Option(["--init", "init"], type=click.Choice(["fdk", "random"]), default=None,
                      help="initialise from an FDK volume or uniformly at random [default: fdk]"),
-        click.Option(["--seed", "seed"], type=int, default=None, help="random seed [default: 0]"),
+        click.Option(["--seed", "seed"], type=Seed(), default=None, help="random seed [default: 0]"),
         click.Option(["--backend", "backend"], type=click.Choice(["cl", "torch"]), default=None,
                      help="OpenCL kernels or the plain torch reference [default: cl]"),
         click.Option(["--projector", "projector_mode"], type=click.Choice(["affine", "exact"]), default=None,
                      help="R2-Gaussian's affine splat or the exact ray integral [default: affine]"),
-        click.Option(["--scale-floor", "scale_floor"], type=click.FloatRange(min=0), default=None,
+        click.Option(["--scale-floor", "scale_floor"], type=FiniteFloat(min=0), default=None,
                      help="smallest Gaussian scale as a fraction of the scan's resolution (voxel or detector "
                           "pixel at the axis); 0 keeps only R2-Gaussian's 0.05 % of the volume [default: 0.4]"),
-        click.Option(["--tv", "lambda_tv"], type=click.FloatRange(min=0), default=None,
+        click.Option(["--tv", "lambda_tv"], type=FiniteFloat(min=0), default=None,
                      help="weight of the TV term (0 disables it) [default: 0.05]"),
-        click.Option(["--dssim", "lambda_dssim"], type=click.FloatRange(min=0), default=None,
+        click.Option(["--dssim", "lambda_dssim"], type=FiniteFloat(min=0), default=None,
                      help="weight of the D-SSIM term [default: 0.25]"),
         click.Option(["--log-every", "log_every"], type=click.IntRange(min=0), default=None,
                      help="evaluate and log every N iterations [default: 500]"),

@@ -567,6 +567,8 @@ def run_method(scan, out_dir=None, iterations: int | None = None, anatomy=None, 
 def click_options() -> list:
     import click
 
+    from clgs.methods import FiniteFloat
+
     from clgs.r2gs import click_options as r2gs_options
 
     keep = {"iterations", "resume", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every",
@@ -579,7 +581,7 @@ def click_options() -> list:
                      help="shape-guided Gaussians [default: 35000]"),
         click.Option(["--free-gaussians", "n_free"], type=click.IntRange(min=0), default=None,
                      help="free (R2-Gaussian) Gaussians at the start [default: 15000]"),
-        click.Option(["--tau", "tau"], type=click.FloatRange(0, 1, min_open=True), default=None,
+        click.Option(["--tau", "tau"], type=FiniteFloat(0, 1, min_open=True), default=None,
                      help="thinning along the surface normal [default: 0.5]"),
         click.Option(["--shape-prior/--no-shape-prior", "shape_prior"], default=None,
                      help="bind the shape-guided Gaussians to the shape model [default: on]"),
