@@ -21,6 +21,44 @@ import time
 import click
 
 
+# --------------------------------------------------------------------------------------- errors
+# The library reports bad input with these (ValueError's subclasses: ScanError, ModelFileError,
+# CheckpointError, MeshError, VolumeError, ...): every generic command turns them into a click
+# error with the library's message (no traceback, non-zero exit). Anything else is a bug and keeps
+# its traceback. Unknown subjects (KeyError) are caught where subjects are loaded (_load_subject),
+# not here: a KeyError elsewhere is a programming error.
+INPUT_ERRORS = (ValueError, FileNotFoundError)
+
+
+def _message(exc: BaseException) -> str:
+    if isinstance(exc, FileNotFoundError) and exc.filename and exc.strerror:
+        return f"{exc.filename}: {exc.strerror}"
+    return str(exc) or type(exc).__name__
+
+
+class AnatomyCommand(click.Command):
+    """A generic anatomy command: the library's input errors (:data:`INPUT_ERRORS`) become click
+    errors carrying the library's message."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except INPUT_ERRORS as exc:
+            raise click.ClickException(_message(exc)) from exc
+
+
+def _load_subject(anatomy, subject_id):
+    """The anatomy's subject ``subject_id``; an unknown id is a usage error naming the known ones."""
+    loader = _need(anatomy, "load_subject", "load a subject")
+    try:
+        return loader(subject_id)
+    except KeyError as exc:
+        held = anatomy.test_subjects() if anatomy.test_subjects is not None else []
+        msg = exc.args[0] if exc.args and isinstance(exc.args[0], str) else f"unknown subject {subject_id!r}"
+        raise click.BadParameter(f"{msg}" + (f" (held out: {', '.join(held)})" if held else ""),
+                                 param_hint="--subject") from exc
+
+
 def _need(anatomy, attr, what):
     fn = getattr(anatomy, attr, None)
     if fn is None:
@@ -32,25 +70,20 @@ def _need(anatomy, attr, what):
 # --------------------------------------------------------------------------------------- library
 # (scan simulation and evaluation are library code: clgs.simulation and clgs.evaluation)
 def _simulate(anatomy, subject, *args, **kwargs):
-    """:func:`clgs.simulation.simulate_subject`, its input errors as command errors."""
+    """:func:`clgs.simulation.simulate_subject` (its input errors become command errors in
+    :class:`AnatomyCommand`)."""
     from clgs.simulation import simulate_subject
 
-    try:
-        return simulate_subject(anatomy, subject, *args, **kwargs)
-    except ValueError as exc:
-        raise click.ClickException(str(exc))
+    return simulate_subject(anatomy, subject, *args, **kwargs)
 
 
 def _evaluate(anatomy, scan, volume, folder=None) -> dict:
-    """:func:`clgs.evaluation.evaluate_volume`, its input errors as command errors; plus, when
+    """:func:`clgs.evaluation.evaluate_volume` (input errors: see :class:`AnatomyCommand`); plus, when
     ``folder`` holds a shape-guided run's ``shape_surface.stl`` (the template moved by the fitted
     shape coefficients), that surface's distance to the truth."""
     from clgs.evaluation import evaluate_volume
 
-    try:
-        out = evaluate_volume(anatomy, scan, volume)
-    except ValueError as exc:
-        raise click.ClickException(str(exc))
+    out = evaluate_volume(anatomy, scan, volume)
     model = os.path.join(folder, "shape_surface.stl") if folder else None
     if model and os.path.isfile(model) and scan.surface is not None:
         from clgs.io.mesh import load_mesh
@@ -78,19 +111,27 @@ def method_accepts(method: str, option: str) -> bool:
     return option in params or any(p.kind == p.VAR_KEYWORD for p in params.values())
 
 
-def run_reconstruct(scan, anatomy, method: str, out=None, **options):
-    """Reconstruct with a method of the registry (:mod:`clgs.methods`); the anatomy goes to the
-    methods that name an ``anatomy`` parameter (the others would take it for a setting). Returns
-    the method's result dict (at least ``volume``)."""
-    import inspect
-
+def _get_method(method: str):
+    """(registry entry, its run callable); an unknown or broken method is a click error."""
     from clgs import methods
 
     try:
         m = methods.get(method)
+        return m, m.callable()
     except LookupError as exc:
         raise click.ClickException(f"reconstruction method {method!r} is not available: {exc}")
-    run = m.callable()
+    except (ImportError, AttributeError) as exc:
+        raise click.ClickException(f"reconstruction method {method!r} could not be loaded: {exc}")
+
+
+def run_reconstruct(scan, anatomy, method: str, out=None, **options):
+    """Reconstruct with a method of the registry (:mod:`clgs.methods`); the anatomy goes to the
+    methods that name an ``anatomy`` parameter (the others would take it for a setting). Returns
+    the method's result dict (at least ``volume``). With ``out``, ``out/volume.npy`` is (over)written
+    atomically with the volume just computed, whatever an earlier run left there."""
+    import inspect
+
+    _, run = _get_method(method)
     if "anatomy" in inspect.signature(run).parameters:
         options["anatomy"] = anatomy
     result = run(scan, out, **options)
@@ -99,10 +140,159 @@ def run_reconstruct(scan, anatomy, method: str, out=None, **options):
         from clgs.simulation import as_float32
 
         os.makedirs(out, exist_ok=True)
-        target = os.path.join(out, "volume.npy")
-        if not os.path.exists(target):
-            save_volume(target, as_float32(result["volume"]), scan.geometry)
+        # always this run's volume (never an earlier run's): save_volume writes .npy files through
+        # clgs.io.atomic.save_npy, so readers see the old file or the new one, never a torn one
+        save_volume(os.path.join(out, "volume.npy"), as_float32(result["volume"]), scan.geometry)
     return result
+
+
+# --------------------------------------------------------------------------------------- --set
+# Settings of a method are checked before a run starts: the keys against the method's settings
+# (its config dataclass's fields for the Gaussian methods, else its callable's parameters), the
+# values against the fields' types, the method's click options (ranges, choices) and the ranges
+# below. The library still checks what it checks (its ValueErrors become click errors).
+_CONFIGS = {  # method -> (config dataclass, extra keyword arguments its run passes on)
+    "r2gs": ("clgs.r2gs:R2GSConfig", {}),
+    "shape": ("clgs.shape_guided:ShapeGuidedConfig", {"level": float | None}),
+}
+_NOT_SETTINGS = {"scan", "out_dir", "out", "anatomy"}  # given by the command itself
+_RANGES = [  # (names, or prefixes ending in "_"), test, what it means
+    (("iterations", "schedule_iterations", "densify_interval", "tv_size", "density_points", "n_gaussians",
+      "n_shape", "max_gaussians", "subsets"), lambda v: v >= 1, "at least 1"),
+    (("seed",), lambda v: 0 <= v <= 2 ** 64 - 1, "an integer from 0 to 2**64 - 1 (what NumPy and torch take)"),
+    (("n_free", "densify_start", "densify_until", "log_every", "checkpoint_every", "alpha_init_iterations",
+      "alpha_freeze"), lambda v: v >= 0, "at least 0"),
+    (("lr_", "value_scale", "density_s"), lambda v: v > 0, "positive"),
+    (("lambda_", "boundary_weight", "grad_threshold", "min_density", "init_threshold", "density_factor",
+      "densify_scale_threshold", "scale_floor"), lambda v: v >= 0, "at least 0"),
+]
+
+
+def _range_rule(key: str):
+    for names, test, words in _RANGES:
+        if any(key == n or (n.endswith("_") and key.startswith(n)) for n in names):
+            return test, words
+    return None
+
+
+def _type_hints(obj) -> dict:
+    import typing
+
+    try:
+        return typing.get_type_hints(obj)
+    except Exception:  # noqa: BLE001 - unresolvable annotations: no type check for them
+        return {}
+
+
+def method_settings(method: str, m, run) -> tuple:
+    """(key -> type hint or None, key -> click option, open, config dataclass or None): the settings
+    ``--set`` may give the method; ``open`` when the method takes keywords this cannot list (any
+    key is then passed on)."""
+    import dataclasses
+    import importlib
+    import inspect
+
+    hints: dict = {}
+    params = inspect.signature(run).parameters
+    run_hints = _type_hints(run)
+    takes_kwargs = False
+    for i, (k, p) in enumerate(params.items()):
+        if p.kind == p.VAR_KEYWORD:
+            takes_kwargs = True
+        elif p.kind != p.VAR_POSITIONAL and i > 0 and k not in _NOT_SETTINGS:
+            hints[k] = run_hints.get(k)
+    config, extra = _CONFIGS.get(method, (None, {}))
+    cls = None
+    if config is not None and takes_kwargs:
+        module, _, attr = config.partition(":")
+        cls = getattr(importlib.import_module(module), attr)
+        cls_hints = _type_hints(cls)
+        for f in dataclasses.fields(cls):
+            hints.setdefault(f.name, cls_hints.get(f.name))
+        for k, h in extra.items():
+            hints.setdefault(k, h)
+    try:
+        options = {o.name: o for o in m.click_options() if o.name and o.name not in _NOT_SETTINGS}
+    except Exception:  # noqa: BLE001 - a method without usable options: its parameters still count
+        options = {}
+    for k in options:
+        hints.setdefault(k, None)
+    return hints, options, takes_kwargs and cls is None, cls
+
+
+def _accepts(hint, value) -> bool:
+    """Whether ``value`` (parsed from JSON) fits the type ``hint`` (True for types not handled)."""
+    import types
+    import typing
+
+    if hint is None or hint is typing.Any:
+        return True
+    origin = typing.get_origin(hint)
+    if origin is typing.Union or origin is types.UnionType:
+        return any(_accepts(h, value) for h in typing.get_args(hint))
+    if hint is type(None):
+        return value is None
+    if hint is bool:
+        return isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is str:
+        return isinstance(value, str)
+    if hint in (tuple, list) or origin in (tuple, list):
+        return isinstance(value, (list, tuple))
+    return True
+
+
+def _describe(hint) -> str:
+    import types
+    import typing
+
+    origin = typing.get_origin(hint)
+    if origin is typing.Union or origin is types.UnionType:
+        return " or ".join(_describe(h) for h in typing.get_args(hint))
+    names = {type(None): "null", bool: "true/false", int: "an integer", float: "a number", str: "a string",
+             tuple: "a list like [a, b]", list: "a list like [a, b]"}
+    return names.get(origin or hint, getattr(hint, "__name__", str(hint)))
+
+
+def check_settings(method: str, m, run, opts: dict, raw: dict | None = None) -> dict:
+    """``opts`` checked against the method's settings (see above): returns them, converted where a
+    click option says how (e.g. choices); an unknown key or a bad value is a ``--set`` usage error."""
+    import dataclasses
+    import math
+
+    hints, options, open_, cls = method_settings(method, m, run)
+    raw = raw or {}
+    out = {}
+    for key, value in opts.items():
+        shown = f"{key}={raw.get(key, json.dumps(value))}"
+        if key not in hints and not open_:
+            raise click.BadParameter(f"unknown setting {key!r} for the {method} method; valid keys: "
+                                     f"{', '.join(sorted(hints))}", param_hint="--set")
+        hint = hints.get(key)
+        if not _accepts(hint, value):
+            raise click.BadParameter(f"{shown}: {key} must be {_describe(hint)}", param_hint="--set")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise click.BadParameter(f"{shown}: {key} must be a finite number", param_hint="--set")
+        if key in options and value is not None:
+            try:
+                value = options[key].type.convert(value, options[key], None)
+            except click.BadParameter as exc:
+                raise click.BadParameter(f"{shown}: {exc.message}", param_hint="--set") from None
+        rule = _range_rule(key)
+        if rule and isinstance(value, (int, float)) and not isinstance(value, bool) and not rule[0](value):
+            raise click.BadParameter(f"{shown}: {key} must be {rule[1]}", param_hint="--set")
+        out[key] = value
+    if cls is not None:  # the config's own checks (e.g. ranges), on the defaults plus these settings
+        names = {f.name for f in dataclasses.fields(cls)}
+        given = {k: v for k, v in out.items() if k in names and not (k == "iterations" and v is None)}
+        try:
+            cls.from_json({**cls().to_json(), **given})
+        except ValueError as exc:
+            raise click.BadParameter(str(exc), param_hint="--set") from None
+    return out
 
 
 def _echo_metrics(m: dict):
@@ -115,16 +305,22 @@ def _echo_metrics(m: dict):
             click.echo(f"  {k:22s} {v}")
 
 
-def _parse_options(pairs):
+def _parse_options(pairs, raw: dict | None = None):
+    """``KEY=VALUE`` pairs -> {key: JSON value, else the string}; ``raw`` gets the strings as typed."""
     opts = {}
     for p in pairs:
         if "=" not in p:
             raise click.BadParameter(f"expected KEY=VALUE, got {p!r}", param_hint="--set")
         k, v = p.split("=", 1)
+        k = k.strip().replace("-", "_")
+        if not k:
+            raise click.BadParameter(f"expected KEY=VALUE, got {p!r}", param_hint="--set")
+        if raw is not None:
+            raw[k] = v
         try:
-            opts[k.replace("-", "_")] = json.loads(v)
+            opts[k] = json.loads(v)
         except json.JSONDecodeError:
-            opts[k.replace("-", "_")] = v
+            opts[k] = v
     return opts
 
 
@@ -138,11 +334,14 @@ def make_group(anatomy) -> click.Group:
     def group():
         pass
 
+    group.command_class = AnatomyCommand  # every generic command: the library's input errors as click errors
+
     @group.command()
     @click.option("--subject", "subject_id", help="subject id (held-out ones: see `info`)")
     @click.option("--mesh", type=click.Path(exists=True, dir_okay=False), help="a surface file (mm) instead")
     @click.option("--out", required=True, type=click.Path(file_okay=False), help="scan folder to write")
-    @click.option("--views", default=int(scene.get("n_views", 50)), show_default=True, help="number of projections")
+    @click.option("--views", default=int(scene.get("n_views", 50)), show_default=True, type=click.IntRange(min=1),
+                  help="number of projections")
     @click.option("--arc", default=float(scene.get("arc_deg", 180.0)), show_default=True, help="arc in degrees")
     @click.option("--noise/--no-noise", default=True, show_default=True, help="Poisson + electronic noise")
     @click.option("--seed", default=0, show_default=True)
@@ -163,7 +362,7 @@ def make_group(anatomy) -> click.Group:
                 if not held:
                     raise click.UsageError("the plugin has no held-out subjects: give --subject or --mesh")
                 subject_id = held[0]
-            subject = _need(anatomy, "load_subject", "load a subject")(subject_id)
+            subject = _load_subject(anatomy, subject_id)
         scan = _simulate(anatomy, subject, views, math.radians(arc), noise, seed)
         try:
             scan.save(out, overwrite=overwrite)
@@ -176,20 +375,40 @@ def make_group(anatomy) -> click.Group:
     @click.argument("scan_dir", type=click.Path(exists=True, file_okay=False))
     @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
     @click.option("--method", default=None, help="shape (default with a shape model) | r2gs | fdk | sart | ...")
-    @click.option("--views", default=None, type=int, help="use only this many views, evenly spread")
-    @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="method option (repeatable)")
-    def reconstruct(scan_dir, out, method, views, settings):
+    @click.option("--views", default=None, type=int,
+                  help="use only this many of the scan's views, evenly spread [default: all]")
+    @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
+                  help="method setting, e.g. iterations=3000 (repeatable; an unknown key lists the valid ones)")
+    @click.option("--resume", is_flag=True,
+                  help="continue the run in --out from its checkpoint, with its settings (same as --set "
+                       "resume=true); without --set iterations=N it runs to the checkpoint's planned iterations")
+    def reconstruct(scan_dir, out, method, views, settings, resume):
         """Reconstruct a scan folder with the anatomy's prior; writes OUT/volume.npy."""
         from clgs.io.scan import Scan
 
+        method = method or default_method(anatomy)
+        m, run = _get_method(method)
+        raw = {}
+        opts = _parse_options(settings, raw)
+        if resume:
+            if opts.get("resume", True) is not True:
+                raise click.UsageError(f"--resume contradicts --set resume={raw['resume']}")
+            if not method_accepts(method, "resume"):
+                raise click.UsageError(f"the {method} method cannot resume a run (it keeps no checkpoint)")
+            opts["resume"] = True
+        # no iterations unless given: a resumed run then goes on to its checkpoint's planned count
+        opts = check_settings(method, m, run, opts, raw)
         scan = Scan.load(scan_dir)
-        if views:
+        if views is not None:
+            if not 1 <= views <= scan.n_views:
+                raise click.BadParameter(f"{views}: the scan {scan_dir} has {scan.n_views} views; give 1 to "
+                                         f"{scan.n_views} (or leave --views out to use them all)",
+                                         param_hint="--views")
             import numpy as np
 
             scan = scan.subset(np.linspace(0, scan.n_views, views, endpoint=False).astype(int))
-        method = method or default_method(anatomy)
         t0 = time.perf_counter()
-        result = run_reconstruct(scan, anatomy, method, out=out, **_parse_options(settings))
+        result = run_reconstruct(scan, anatomy, method, out=out, **opts)
         click.echo(f"{name}: {method} reconstruction of {scan.n_views} views in {time.perf_counter() - t0:.1f} s -> {out}")
         if scan.truth is not None and "volume" in result:
             _echo_metrics(_evaluate(anatomy, scan, result["volume"], out))
@@ -240,10 +459,10 @@ def make_group(anatomy) -> click.Group:
 
     @group.command()
     @click.option("--subject", "subject_id", default=None, help="held-out subject (default: the first)")
-    @click.option("--views", default=5, show_default=True)
+    @click.option("--views", default=5, show_default=True, type=click.IntRange(min=1))
     @click.option("--method", default=None, help="default: shape when the anatomy has a model, else r2gs")
     @click.option("--out", default=None, type=click.Path(file_okay=False), help="keep outputs here")
-    @click.option("--iterations", default=600, show_default=True,
+    @click.option("--iterations", default=600, show_default=True, type=click.IntRange(min=1),
                   help="optimisation steps for iterative methods (the papers use 30000: hours on a CPU; "
                        "the shape-guided method peaks near 600 on the femur, see the README)")
     @click.option("--seed", default=0, show_default=True)
@@ -258,17 +477,20 @@ def make_group(anatomy) -> click.Group:
         if subject_id is None:
             raise click.UsageError("the plugin has no held-out subjects: give --subject")
         method = method or default_method(anatomy)
+        m, run = _get_method(method)
+        raw = {}
+        opts = _parse_options(settings, raw)
+        if method_accepts(method, "iterations"):
+            opts.setdefault("iterations", iterations)
+        opts = check_settings(method, m, run, opts, raw)  # before the simulation: fail fast
         t0 = time.perf_counter()
-        subject = _need(anatomy, "load_subject", "load a subject")(subject_id)
+        subject = _load_subject(anatomy, subject_id)
         scan = _simulate(anatomy, subject, views, math.radians(float(scene.get("arc_deg", 180.0))), True, seed)
         click.echo(f"{name} demo: subject {subject_id}, {views} views, method {method} "
                    f"(simulated in {time.perf_counter() - t0:.1f} s)")
         work = out or tempfile.mkdtemp(prefix=f"clgs-{name}-demo-")
         scan.save(os.path.join(work, "scan"), overwrite=True)
         t1 = time.perf_counter()
-        opts = _parse_options(settings)
-        if method_accepts(method, "iterations"):
-            opts.setdefault("iterations", iterations)
         result = run_reconstruct(scan, anatomy, method, out=os.path.join(work, "recon"), **opts)
         elapsed = time.perf_counter() - t1
         history = result.get("history") or (result.get("info") or {}).get("history")
@@ -291,7 +513,7 @@ def make_group(anatomy) -> click.Group:
     @click.option("--iterations", default=1000, show_default=True, type=click.IntRange(min=1),
                   help="training iterations of every Gaussian run (the README's table: 1000, a few "
                        "minutes per subject on 2 cores; the paper: 30000, hours per run there)")
-    @click.option("--ablation-views", default=5, show_default=True, type=int,
+    @click.option("--ablation-views", default=5, show_default=True, type=click.IntRange(min=0),
                   help="view count of the ablation (0: none)")
     @click.option("--out", required=True, type=click.Path(file_okay=False),
                   help="experiment folder (an interrupted experiment resumes from it)")
@@ -305,13 +527,18 @@ def make_group(anatomy) -> click.Group:
 
         views = tuple(views) + tuple(more_views) or (5, 10)  # `--views 5 10`: the 10 arrives as an argument
         ids = [s.strip() for s in subjects.split(",")] if subjects else None
+        if ids is not None:
+            held = list(anatomy.test_subjects()) if anatomy.test_subjects is not None else []
+            bad = [s for s in ids if s not in held]
+            if bad:
+                raise click.BadParameter(
+                    f"{', '.join(repr(s) for s in bad)}: not held-out {name} subject(s); the experiment runs on "
+                    f"held-out subjects only: {', '.join(held) if held else '(the plugin has none)'}",
+                    param_hint="--subjects")
         per_run = {"log_every": log_every, "checkpoint_every": 0}
-        try:
-            summary = run_experiment(anatomy, out, views=views, subjects=ids, iterations=iterations,
-                                     ablation_views=ablation_views or None, seed=seed, progress=progress,
-                                     settings={"r2gs": per_run, "shape": per_run}, echo=click.echo)
-        except ValueError as exc:
-            raise click.ClickException(str(exc))
+        summary = run_experiment(anatomy, out, views=views, subjects=ids, iterations=iterations,
+                                 ablation_views=ablation_views or None, seed=seed, progress=progress,
+                                 settings={"r2gs": per_run, "shape": per_run}, echo=click.echo)
         click.echo(open(os.path.join(out, "table.md")).read())
         for v, g in summary["gain_db"].items():
             click.echo(f"{v} views: shape-guided minus R2-Gaussian {g['mean']:+.2f} dB (ahead on "
