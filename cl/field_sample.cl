@@ -60,67 +60,79 @@ static inline void axis1(real x, int n, int *i0, real *f)
     *f = xc - (real)i;
 }
 
+/* Where eight consecutive points fall: cell fractions, clamp derivatives, the flat index of each
+ * cell's corner (0, 0, 0) and the cell number. */
+typedef struct {
+    real8 fx, fy, fz, dx, dy, dz;
+    int8 base, cell;
+} Where8;
+
+static inline Where8 locate8(__global const real *pts, int g, int Pp, int X, int Y, int Z)
+{
+    Where8 w;
+    int8 ix, iy, iz;
+    axis8(vload8(g, pts), X, &ix, &w.fx, &w.dx);
+    axis8(vload8(g, pts + Pp), Y, &iy, &w.fy, &w.dy);
+    axis8(vload8(g, pts + 2 * Pp), Z, &iz, &w.fz, &w.dz);
+    w.base = (iz * Y + iy) * X + ix;
+    w.cell = (iz * (Y - 1) + iy) * (X - 1) + ix;
+    return w;
+}
+
+/* The field plane's values at the eight corners of each point's cell, v[dx + 2 dy + 4 dz]. */
+static inline void corners8(__global const real *fc, int8 b, int SY, int SZ, real8 *v)
+{
+    v[0] = GATHER8(fc, b);
+    v[1] = GATHER8(fc, b + 1);
+    v[2] = GATHER8(fc, b + SY);
+    v[3] = GATHER8(fc, b + SY + 1);
+    v[4] = GATHER8(fc, b + SZ);
+    v[5] = GATHER8(fc, b + SZ + 1);
+    v[6] = GATHER8(fc, b + SZ + SY);
+    v[7] = GATHER8(fc, b + SZ + SY + 1);
+}
+
 __kernel void sample_fwd(__global const real *field, __global const real *pts, __global real *out,
                          __global int *cells, int Pp, int C, int X, int Y, int Z)
 {
     const int g = get_global_id(0);
-    real8 fx, fy, fz, dx, dy, dz;
-    int8 ix, iy, iz;
-    axis8(vload8(g, pts), X, &ix, &fx, &dx);
-    axis8(vload8(g, pts + Pp), Y, &iy, &fy, &dy);
-    axis8(vload8(g, pts + 2 * Pp), Z, &iz, &fz, &dz);
-    const int SY = X, SZ = X * Y;
-    const long plane = (long)SZ * Z;
-    int8 b = iz * SZ + iy * SY + ix;
-    int8 cell = (iz * (Y - 1) + iy) * (X - 1) + ix;
-    real8 gx = (real8)1 - fx, gy = (real8)1 - fy, gz = (real8)1 - fz;
+    const Where8 w = locate8(pts, g, Pp, X, Y, Z);
+    const long plane = (long)X * Y * Z;
+    const real8 gx = (real8)1 - w.fx, gy = (real8)1 - w.fy, gz = (real8)1 - w.fz;
+    real8 v[8];
     for (int c = 0; c < C; ++c) {
-        __global const real *fc = field + c * plane;
-        real8 v000 = GATHER8(fc, b), v001 = GATHER8(fc, b + 1);
-        real8 v010 = GATHER8(fc, b + SY), v011 = GATHER8(fc, b + SY + 1);
-        real8 v100 = GATHER8(fc, b + SZ), v101 = GATHER8(fc, b + SZ + 1);
-        real8 v110 = GATHER8(fc, b + SZ + SY), v111 = GATHER8(fc, b + SZ + SY + 1);
-        real8 a0 = gy * (gx * v000 + fx * v001) + fy * (gx * v010 + fx * v011);
-        real8 a1 = gy * (gx * v100 + fx * v101) + fy * (gx * v110 + fx * v111);
-        vstore8(gz * a0 + fz * a1, g, out + (long)c * Pp);
+        corners8(field + c * plane, w.base, X, X * Y, v);
+        real8 a0 = gy * (gx * v[0] + w.fx * v[1]) + w.fy * (gx * v[2] + w.fx * v[3]);
+        real8 a1 = gy * (gx * v[4] + w.fx * v[5]) + w.fy * (gx * v[6] + w.fx * v[7]);
+        vstore8(gz * a0 + w.fz * a1, g, out + (long)c * Pp);
     }
-    vstore8(cell, g, cells);
+    vstore8(w.cell, g, cells);
 }
 
 __kernel void sample_grad_pts(__global const real *field, __global const real *pts, __global const real *gout,
                               __global real *gpts, int Pp, int C, int X, int Y, int Z)
 {
     const int g = get_global_id(0);
-    real8 fx, fy, fz, dx, dy, dz;
-    int8 ix, iy, iz;
-    axis8(vload8(g, pts), X, &ix, &fx, &dx);
-    axis8(vload8(g, pts + Pp), Y, &iy, &fy, &dy);
-    axis8(vload8(g, pts + 2 * Pp), Z, &iz, &fz, &dz);
-    const int SY = X, SZ = X * Y;
-    const long plane = (long)SZ * Z;
-    int8 b = iz * SZ + iy * SY + ix;
-    real8 gx = (real8)1 - fx, gy = (real8)1 - fy, gz = (real8)1 - fz;
-    real8 ax = (real8)0, ay = (real8)0, az = (real8)0;
+    const Where8 w = locate8(pts, g, Pp, X, Y, Z);
+    const long plane = (long)X * Y * Z;
+    const real8 gx = (real8)1 - w.fx, gy = (real8)1 - w.fy, gz = (real8)1 - w.fz;
+    real8 ax = (real8)0, ay = (real8)0, az = (real8)0, v[8];
     for (int c = 0; c < C; ++c) {
-        __global const real *fc = field + c * plane;
-        real8 w = vload8(g, gout + (long)c * Pp);   /* the pad lanes hold zeros */
-        real8 v000 = GATHER8(fc, b), v001 = GATHER8(fc, b + 1);
-        real8 v010 = GATHER8(fc, b + SY), v011 = GATHER8(fc, b + SY + 1);
-        real8 v100 = GATHER8(fc, b + SZ), v101 = GATHER8(fc, b + SZ + 1);
-        real8 v110 = GATHER8(fc, b + SZ + SY), v111 = GATHER8(fc, b + SZ + SY + 1);
-        real8 ex0 = gy * (v001 - v000) + fy * (v011 - v010);
-        real8 ex1 = gy * (v101 - v100) + fy * (v111 - v110);
-        real8 ey0 = gx * (v010 - v000) + fx * (v011 - v001);
-        real8 ey1 = gx * (v110 - v100) + fx * (v111 - v101);
-        real8 a0 = gy * (gx * v000 + fx * v001) + fy * (gx * v010 + fx * v011);
-        real8 a1 = gy * (gx * v100 + fx * v101) + fy * (gx * v110 + fx * v111);
-        ax += w * (gz * ex0 + fz * ex1);
-        ay += w * (gz * ey0 + fz * ey1);
-        az += w * (a1 - a0);
+        const real8 up = vload8(g, gout + (long)c * Pp);   /* the pad lanes hold zeros */
+        corners8(field + c * plane, w.base, X, X * Y, v);
+        real8 ex0 = gy * (v[1] - v[0]) + w.fy * (v[3] - v[2]);
+        real8 ex1 = gy * (v[5] - v[4]) + w.fy * (v[7] - v[6]);
+        real8 ey0 = gx * (v[2] - v[0]) + w.fx * (v[3] - v[1]);
+        real8 ey1 = gx * (v[6] - v[4]) + w.fx * (v[7] - v[5]);
+        real8 a0 = gy * (gx * v[0] + w.fx * v[1]) + w.fy * (gx * v[2] + w.fx * v[3]);
+        real8 a1 = gy * (gx * v[4] + w.fx * v[5]) + w.fy * (gx * v[6] + w.fx * v[7]);
+        ax += up * (gz * ex0 + w.fz * ex1);
+        ay += up * (gz * ey0 + w.fz * ey1);
+        az += up * (a1 - a0);
     }
-    vstore8(ax * dx, g, gpts);
-    vstore8(ay * dy, g, gpts + Pp);
-    vstore8(az * dz, g, gpts + 2 * Pp);
+    vstore8(ax * w.dx, g, gpts);
+    vstore8(ay * w.dy, g, gpts + Pp);
+    vstore8(az * w.dz, g, gpts + 2 * Pp);
 }
 
 /* sums[GUARD + (c * 8 + corner) * n_cells + cell]: one plane per channel and corner, cells in x-fastest
