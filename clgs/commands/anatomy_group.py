@@ -149,22 +149,15 @@ def run_reconstruct(scan, anatomy, method: str, out=None, **options):
 # --------------------------------------------------------------------------------------- --set
 # Settings of a method are checked before a run starts: the keys against the method's settings
 # (its config dataclass's fields for the Gaussian methods, else its callable's parameters), the
-# values against the fields' types, the method's click options (ranges, choices) and the ranges
-# below. The library still checks what it checks (its ValueErrors become click errors).
+# values against the fields' types, the method's click options (ranges, choices), the config's own
+# checks (kinds, ranges: JsonConfig) and, for methods without a config, the ranges below.
 _CONFIGS = {  # method -> (config dataclass, extra keyword arguments its run passes on)
     "r2gs": ("clgs.r2gs:R2GSConfig", {}),
     "shape": ("clgs.shape_guided:ShapeGuidedConfig", {"level": float | None}),
 }
 _NOT_SETTINGS = {"scan", "out_dir", "out", "anatomy"}  # given by the command itself
-_RANGES = [  # (names, or prefixes ending in "_"), test, what it means
-    (("iterations", "schedule_iterations", "densify_interval", "tv_size", "density_points", "n_gaussians",
-      "n_shape", "max_gaussians", "subsets"), lambda v: v >= 1, "at least 1"),
-    (("seed",), lambda v: 0 <= v <= 2 ** 64 - 1, "an integer from 0 to 2**64 - 1 (what NumPy and torch take)"),
-    (("n_free", "densify_start", "densify_until", "log_every", "checkpoint_every", "alpha_init_iterations",
-      "alpha_freeze"), lambda v: v >= 0, "at least 0"),
-    (("lr_", "value_scale", "density_s"), lambda v: v > 0, "positive"),
-    (("lambda_", "boundary_weight", "grad_threshold", "min_density", "init_threshold", "density_factor",
-      "densify_scale_threshold", "scale_floor"), lambda v: v >= 0, "at least 0"),
+_RANGES = [  # for methods without a config dataclass (FDK, SART): the configs check their own ranges
+    (("iterations", "subsets"), lambda v: v >= 1, "at least 1"),
 ]
 
 
