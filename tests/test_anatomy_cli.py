@@ -244,6 +244,9 @@ def test_simulate_unknown_subject_or_bad_mesh(tmp_path):
     assert_clean_error(res, "bad.stl", code=1)
     res = CliRunner().invoke(main, ["femur", "simulate", "--views", "0", "--out", str(tmp_path / "s")])
     assert_clean_error(res, "--views", code=2)
+    for arc in ("0", "-90", "1e9", "nan"):  # every view at one angle, or no arc at all
+        res = CliRunner().invoke(main, ["femur", "simulate", "--arc", arc, "--out", str(tmp_path / "s")])
+        assert_clean_error(res, "--arc", "0<x<=360", code=2)
     assert not (tmp_path / "s").exists()
 
 

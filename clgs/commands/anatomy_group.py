@@ -20,6 +20,8 @@ import time
 
 import click
 
+from clgs.methods import FiniteFloat
+
 
 # --------------------------------------------------------------------------------------- errors
 # The library reports bad input with these (ValueError's subclasses: ScanError, ModelFileError,
@@ -335,7 +337,8 @@ def make_group(anatomy) -> click.Group:
     @click.option("--out", required=True, type=click.Path(file_okay=False), help="scan folder to write")
     @click.option("--views", default=int(scene.get("n_views", 50)), show_default=True, type=click.IntRange(min=1),
                   help="number of projections")
-    @click.option("--arc", default=float(scene.get("arc_deg", 180.0)), show_default=True, help="arc in degrees")
+    @click.option("--arc", type=FiniteFloat(min=0, min_open=True, max=360), default=float(scene.get("arc_deg", 180.0)),
+                  show_default=True, help="arc in degrees (0 < arc <= 360)")
     @click.option("--noise/--no-noise", default=True, show_default=True, help="Poisson + electronic noise")
     @click.option("--seed", default=0, show_default=True)
     @click.option("--overwrite", is_flag=True, help="replace an existing scan folder")
