@@ -308,7 +308,7 @@ class Trainer:
         if total is not None:
             if not torch.isfinite(total):
                 raise FloatingPointError(
-                    f"the loss became {float(total)} at iteration {it} (view {ctx.view}); lower the learning "
+                    f"the loss became {float(total.detach())} at iteration {it} (view {ctx.view}); lower the learning "
                     "rates or check the projections for NaN/Inf")
             total.backward()
         for h in self.hooks:
