@@ -8,8 +8,8 @@ compare them). float32 or float64, by the field's dtype.
 
 Why: the shape-guided method exponentiates its velocity field every iteration, forward and
 backward (scaling and squaring: each squaring samples the displacement at displaced grid points).
-torch's CPU 3D ``grid_sample`` took about 40 % of a shape-guided iteration, most of it in a
-backward that runs on one thread.
+With torch's CPU 3D ``grid_sample`` that took about 40 % of a shape-guided iteration in a profile
+on a busy host (``clgs bench kernels`` prints both paths side by side).
 
 The gradient wrt the field is a gather, not a scatter with atomics: the points are sorted by the
 cell they fall in (a stable sort on the host), each cell sums its points' eight corner weights

@@ -60,3 +60,14 @@ def test_stage_timing_waits_on_the_profiling_queue():
     assert proj.io.queue is proj.queue
     out = proj.forward(m.numpy(), cov_prec(s, q)[0].numpy(), r.numpy(), geo, [0], "affine")
     assert np.isfinite(out).all() and out.max() > 0
+
+
+def test_deformation_rows_compare_both_paths():
+    import math
+
+    from clgs.benchmarks import field_sample_rows
+
+    rows = field_sample_rows.rows(quick=True)
+    assert [r["case"] for r in rows] == ["exp(v) forward", "exp(v) forward+backward",
+                                         "field at 35k points forward+backward"]
+    assert all(r["ms"] > 0 and r["ref_ms"] > 0 and math.isclose(r["speedup"], r["ref_ms"] / r["ms"]) for r in rows)

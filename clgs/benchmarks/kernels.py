@@ -326,3 +326,9 @@ def main(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt, b
     click.echo("voxelizer:")
     for row in voxelizer_rows.rows(quick):
         click.echo("  " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()))
+    from . import field_sample_rows
+
+    click.echo("")
+    click.echo("deformation (shape model's exp(v) on a 64x33x38 grid; OpenCL ms, torch grid_sample ref_ms):")
+    for row in field_sample_rows.rows(quick):
+        click.echo("  " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()))
