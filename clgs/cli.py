@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import os
 
 import click
 
@@ -57,12 +58,21 @@ class LazyGroup(click.Group):
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="clgs")
-def main():
+@click.option("--device", "device", metavar="SPEC", default=None,
+              help="OpenCL device to run on: P:D indices or a piece of its name (pocl, intel, nvidia), "
+                   "as 'clgs info' lists them. Default: the first device that passes the probe "
+                   "(CLGS_DEVICE or PYOPENCL_CTX set it too).")
+def main(device):
     """clgs: sparse-view X-ray 3D reconstruction with Gaussian splatting and shape priors.
 
-    Kernels run in OpenCL (PoCL on the CPU, or any OpenCL GPU). Each installed anatomy
-    plugin adds a command group (e.g. ``clgs femur demo``).
+    Kernels run in OpenCL (PoCL or Intel's runtime on the CPU, or any OpenCL GPU). Each
+    installed anatomy plugin adds a command group (e.g. ``clgs femur demo``).
     """
+    if device is not None:
+        if not device.strip():
+            raise click.BadParameter("give a device index (P:D) or a piece of its name", param_hint="--device")
+        # an environment variable, so that subprocesses and cluster workers use the same device
+        os.environ["CLGS_DEVICE"] = device.strip()
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from . import runtime
-from .buffers import BufferPool
+from .runtime.buffers import BufferPool
 from .runtime import round_up
 
 SOURCE = "field_sample.cl"

@@ -119,7 +119,7 @@ import threading
 import numpy as np
 import torch
 
-from .buffers import BufferPool
+from .runtime.buffers import BufferPool
 from .gaussian_math import covariance, precision
 from .runtime import launch, real_name, round_up, shared
 

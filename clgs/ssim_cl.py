@@ -37,7 +37,7 @@ import threading
 
 import numpy as np
 import torch
-from clgs.buffers import BufferPool
+from clgs.runtime.buffers import BufferPool
 from clgs.runtime import launch, real_name, shared
 
 WINDOW, SIGMA = 11, 1.5

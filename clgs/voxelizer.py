@@ -73,7 +73,7 @@ import numpy as np
 import torch
 
 from . import runtime
-from .buffers import BufferPool
+from .runtime.buffers import BufferPool
 from .geometry import Grid
 from .runtime import round_up
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from clgs.runtime import round_up
+from clgs.runtime.programs import round_up
 
 
 class BufferPool:

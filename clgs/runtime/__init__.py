@@ -1,0 +1,21 @@
+"""The OpenCL runtime: drivers, device choice, compiled programs and buffers.
+
+The only layer that sets up pyopencl. Importing it configures the drivers' environment
+(:mod:`.drivers`) before the ICD loader runs; :mod:`.devices` tries every device with a probe
+kernel and picks the first that works (or the one the user named); :mod:`.programs` compiles and
+caches the kernels; :mod:`.buffers` moves NumPy arrays in and out.
+"""
+from .devices import (  # noqa: F401
+    NoOpenCLDevice,
+    candidates,
+    device,
+    device_label,
+    get_context,
+    get_queue,
+    is_cpu_device,
+    probe,
+    use_device,
+    working_devices,
+)
+from .programs import cl_source_dir, get_program, launch, real_name, round_up, shared  # noqa: F401
+from .report import describe  # noqa: F401

@@ -1,0 +1,144 @@
+"""Compiled programs, kernel launches and process-wide operator instances.
+
+A program is compiled once per (context, source file, ``-D`` options) and its kernel objects are
+reused: PoCL recompiles on the first launch of each kernel, so re-creating them is costly.
+"""
+from __future__ import annotations
+
+import threading
+import warnings
+from pathlib import Path
+
+import pyopencl as cl
+
+from .devices import get_context
+
+_lock = threading.Lock()
+_programs: dict = {}
+
+
+def cl_source_dir() -> Path:
+    """Folder holding the ``.cl`` sources: inside an installed wheel, else the checkout's ``cl/``."""
+    pkg = Path(__file__).resolve().parent.parent
+    for candidate in (pkg / "cl", pkg.parent / "cl"):
+        if (candidate / "common.h").is_file():
+            return candidate
+    raise FileNotFoundError(
+        f"OpenCL sources not found next to {pkg} (looked in clgs/cl and ../cl); "
+        "reinstall clgs with 'pip install .'"
+    )
+
+
+def round_up(n: int, m: int) -> int:
+    """``n`` rounded up to a multiple of ``m`` (global sizes, padded rows)."""
+    return (n + m - 1) // m * m
+
+
+def real_name(dtype, what: str, error=ValueError) -> str:
+    """The kernels' ``REAL`` for a NumPy float dtype; ``error`` (naming ``what``) for any other."""
+    import numpy as np
+
+    if dtype == np.float32:
+        return "float"
+    if dtype == np.float64:
+        return "double"
+    raise error(f"{what} must be float32 or float64, got {dtype}")
+
+
+def _format_options(defines: dict | None) -> tuple:
+    opts = []
+    for key in sorted(defines or {}):
+        value = defines[key]
+        if value is True:
+            opts.append(f"-D{key}")
+        elif value is False or value is None:
+            continue
+        else:
+            opts.append(f"-D{key}={value}")
+    return tuple(opts)
+
+
+def build(ctx, source: str, options) -> "cl.Program":
+    """``source`` built for ``ctx`` with the project's headers on the include path. Drivers that
+    print remarks on success (Intel's runtime does, for every program) stay quiet; set
+    ``PYOPENCL_COMPILER_OUTPUT=1`` to see them."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", cl.CompilerWarning)
+        return cl.Program(ctx, source).build(options=list(options) + ["-I", str(cl_source_dir())])
+
+
+class Program:
+    """A compiled program plus its kernel objects, cached per (context, sources, options)."""
+
+    def __init__(self, ctx, source: str, options: tuple):
+        self.options = options
+        self._program = build(ctx, source, options)
+        self._kernels: dict = {}
+
+    def kernel(self, name: str) -> "cl.Kernel":
+        k = self._kernels.get(name)
+        if k is None:
+            k = self._kernels[name] = getattr(self._program, name)
+        return k
+
+
+def get_program(filename: str, defines: dict | None = None, ctx=None) -> Program:
+    """Compile ``cl/<filename>`` with ``-D`` options (``{"REAL": "double", "CONE": True}``), cached.
+
+    ``REAL`` defaults to ``float``. The source may ``#include "common.h"``.
+    """
+    ctx = ctx or get_context()
+    defines = dict(defines or {})
+    defines.setdefault("REAL", "float")
+    if defines["REAL"] == "double" and "cl_khr_fp64" not in ctx.devices[0].extensions:
+        raise RuntimeError(f"device {ctx.devices[0].name!r} has no double precision (cl_khr_fp64)")
+    if defines["REAL"] == "double":
+        defines["REAL_DOUBLE"] = True
+    options = _format_options(defines)
+    key = (id(ctx), filename, options)  # contexts live as long as the process (devices.py)
+    with _lock:
+        prog = _programs.get(key)
+    if prog is None:
+        source = (cl_source_dir() / filename).read_text()
+        prog = Program(ctx, source, options)
+        with _lock:
+            _programs[key] = prog
+    return prog
+
+
+_launch_lock = threading.Lock()
+_kernel_args: dict = {}  # id(kernel) -> the arguments it was last launched with (kernels are cached)
+
+
+def launch(queue, kernel, gsize, lsize, *args):
+    """Enqueue ``kernel`` setting only the arguments that changed since its last launch (the same
+    buffer object, or an equal scalar of the same type, is kept): pyopencl spends about 8-10 us per
+    scalar argument, more than a small kernel runs, and most stay the same call after call. Kernels
+    are cached per program and shared, hence one module-wide record. Returns the event."""
+    with _launch_lock:
+        last = _kernel_args.get(id(kernel))
+        if last is None or len(last) != len(args):
+            last = _kernel_args[id(kernel)] = [None] * len(args)
+        for i, v in enumerate(args):
+            old = last[i]
+            if old is v:
+                continue
+            if isinstance(v, cl.MemoryObjectHolder) or old is None or type(old) is not type(v) or old != v:
+                kernel.set_arg(i, v)
+            last[i] = v
+        return cl.enqueue_nd_range_kernel(queue, kernel, gsize, lsize)
+
+
+_shared: dict = {}
+_shared_lock = threading.Lock()
+
+
+def shared(cls):
+    """The process-wide instance of ``cls`` on the current device (an operator class: its compiled
+    programs and pooled buffers then serve every call), made on first use."""
+    key = (cls, id(get_context()))
+    with _shared_lock:
+        obj = _shared.get(key)
+        if obj is None:
+            obj = _shared[key] = cls()
+        return obj
