@@ -5,6 +5,8 @@ The only layer that sets up pyopencl. Importing it configures the drivers' envir
 kernel and picks the first that works (or the one the user named); :mod:`.programs` compiles and
 caches the kernels; :mod:`.buffers` moves NumPy arrays in and out.
 """
+import pyopencl as cl  # noqa: F401  (operators reach pyopencl through the runtime)
+
 from .devices import (  # noqa: F401
     NoOpenCLDevice,
     candidates,
