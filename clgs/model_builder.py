@@ -102,7 +102,7 @@ def build_model(template: Template, subjects: Union[Iterable[Subject], Mapping],
     if an up-to-date file exists. on_subject(i, id): called after each subject (tests use it).
     threads: torch threads per registration (1: small fields, and a shared machine). Returns out_path."""
     import torch
-    from tqdm import tqdm
+    from .progress import progress_bar
 
     from clgs.registration import RegistrationSettings, register
     from clgs.shape_model import (ModelFileError, ShapeModel, DensityAtlas, exp_velocity, read_metadata,
@@ -138,7 +138,7 @@ def build_model(template: Template, subjects: Union[Iterable[Subject], Mapping],
     fixed = mesh_to_sdf(template.vertices, template.faces, mshape, msp, morg)
     tpoints = grid_points(template.shape, template.spacing, template.origin).reshape(-1, 3)
     velocities, residuals, warped_sum, warped_sq, n_ct = [], {}, None, None, 0
-    bar = tqdm(items, desc=f"registering to {template.name or 'template'}", unit="subject", disable=not progress)
+    bar = progress_bar(items, desc=f"registering to {template.name or 'template'}", unit="subject", disable=not progress)
     for i, (sid, loader) in enumerate(bar):
         safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in sid)
         path = os.path.join(cache, f"{safe}-{reg_hash}.npz")

@@ -111,14 +111,15 @@ class TrainingLog:
 
 
 class Progress:
-    """tqdm bar over iterations with ETA and the latest figures; silent when ``enabled`` is False."""
+    """Progress over iterations with ETA and the latest figures (a live bar on a terminal, a line
+    every few seconds in a log); silent when ``enabled`` is False."""
 
     def __init__(self, total: int, initial: int = 0, enabled: bool = True, desc: str = "train"):
         self.bar = None
         if enabled:
-            from tqdm.auto import tqdm
+            from .progress import progress_bar
 
-            self.bar = tqdm(total=total, initial=initial, desc=desc, unit="it", dynamic_ncols=True, leave=True)
+            self.bar = progress_bar(total=total, initial=initial, desc=desc, unit="it", dynamic_ncols=True, leave=True)
 
     def update(self, n: int = 1, figures: dict | None = None) -> None:
         if self.bar is None:

@@ -9,7 +9,7 @@ from clgs.ssim_cl import ImageLoss, SSIMError, SSIMTarget, l1_dssim
 
 
 @pytest.fixture(scope="module")
-def op():
+def op(cl_device):
     return ImageLoss()
 
 

@@ -47,6 +47,8 @@ import time
 
 import click
 
+from .devices import device_option, on_each_device, ratio_table
+
 from .host import HostWatch
 
 
@@ -236,8 +238,16 @@ def _time_torch(m, mats, rho, geometry, mode, repeat):
 @click.option("--det", "dets_opt", type=click.Choice(["128", "256"]), multiple=True, help="detector sizes (default both)")
 @click.option("--beam", "beams_opt", type=click.Choice(["cone", "parallel"]), multiple=True,
               help="beams (default both)")
-def main(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt, beams_opt):
+@device_option
+def main(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt, beams_opt, devices):
     """Gaussian projector: ms, evaluations/s, fraction of the exp ceiling, speed-up over torch."""
+    results = on_each_device(devices, lambda: _bench(quick, repeat, torch_n, stages, fastest, widths, sizes_opt,
+                                                     dets_opt, beams_opt))
+    ratio_table(results, ("fwd ms", "bwd ms"))
+
+
+def _bench(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt, beams_opt):
+    """One device's run of :func:`main`; returns {case: (forward ms, backward ms)}."""
     import torch
 
     from ..gaussian_math import covariance, precision
@@ -272,6 +282,7 @@ def main(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt, b
         raise click.BadParameter("numbers of Gaussians must be positive", param_hint="--n")
     dets = [int(d) for d in dets_opt] or [128, 256]
     beams = list(beams_opt) or ["cone", "parallel"]
+    figures = {}
     for n in sizes:
         m, s, q, rho = _scene(n)
         cov, prec = covariance(s, q).detach(), precision(s, q).detach()
@@ -287,6 +298,7 @@ def main(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt, b
                     t_f, t_fb = _time_torch(m[:k], mats[:k], rho[:k], g, mode, max(1, repeat // 3))
                     t_fb *= n / k
                     res[mode] = (fwd, bwd, img)
+                    figures[f"{n} {det}^2 {beam} {mode}"] = (fwd, bwd)
                     frac = useful / (0.5 * (cfwd + cbwd)) * 1e3 / ceiling_cpu
                     line = (f"{n:>6} {det:>4}^2 {beam:>8} {mode:>6} | {fwd:7.2f} {bwd:7.2f} {cfwd:7.2f} {cbwd:7.2f} | "
                             f"{useful / fwd / 1e6:11.2f} {useful / bwd / 1e6:11.2f} {frac:8.0%} | "
@@ -317,11 +329,11 @@ def main(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt, b
     click.echo(f"useful evaluations: pixels within 3 sigma, summed over Gaussians; torch = fwd + autograd bwd{scaled}")
     click.echo(watch.summary())
     if sizes_opt or dets_opt or beams_opt:
-        return  # a restricted run: the projector cases only
+        return figures  # a restricted run: the projector cases only
     try:
         from . import voxelizer_rows
     except ImportError:
-        return
+        return figures
     click.echo("")
     click.echo("voxelizer:")
     for row in voxelizer_rows.rows(quick):
@@ -332,3 +344,4 @@ def main(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt, b
     click.echo("deformation (shape model's exp(v) on a 64x33x38 grid; OpenCL ms, torch grid_sample ref_ms):")
     for row in field_sample_rows.rows(quick):
         click.echo("  " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()))
+    return figures

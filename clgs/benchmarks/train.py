@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import click
 
+from .devices import device_option, on_each_device, ratio_table
+
 from .host import HostWatch
 
 
@@ -153,8 +155,21 @@ def _breakdown(trainer, n: int = 10) -> dict:
 @click.option("--iterations", default=200, show_default=True, help="timed OpenCL iterations")
 @click.option("--torch-iterations", default=2, show_default=True, help="timed torch iterations (0: skip)")
 @click.option("--seed", default=0, show_default=True)
-def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, seed):
+@device_option
+def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, seed, devices):
     """Training iterations per second (OpenCL vs plain torch on the CPU, same iteration)."""
+    runs = []  # torch is timed once, on the first device's run: it does not depend on the device
+
+    def one():
+        runs.append(None)
+        return _bench(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations if len(runs) == 1 else 0, seed)
+
+    results = on_each_device(devices, one)
+    ratio_table(results, ("ms / it", "it / s"))
+
+
+def _bench(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, seed):
+    """One device's run of :func:`main`; returns {"iteration": (ms, it/s)}."""
     import torch
 
     from clgs import runtime
@@ -165,7 +180,7 @@ def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, se
                f"loss L1 + 0.25 D-SSIM + 0.05 TV(32^3 patch), Adam")
     import os
 
-    click.echo(f"device: {runtime.device().name.strip()}; torch threads: {torch.get_num_threads()}; "
+    click.echo(f"device: {runtime.device_label()}; torch threads: {torch.get_num_threads()}; "
                f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (others' work slows every figure)")
     cl = _trainer(scan, gaussians, "cl", seed)
     t_cl = _time(cl, iterations, warmup=5)
@@ -194,3 +209,4 @@ def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, se
                + f", the rest (autograd, bookkeeping, load) {rest * 1e3:.1f}")
     click.echo(f"30 000 iterations (R2-Gaussian's default) would take {30_000 * t_cl / 60:.1f} min here")
     click.echo(watch.summary())
+    return {"training iteration": (t_cl * 1e3, 1.0 / t_cl)}

@@ -298,10 +298,10 @@ def simulate(volume, out, views, arc, mode, DSD, DSO, detector, pixel, spacing, 
     volume32 = np.ascontiguousarray(vol, np.float32)
     step = max(1, -(-views // 20))
     chunks = [list(range(s, min(s + step, views))) for s in range(0, views, step)]
-    from tqdm.auto import tqdm
+    from clgs.progress import progress_bar
 
     try:
-        with tqdm(total=views, desc="simulate", unit="view", leave=False, disable=None) as bar:
+        with progress_bar(total=views, desc="simulate", unit="view", leave=False, disable=None) as bar:
             parts = []
             for chunk in chunks:
                 parts.append(np.asarray(projector.forward(volume32, views=chunk), np.float32))

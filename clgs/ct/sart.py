@@ -98,9 +98,9 @@ def sart(projections, geometry: Geometry, n_iter: int = 10, subsets: int = 1, re
 
     bar = None
     if verbose:
-        from tqdm import tqdm
+        from ..progress import progress_bar
 
-        bar = tqdm(total=int(n_iter), desc="SART" if len(groups) == 1 else f"OS-SART ({len(groups)} subsets)")
+        bar = progress_bar(total=int(n_iter), desc="SART" if len(groups) == 1 else f"OS-SART ({len(groups)} subsets)")
     try:
         for it in range(int(n_iter)):
             seq = rng.permutation(len(groups)) if order == "random" else range(len(groups))
