@@ -54,8 +54,10 @@ def progress_bar(iterable=None, **kwargs):
         from tqdm.auto import tqdm
 
         return tqdm(iterable, **kwargs)
-    from tqdm import tqdm
+    if kwargs.get("disable"):
+        from tqdm import tqdm
 
+        return tqdm(iterable, **kwargs)
     kwargs.pop("dynamic_ncols", None)
     kwargs["file"] = LogLines(kwargs.get("file") or sys.stderr)
     kwargs.setdefault("mininterval", log_seconds())
@@ -63,4 +65,18 @@ def progress_bar(iterable=None, **kwargs):
     kwargs.setdefault("bar_format", LOG_FORMAT)
     kwargs.setdefault("unit", "it")
     kwargs["leave"] = True  # the last line stays in the log
-    return tqdm(iterable, **kwargs)
+    return _log_bar_class()(iterable, **kwargs)
+
+
+def _log_bar_class():
+    """tqdm whose new figures wait for the next timed line instead of forcing one each."""
+    from tqdm import tqdm
+
+    class LogBar(tqdm):
+        def set_postfix(self, ordered_dict=None, refresh=True, **kwargs):
+            super().set_postfix(ordered_dict, refresh=False, **kwargs)
+
+        def set_description(self, desc=None, refresh=True):
+            super().set_description(desc, refresh=False)
+
+    return LogBar

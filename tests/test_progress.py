@@ -66,3 +66,13 @@ def test_log_lines_drops_empty_writes():
     w.write("")
     w.write("\ra line\r")
     assert out.getvalue() == "a line\n"
+
+
+def test_new_figures_do_not_force_extra_lines_in_a_log(monkeypatch):
+    monkeypatch.setenv("CLGS_PROGRESS_SECONDS", "1000")
+    out = io.StringIO()
+    bar = progress_bar(range(50), desc="registering", unit="subject", file=out)
+    for i in bar:
+        bar.set_postfix(surface_mm=i * 0.01)  # refresh=True by default: on a terminal, a frame each
+    lines = out.getvalue().splitlines()
+    assert len(lines) <= 3 and lines[-1].startswith("registering: 50/50 subject (100%)"), lines
