@@ -32,7 +32,8 @@ if command -v apt-get >/dev/null 2>&1 && command -v dpkg >/dev/null 2>&1; then
       echo "WARNING: not root and no password-less sudo: PoCL not installed." >&2
       echo "         Intel's runtime from PyPI will be the only CPU driver; for PoCL too run" >&2
       echo "         'sudo apt-get install pocl-opencl-icd'." >&2
-    elif ! { "${SUDO[@]}" apt-get update -qq && DEBIAN_FRONTEND=noninteractive "${SUDO[@]}" \
+    elif ! { "${SUDO[@]}" apt-get update -qq || echo "WARNING: apt-get update failed; trying the install anyway" >&2
+             "${SUDO[@]}" env DEBIAN_FRONTEND=noninteractive \
              apt-get install -y -qq --no-install-recommends pocl-opencl-icd >/dev/null; }; then
       echo "WARNING: apt-get could not install pocl-opencl-icd (output above);" >&2
       echo "         Intel's runtime from PyPI will be the only CPU driver." >&2
