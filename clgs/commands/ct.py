@@ -16,12 +16,18 @@ import click
 
 from clgs.methods import FiniteFloat, Seed, check_option_values
 
-VOLUME_SUFFIXES = (".npy", ".nii", ".nii.gz")
+from clgs.io.suffixes import VOLUME_SUFFIXES
 
 
 def _is_volume_path(path: Path) -> bool:
     name = path.name.lower()
     return any(name.endswith(s) for s in VOLUME_SUFFIXES)
+
+
+def _is_dicom_folder(path: Path) -> bool:
+    """A folder holding DICOM slices (read as one series)."""
+    return path.is_dir() and any(f.suffix.lower() == ".dcm" or f.name.upper().startswith(("IM", "CT"))
+                                 for f in list(path.iterdir())[:50])
 
 
 def _fail(exc: Exception, what: str = "") -> click.ClickException:
@@ -167,8 +173,9 @@ def _is_out_of_memory(exc: BaseException) -> bool:
 def _load_volume(path: Path, spacing=None, label="volume"):
     from clgs.io.volume import VolumeError, load_volume
 
-    if not _is_volume_path(path):
-        raise click.BadParameter(f"{path}: a {label} must be .npy, .nii or .nii.gz", param_hint=label.upper())
+    if not (_is_volume_path(path) or _is_dicom_folder(path)):
+        raise click.BadParameter(f"{path}: a {label} must be {', '.join(VOLUME_SUFFIXES)} or a folder of DICOM "
+                                 "slices", param_hint=label.upper())
     try:
         loaded = load_volume(path)
     except VolumeError as exc:
@@ -229,8 +236,12 @@ def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, 
 
 
 @click.command()
-@click.argument("volume", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("volume", type=click.Path(path_type=Path))
 @click.option("--out", "-o", "out", type=click.Path(path_type=Path), required=True, help="scan folder to write")
+@click.option("--hu", is_flag=True, help="the volume holds Hounsfield units (a CT, DICOM): convert them to "
+                                         "attenuation, mu = mu_water (1 + HU / 1000), at --kev")
+@click.option("--kev", type=FiniteFloat(min=40, max=150), default=70.0, show_default=True,
+              help="X-ray energy for --hu (water's attenuation from NIST XCOM, 40-150 keV)")
 @click.option("--views", type=click.IntRange(min=1), default=50, show_default=True, help="number of projections")
 @click.option("--arc", type=FiniteFloat(min=0, min_open=True, max=360), default=180.0, show_default=True,
               help="angular range in degrees, views evenly spaced, last one short of the end")
@@ -257,9 +268,10 @@ def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, 
 @click.option("--surface-level", type=FiniteFloat(), default=None,
               help="also store the truth's iso-surface at this value as truth_surface.stl")
 @click.option("--force", is_flag=True, help="overwrite an existing --out")
-def simulate(volume, out, views, arc, mode, DSD, DSO, detector, pixel, spacing, I0, sigma, scatter, seed,
+def simulate(volume, out, hu, kev, views, arc, mode, DSD, DSO, detector, pixel, spacing, I0, sigma, scatter, seed,
              no_noise, surface_level, force):
-    """Simulate a sparse-view X-ray scan of VOLUME (.npy/.nii/.nii.gz; attenuation in 1/mm).
+    """Simulate a sparse-view X-ray scan of VOLUME (attenuation in 1/mm, or Hounsfield units with
+    --hu): .npy, NIfTI, MetaImage (.mha/.mhd), NRRD, or a DICOM series (its folder or a .dcm file).
 
     The volume is centred on the rotation axis; the scan folder stores the projections, the
     geometry, the acquisition settings and the volume itself as ground truth.
@@ -278,10 +290,14 @@ def simulate(volume, out, views, arc, mode, DSD, DSO, detector, pixel, spacing, 
         raise click.UsageError(f"{volume} is a .npy array without voxel size; give --spacing (mm)")
     if not np.all(np.isfinite(vol)):
         raise click.ClickException(f"{volume}: the volume contains NaN or Inf")
+    if hu:
+        from clgs.io.units import hu_to_mu
+
+        vol = hu_to_mu(vol, kev)
     if float(vol.min()) < 0:
         raise click.ClickException(
-            f"{volume}: negative values (min {float(vol.min()):.4g}); simulate expects attenuation (1/mm, >= 0), "
-            "not Hounsfield units: convert with mu = mu_water * (1 + HU / 1000), mu_water ~ 0.02/mm")
+            f"{volume}: negative values (min {float(vol.min()):.4g}); simulate expects attenuation (1/mm, >= 0); "
+            "for Hounsfield units (a CT) add --hu (and --kev for the energy)")
     try:
         geo = _scanner_geometry(vol.shape, sp, views, arc, mode, DSD, DSO, detector, pixel)
     except GeometryError as exc:

@@ -4,8 +4,10 @@
   an interrupted run never leaves a half-written output behind.
 * :mod:`clgs.io.scan`: the clgs scan folder (``scan.json`` + ``projections.npy`` + optional truth);
   ``Scan.load`` also reads R2-Gaussian dataset folders (:mod:`clgs.io.r2gaussian`).
-* :mod:`clgs.io.volume`: volumes as ``.npy`` or NIfTI with a correct affine.
-* :mod:`clgs.io.mesh`: surface meshes (STL, PLY, OBJ, npz).
+* :mod:`clgs.io.volume`: volumes as ``.npy``, NIfTI, MetaImage, NRRD or DICOM series, kept where
+  they lie in the world.
+* :mod:`clgs.io.units`: Hounsfield units to attenuation and back, at a stated energy.
+* :mod:`clgs.io.mesh`: surface meshes (STL, PLY, OBJ written in LPS with Slicer's tag; npz).
 
 Submodules are imported on demand; this package stays light.
 """

@@ -1,7 +1,13 @@
 """Surface meshes on disk: STL, PLY, OBJ (through trimesh) or npz (``vertices``, ``faces``).
 
-Coordinates are world mm (x, y, z). Writes are atomic. STL stores each triangle's corners
-separately, so on read coincident vertices are merged back into a shared-vertex mesh.
+Coordinates in memory are clgs's world mm (x, y, z), the frame NIfTI volumes are written in
+(labelled RAS). On disk, STL, PLY and OBJ files are written in LPS coordinates (x and y negated)
+with ``SPACE=LPS`` in the header (the STL header, a PLY ``comment``, an OBJ ``#`` line): the
+convention of DICOM, ITK and 3D Slicer, which reads the tag, so a surface opens aligned with the
+volume it came from. On read, ``SPACE=LPS`` files are turned back into the RAS frame; files tagged
+``SPACE=RAS`` and untagged files (earlier clgs versions, most other tools) are taken as RAS.
+Writes are atomic. STL stores each triangle's corners separately, so on read coincident vertices
+are merged back into a shared-vertex mesh.
 """
 from __future__ import annotations
 
@@ -12,9 +18,10 @@ import numpy as np
 
 from clgs.io import atomic
 
-__all__ = ["Mesh", "MeshError", "save_mesh", "load_mesh", "MESH_SUFFIXES"]
+__all__ = ["Mesh", "MeshError", "save_mesh", "load_mesh", "mesh_space", "MESH_SUFFIXES"]
 
 MESH_SUFFIXES = (".stl", ".ply", ".obj", ".npz")
+RAS_TO_LPS = np.array([-1.0, -1.0, 1.0])  # the flip is its own inverse
 
 
 class MeshError(ValueError):
@@ -63,11 +70,50 @@ def save_mesh(path, vertices, faces=None, overwrite: bool = True) -> Path:
         return atomic.save_npz(path, overwrite=overwrite, vertices=mesh.vertices, faces=mesh.faces)
     import trimesh
 
-    tm = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, process=False)
+    tm = trimesh.Trimesh(vertices=mesh.vertices * RAS_TO_LPS, faces=mesh.faces, process=False)
     data = tm.export(file_type=suf[1:])
     if isinstance(data, str):
         data = data.encode("utf-8")
-    return atomic.write_bytes(path, data, overwrite=overwrite)
+    return atomic.write_bytes(path, _tagged(data, suf, "LPS"), overwrite=overwrite)
+
+
+def _tagged(data: bytes, suffix: str, space: str) -> bytes:
+    """``data`` (a file as trimesh wrote it) with ``SPACE=<space>`` in its header."""
+    tag = f"SPACE={space}"
+    if suffix == ".stl":
+        if data[:5].lower() == b"solid":  # ASCII STL: the name on the first line
+            first, _, rest = data.partition(b"\n")
+            return f"solid clgs {tag}".encode() + b"\n" + rest
+        header = f"clgs surface mesh {tag}".encode().ljust(80, b" ")  # binary: 80-byte header
+        return header + data[80:]
+    if suffix == ".ply":
+        first, _, rest = data.partition(b"\n")  # "ply"
+        fmt, _, rest = rest.partition(b"\n")  # "format ..."
+        return b"\n".join([first, fmt, f"comment {tag}".encode(), rest])
+    if suffix == ".obj":
+        return f"# {tag}\n".encode() + data
+    return data
+
+
+def mesh_space(path) -> str | None:
+    """``"LPS"``, ``"RAS"`` or None: the coordinate system a mesh file's header declares."""
+    path = Path(path)
+    with open(path, "rb") as fh:
+        head = fh.read(4096)
+    suf = path.suffix.lower()
+    if suf == ".stl":
+        head = head[:80] if head[:5].lower() != b"solid" else head.partition(b"\n")[0]
+    elif suf == ".ply":
+        head = head.partition(b"end_header")[0]
+    elif suf == ".obj":
+        head = b"\n".join(ln for ln in head.splitlines() if ln.lstrip().startswith(b"#"))
+    else:
+        return None
+    text = head.decode("latin-1").upper().replace(" ", "")
+    for space in ("LPS", "RAS"):
+        if f"SPACE={space}" in text:
+            return space
+    return None
 
 
 def load_mesh(path) -> Mesh:
@@ -96,4 +142,7 @@ def load_mesh(path) -> Mesh:
         raise MeshError(f"{path}: contains no triangles")
     if suf == ".stl":
         tm.merge_vertices()
-    return _check(tm.vertices, tm.faces)
+    vertices = np.asarray(tm.vertices, dtype=np.float64)
+    if mesh_space(path) == "LPS":
+        vertices = vertices * RAS_TO_LPS
+    return _check(vertices, tm.faces)

@@ -11,10 +11,20 @@ viewer then shows the true spacing and position. The world frame is the clgs sca
 (x, y in the rotation plane, z along the rotation axis); NIfTI readers label it RAS, clgs does not
 know the patient's orientation. On read, any NIfTI is first brought to the closest axis-aligned
 (RAS+) orientation with nibabel, so flipped or permuted scanner files come back as (Z, Y, X) with
-positive spacings; an oblique rotation that cannot be represented is dropped with a warning.
+positive spacings; an oblique volume (its axes not along x, y, z) is resampled onto an
+axis-aligned grid of the same spacing that holds it whole (trilinear, zero outside), with a
+warning that says so, so every voxel stays where it was in the world.
+
+MetaImage (``.mha``/``.mhd``), NRRD (``.nrrd``/``.nhdr``) and DICOM series (a folder of slices,
+or one ``.dcm`` file of the series) are read and written through SimpleITK (the ``formats``
+extra, which the set-up installs). ITK's world frame is LPS: x and y are negated on the way in
+and out, so a volume read from DICOM and written as NIfTI lies where it lay, in any viewer.
+Integer volumes keep their type where the format has it; ``int64`` / ``uint64`` (which NIfTI
+does not take) are stored as the narrowest integer type that holds their values.
 """
 from __future__ import annotations
 
+import os
 import warnings
 from pathlib import Path
 from typing import NamedTuple, Optional
@@ -26,7 +36,8 @@ from clgs.io import atomic
 __all__ = ["VolumeError", "LoadedVolume", "save_volume", "load_volume", "volume_affine",
            "grid_spacing_origin", "VOLUME_SUFFIXES"]
 
-VOLUME_SUFFIXES = (".npy", ".nii", ".nii.gz")
+from clgs.io.suffixes import ITK_SUFFIXES, VOLUME_SUFFIXES  # noqa: E402
+LPS = np.array([-1.0, -1.0, 1.0])  # RAS <-> LPS (its own inverse)
 
 
 class VolumeError(ValueError):
@@ -48,6 +59,10 @@ def _kind(path: Path) -> str:
         return "nifti"
     if name.endswith(".npy"):
         return "npy"
+    if name.endswith(ITK_SUFFIXES):
+        return "itk"
+    if name.endswith(".dcm") or path.is_dir():
+        return "dicom"
     raise VolumeError(f"{path}: unknown volume format; use one of {', '.join(VOLUME_SUFFIXES)}")
 
 
@@ -95,8 +110,15 @@ def _storage_array(volume: np.ndarray) -> np.ndarray:
     if np.issubdtype(volume.dtype, np.floating):
         return volume.astype(np.float32, copy=False)
     if np.issubdtype(volume.dtype, np.integer):
-        return volume
-    raise VolumeError(f"cannot store a volume of dtype {volume.dtype}")
+        if volume.dtype.itemsize < 8:
+            return volume
+        lo, hi = (int(volume.min()), int(volume.max())) if volume.size else (0, 0)
+        for t in (np.uint8, np.int16, np.int32):
+            if np.iinfo(t).min <= lo and hi <= np.iinfo(t).max:
+                return volume.astype(t)
+        raise VolumeError(f"integer values from {lo} to {hi} do not fit in 32 bits; convert the volume to float")
+    raise VolumeError(f"cannot store a volume of dtype {volume.dtype} (complex or non-numeric); "
+                      "give real attenuation values or integer labels")
 
 
 def save_volume(path, volume, geometry=None, *, spacing=None, origin=None, overwrite: bool = True) -> Path:
@@ -118,6 +140,15 @@ def save_volume(path, volume, geometry=None, *, spacing=None, origin=None, overw
     data = _storage_array(vol)
     if kind == "npy":
         return atomic.save_npy(path, data, overwrite=overwrite)
+    if kind in ("itk", "dicom"):
+        if kind == "dicom":
+            raise VolumeError(f"{path}: writing DICOM is not supported; write .nii.gz, .nrrd or .mha")
+        sitk = _sitk()
+        img = sitk.GetImageFromArray(np.ascontiguousarray(data))
+        img.SetSpacing(tuple(float(v) for v in sp[::-1]))
+        img.SetOrigin(tuple(float(v) for v in np.asarray(org) * LPS))
+        img.SetDirection((-1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0))  # RAS axes, in LPS terms
+        return _write_itk(sitk, img, path, overwrite)
     import nibabel as nib
 
     img = nib.Nifti1Image(np.ascontiguousarray(data.transpose(2, 1, 0)), volume_affine(sp, org))
@@ -137,8 +168,11 @@ def load_volume(path, dtype=np.float32) -> LoadedVolume:
     """
     path = Path(path)
     kind = _kind(path)
-    if not path.is_file():
+    if not path.exists():
         raise VolumeError(f"{path}: no such file")
+    if kind in ("itk", "dicom"):
+        arr_xyz, aff = _read_itk(path, kind)
+        return _from_affine(path, arr_xyz, aff, dtype)
     if kind == "npy":
         try:
             arr = np.load(path, allow_pickle=False)
@@ -148,25 +182,147 @@ def load_volume(path, dtype=np.float32) -> LoadedVolume:
         return LoadedVolume(arr if dtype is None else arr.astype(dtype, copy=False), None, None)
     import nibabel as nib
 
+    _check_nifti_voxel_size(path)
     try:
         img = nib.load(str(path))
-        img = nib.as_closest_canonical(img)
         arr = np.asarray(img.dataobj)
     except Exception as exc:  # noqa: BLE001
         raise VolumeError(f"{path}: not a readable NIfTI file ({exc})") from exc
+    return _from_affine(path, arr, np.asarray(img.affine, float), dtype)
+
+
+def _check_nifti_voxel_size(path: Path) -> None:
+    """Refuse a NIfTI placed by voxel sizes alone (no sform, no qform) with a size of 0: nibabel
+    would quietly make it 1 mm, and every distance in the reconstruction would be wrong."""
+    import gzip
+
+    import nibabel as nib
+
+    try:
+        opener = gzip.open if path.name.lower().endswith(".gz") else open
+        with opener(path, "rb") as fh:
+            hdr = nib.Nifti1Header.from_fileobj(fh, check=False)
+        pixdim = np.asarray(hdr["pixdim"][1:4], float)
+        placed = int(hdr["sform_code"]) > 0 or int(hdr["qform_code"]) > 0
+    except Exception:  # noqa: BLE001 - an unreadable header is reported by the full read
+        return
+    if not placed and (np.any(pixdim <= 0) or not np.all(np.isfinite(pixdim))):
+        raise VolumeError(f"{path}: voxel size {pixdim.tolist()} mm (zero, negative or not a number) and no "
+                          "orientation matrix; fix the header's pixdim (the voxel size in mm)")
+
+
+def _write_itk(sitk, img, path: Path, overwrite: bool) -> Path:
+    """Write ``img`` with ITK under ``path``. The file is made in a temporary folder beside it under
+    its final name (ITK picks the writer by suffix, and a detached header names its data file), then
+    moved in: data files first, the header last, so a reader never finds a header without data."""
+    import shutil
+    import tempfile
+
+    if not overwrite and path.exists():
+        raise FileExistsError(f"{path} already exists")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmpdir = Path(tempfile.mkdtemp(prefix=".clgs-tmp-", dir=path.parent))
+    try:
+        sitk.WriteImage(img, str(tmpdir / path.name), True)
+        made = sorted(tmpdir.iterdir(), key=lambda f: f.name == path.name)
+        for f in made:
+            os.replace(f, path.parent / f.name)
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)
+    return path
+
+
+def _sitk():
+    try:
+        import SimpleITK as sitk
+    except ImportError as exc:
+        raise VolumeError("reading and writing DICOM, MetaImage and NRRD needs SimpleITK: "
+                          "pip install 'clgs[formats]' (the set-up installs it)") from exc
+    return sitk
+
+
+def _read_itk(path: Path, kind: str):
+    """(array indexed (x, y, z), 4x4 RAS affine) of an ITK-readable file or DICOM series."""
+    sitk = _sitk()
+    try:
+        if kind == "dicom":
+            folder = path if path.is_dir() else path.parent
+            reader = sitk.ImageSeriesReader()
+            series = reader.GetGDCMSeriesIDs(str(folder))
+            if not series:
+                raise VolumeError(f"{folder}: no DICOM series found")
+            if len(series) > 1 and path.is_dir():
+                raise VolumeError(f"{folder}: holds {len(series)} DICOM series; name one of its files instead")
+            sid = series[0]
+            if not path.is_dir():
+                sid = next((s for s in series if str(path) in reader.GetGDCMSeriesFileNames(str(folder), s)),
+                           series[0])
+            reader.SetFileNames(reader.GetGDCMSeriesFileNames(str(folder), sid))
+            img = reader.Execute()
+        else:
+            img = sitk.ReadImage(str(path))
+    except VolumeError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - ITK's own message says what it could not read
+        raise VolumeError(f"{path}: not a readable volume ({str(exc).strip().splitlines()[-1]})") from exc
+    if img.GetDimension() != 3 or img.GetNumberOfComponentsPerPixel() != 1:
+        raise VolumeError(f"{path}: expected a 3-D scalar volume, got {img.GetDimension()}-D with "
+                          f"{img.GetNumberOfComponentsPerPixel()} components per voxel")
+    arr = sitk.GetArrayFromImage(img)  # (z, y, x)
+    direction = np.asarray(img.GetDirection(), float).reshape(3, 3) * LPS[:, None]  # rows in RAS
+    aff = np.eye(4)
+    aff[:3, :3] = direction * np.asarray(img.GetSpacing(), float)[None, :]
+    aff[:3, 3] = np.asarray(img.GetOrigin(), float) * LPS
+    return np.ascontiguousarray(arr.transpose(2, 1, 0)), aff
+
+
+def _from_affine(path, arr, aff, dtype) -> LoadedVolume:
+    """A volume indexed (i, j, k) with a voxel-to-world (RAS, mm) affine, as clgs's (Z, Y, X) array
+    with spacing and origin: brought to the closest axis-aligned orientation; an oblique one
+    resampled onto an axis-aligned grid (with a warning)."""
+    import nibabel as nib
+
     arr = _check_3d(path, arr)
+    if not np.all(np.isfinite(aff)) or abs(np.linalg.det(aff[:3, :3])) < 1e-12:
+        raise VolumeError(f"{path}: the voxel-to-world matrix is degenerate ({aff.tolist()}); "
+                          "a zero voxel size cannot be placed in the world")
+    img = nib.as_closest_canonical(nib.Nifti1Image(arr, aff))
+    arr = np.asarray(img.dataobj)
     aff = np.asarray(img.affine, float)
     lin = aff[:3, :3]
     spacing_xyz = np.sqrt((lin ** 2).sum(0))
-    if np.any(spacing_xyz <= 0) or not np.all(np.isfinite(aff)):
-        raise VolumeError(f"{path}: the NIfTI affine is degenerate ({aff.tolist()})")
+    if np.any(spacing_xyz <= 0):
+        raise VolumeError(f"{path}: a voxel size is zero ({spacing_xyz.tolist()} mm); fix the file's header")
     if not np.allclose(lin, np.diag(spacing_xyz), atol=1e-6 * spacing_xyz.max()):
-        warnings.warn(f"{path}: oblique NIfTI affine; keeping spacing and origin, dropping the rotation",
-                      stacklevel=2)
+        arr, aff = _axis_aligned(arr, aff, spacing_xyz)
+        warnings.warn(f"{path}: oblique volume (axes not along x, y, z); resampled onto an axis-aligned grid "
+                      f"of {arr.shape[0]} x {arr.shape[1]} x {arr.shape[2]} voxels of "
+                      f"{' x '.join(f'{v:g}' for v in spacing_xyz)} mm that holds it whole", stacklevel=3)
     vol = np.ascontiguousarray(arr.transpose(2, 1, 0))
     if dtype is not None:
         vol = vol.astype(dtype, copy=False)
     return LoadedVolume(vol, tuple(float(s) for s in spacing_xyz[::-1]), tuple(float(o) for o in aff[:3, 3]))
+
+
+def _axis_aligned(arr, aff, spacing_xyz):
+    """Resample an oblique volume (indexed (i, j, k), affine ``aff``) onto the axis-aligned grid of
+    spacing ``spacing_xyz`` that covers its corners: trilinear, zero outside the input."""
+    from scipy import ndimage
+
+    n = np.asarray(arr.shape, float)
+    corners = np.array([[i, j, k, 1.0] for i in (0, n[0] - 1) for j in (0, n[1] - 1) for k in (0, n[2] - 1)])
+    world = corners @ aff.T
+    lo, hi = world[:, :3].min(0), world[:, :3].max(0)
+    shape = tuple(int(v) for v in np.floor((hi - lo) / spacing_xyz + 1e-6) + 1)
+    new = np.eye(4)
+    new[:3, :3] = np.diag(spacing_xyz)
+    new[:3, 3] = lo
+    to_input = np.linalg.inv(aff) @ new  # output index -> input index
+    labels = np.issubdtype(arr.dtype, np.integer) or arr.dtype == bool  # labels: nearest, never blended
+    data = np.asarray(arr, dtype=arr.dtype if labels else np.float64)
+    out = ndimage.affine_transform(data, to_input[:3, :3], offset=to_input[:3, 3], output_shape=shape,
+                                   order=0 if labels else 1, mode="constant", cval=0)
+    return out, new
 
 
 def _check_3d(path, arr):
