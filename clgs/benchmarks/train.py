@@ -1,5 +1,12 @@
 """``clgs bench train``: training iterations per second, OpenCL against the same iteration in torch.
 
+``--method r2gs`` (default) times R2-Gaussian mode on a synthetic scene (below); ``--method shape``
+times the shape-guided method on an anatomy's held-out subject as ``clgs <anatomy> demo`` runs it
+(the femur: 35k shape-guided + 15k free Gaussians, 5 views). Both print where an iteration goes:
+torch's profiler over a few iterations, each OpenCL operator's forward and backward (the autograd
+functions named after them), torch's own operations, Adam, and the rest (Python, autograd's
+bookkeeping), per iteration; and the process's peak resident memory.
+
 One iteration is exactly what ``clgs reconstruct --method r2gs`` runs: learning rates from their
 schedules, one view, projection, L1 + 0.25 D-SSIM + 0.05 TV on a voxelised random 32^3 patch,
 backward, Adam, densification statistics. The scene: N Gaussians (default 50 000, 3-sigma radii of
@@ -150,19 +157,28 @@ def _breakdown(trainer, n: int = 10) -> dict:
 @click.option("--gaussians", "n", default=50_000, show_default=True, help="number of Gaussians")
 @click.option("--detector", "n_detector", default=256, show_default=True, help="detector pixels per side")
 @click.option("--voxels", "n_voxel", default=128, show_default=True, help="volume voxels per side")
-@click.option("--views", "n_views", default=50, show_default=True)
+@click.option("--views", "n_views", type=click.IntRange(min=1), default=None,
+              help="projections [default: 50 for r2gs, 5 for shape (the demo's)]")
 @click.option("--mode", type=click.Choice(["cone", "parallel"]), default="cone", show_default=True)
 @click.option("--iterations", default=200, show_default=True, help="timed OpenCL iterations")
 @click.option("--torch-iterations", default=2, show_default=True, help="timed torch iterations (0: skip)")
 @click.option("--seed", default=0, show_default=True)
+@click.option("--method", type=click.Choice(["r2gs", "shape"]), default="r2gs", show_default=True,
+              help="r2gs: R2-Gaussian mode on the synthetic scene; shape: the shape-guided method on an "
+                   "anatomy's held-out subject (--anatomy, --subject; --views counts its projections)")
+@click.option("--anatomy", default="femur", show_default=True, help="with --method shape")
+@click.option("--subject", default=None, help="with --method shape: a held-out subject [default: the demo's]")
 @device_option
-def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, seed, devices):
-    """Training iterations per second (OpenCL vs plain torch on the CPU, same iteration)."""
+def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, seed, method, anatomy, subject, devices):
+    """Training iterations per second (OpenCL vs plain torch on the CPU, same iteration), and
+    where an iteration goes."""
     runs = []  # torch is timed once, on the first device's run: it does not depend on the device
 
     def one():
         runs.append(None)
-        return _bench(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations if len(runs) == 1 else 0, seed)
+        if method == "shape":
+            return _bench_shape(anatomy, subject, n_views or 5, iterations, seed)
+        return _bench(n, n_detector, n_voxel, n_views or 50, mode, iterations, torch_iterations if len(runs) == 1 else 0, seed)
 
     results = on_each_device(devices, one)
     ratio_table(results, ("ms / it", "it / s"))
@@ -208,5 +224,113 @@ def _bench(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, 
                + ", ".join(f"{k} {v * 1e3:.1f}" for k, v in parts.items())
                + f", the rest (autograd, bookkeeping, load) {rest * 1e3:.1f}")
     click.echo(f"30 000 iterations (R2-Gaussian's default) would take {30_000 * t_cl / 60:.1f} min here")
+    _echo_profile(cl, t_cl)
     click.echo(watch.summary())
     return {"training iteration": (t_cl * 1e3, 1.0 / t_cl)}
+
+
+def _bench_shape(anatomy_name, subject, n_views, iterations, seed):
+    """The shape-guided method's iteration on a held-out subject, as the demo trains it."""
+    import math
+    import os
+
+    import torch
+
+    from clgs import plugins, runtime
+    from clgs.shape_guided import ShapeGuidedConfig, build_trainer, load_anatomy_parts
+    from clgs.simulation import simulate_subject
+
+    watch = HostWatch()
+    anatomy = plugins.get_anatomy(anatomy_name)
+    scene = dict(anatomy.scene or {})
+    subject = subject if subject is not None else anatomy.test_subjects()[0]
+    views = n_views
+    scan = simulate_subject(anatomy, anatomy.load_subject(subject), views,
+                            math.radians(float(scene.get("arc_deg", 180.0))), True, seed)
+    cfg = ShapeGuidedConfig(iterations=30_000, seed=seed, log_every=0, checkpoint_every=0)
+    trainer = build_trainer(scan, load_anatomy_parts(anatomy), cfg)
+    trainer.evaluate = None
+    counts = " + ".join(str(len(s)) for s in trainer.sets) + " Gaussians"
+    click.echo(f"scene: {anatomy_name} subject {subject}, {views} views, {counts}; {'x'.join(map(str, scan.geometry.nVoxel))} "
+               f"volume, {'x'.join(map(str, scan.geometry.nDetector))} detector; the shape-guided loss (L1 + D-SSIM + "
+               "TV + shape prior + density prior), Adam")
+    click.echo(f"device: {runtime.device_label()}; torch threads: {torch.get_num_threads()}; "
+               f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (others' work slows every figure)")
+    t = _time(trainer, iterations, warmup=5)
+    click.echo(f"shape-guided: {1.0 / t:.1f} it/s ({t * 1e3:.1f} ms / it; target >= 60 it/s); "
+               f"30 000 iterations would take {30_000 * t / 60:.1f} min here")
+    _echo_profile(trainer, t)
+    click.echo(watch.summary())
+    return {"training iteration": (t * 1e3, 1.0 / t)}
+
+
+def profile_iteration(trainer, n: int = 20) -> dict:
+    """ms per iteration of each part of ``n`` training steps, from torch's profiler: each OpenCL
+    operator's forward and backward (custom autograd functions, named after their classes), torch's
+    own operations summed, Adam; ``"whole (profiled)"`` is the steps' wall time under the profiler.
+    Every kernel launch waits for its kernel here (:class:`clgs.runtime.synchronous`), so its time
+    is charged to the operator that launched it, not to the next call that waits on the queue."""
+    import time
+
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    from clgs import runtime
+
+    threads = torch.get_num_threads()
+    if trainer.torch_threads:
+        torch.set_num_threads(trainer.torch_threads)
+    try:
+        with runtime.synchronous(), profile(activities=[ProfilerActivity.CPU]) as prof:
+            t0 = time.perf_counter()
+            for _ in range(n):
+                trainer.step()
+            wall = time.perf_counter() - t0
+    finally:
+        torch.set_num_threads(threads)
+    parts: dict = {}
+    aten: dict = {}
+    for ev in prof.key_averages():
+        name = ev.key
+        ms = ev.self_cpu_time_total / 1e3 / n  # microseconds over n steps -> ms per step
+        if name.startswith("Optimizer."):
+            key = "Adam (torch)"
+        elif name.startswith("aten::") or name in ("detach", "detach_"):
+            key = "torch operations (aten)"
+            aten[name] = aten.get(name, 0.0) + ms
+        elif name.startswith("_") or name.endswith("Backward"):
+            key = f"OpenCL op {name.lstrip('_')}"
+        else:
+            key = "other profiled"
+        parts[key] = parts.get(key, 0.0) + ms
+    parts["whole (profiled)"] = wall / n * 1e3
+    parts["aten"] = aten
+    return parts
+
+
+def _echo_profile(trainer, seconds_per_it: float) -> None:
+    """Where an iteration goes (see :func:`profile_iteration`), largest first, and peak memory."""
+    parts = profile_iteration(trainer)
+    whole = parts.pop("whole (profiled)")
+    aten = parts.pop("aten")
+    listed = sorted(parts.items(), key=lambda kv: -kv[1])
+    rest = whole - sum(parts.values())
+    click.echo(f"where an iteration goes (torch profiler over 20 iterations, each kernel waited for: {whole:.1f} ms "
+               f"each so, {seconds_per_it * 1e3:.1f} ms as trained), ms per iteration:")
+    for name, ms in listed:
+        if ms >= 0.05:
+            click.echo(f"  {name:42s}{ms:8.2f}  {ms / whole:6.1%}")
+        if name.startswith("torch operations"):
+            top = sorted(aten.items(), key=lambda kv: -kv[1])[:6]
+            click.echo("      of which " + ", ".join(f"{k[6:]} {v:.2f}" for k, v in top))
+    click.echo(f"  {'Python, autograd bookkeeping, waits':42s}{rest:8.2f}  {rest / whole:6.1%}")
+    click.echo(f"peak resident memory of this process: {peak_memory_mib():.0f} MiB")
+
+
+def peak_memory_mib() -> float:
+    """The process's peak resident set size so far (MiB)."""
+    import resource
+    import sys
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 2**20 if sys.platform == "darwin" else peak / 1024.0

@@ -19,5 +19,5 @@ from .devices import (  # noqa: F401
     use_device,
     working_devices,
 )
-from .programs import cl_source_dir, get_program, launch, real_name, round_up, shared  # noqa: F401
+from .programs import cl_source_dir, get_program, launch, real_name, round_up, shared, synchronous  # noqa: F401
 from .report import describe  # noqa: F401

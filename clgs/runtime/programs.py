@@ -108,6 +108,24 @@ def get_program(filename: str, defines: dict | None = None, ctx=None) -> Program
 
 _launch_lock = threading.Lock()
 _kernel_args: dict = {}  # id(kernel) -> the arguments it was last launched with (kernels are cached)
+_synchronous = [0]  # > 0: every launch waits for its kernel (profiling)
+
+
+class synchronous:
+    """Within this block every kernel launch waits until its kernel has run. Kernels are queued
+    without waiting otherwise, so a profile charges a kernel's time to whichever later call first
+    waits on the queue; under this block it lands on the operator that launched it (profiles only:
+    it removes the overlap of host and device work)."""
+
+    def __enter__(self):
+        with _launch_lock:
+            _synchronous[0] += 1
+        return self
+
+    def __exit__(self, *exc):
+        with _launch_lock:
+            _synchronous[0] -= 1
+        return False
 
 
 def launch(queue, kernel, gsize, lsize, *args):
@@ -126,7 +144,10 @@ def launch(queue, kernel, gsize, lsize, *args):
             if isinstance(v, cl.MemoryObjectHolder) or old is None or type(old) is not type(v) or old != v:
                 kernel.set_arg(i, v)
             last[i] = v
-        return cl.enqueue_nd_range_kernel(queue, kernel, gsize, lsize)
+        event = cl.enqueue_nd_range_kernel(queue, kernel, gsize, lsize)
+        if _synchronous[0]:
+            event.wait()
+        return event
 
 
 _shared: dict = {}
