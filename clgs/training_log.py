@@ -107,7 +107,29 @@ class TrainingLog:
             lines.append(f"{'best':12s}" + "".join(f"{_fmt(best.get(k)) if k in best else '':>13s}" for k in keys))
         if secs > 0 and its > 0:
             lines.append(f"{its} iterations in {secs:.1f} s of training: {its / secs:.1f} it/s")
+        reached = self.time_to_quality()
+        if reached:
+            lines.append("first reached (3D PSNR, at training s / wall s since the start): "
+                         + ", ".join(f"{level:g} dB at {t:.1f} / {w:.1f} s" for level, t, w in reached))
         return "\n".join(lines)
+
+    def time_to_quality(self, key: str = "psnr3d", step: float = 1.0) -> list:
+        """[(level, training seconds, wall seconds)]: when ``key`` first reached each whole multiple
+        of ``step`` from the first logged value up to the best (the time of the first logged row at
+        or above it: a finer ``log_every`` gives finer times)."""
+        pts = [(float(r[key]), r.get("seconds"), r.get("wall")) for r in self.rows
+               if r.get(key) is not None and r.get("seconds") is not None and math.isfinite(float(r[key]))]
+        if len(pts) < 2:
+            return []
+        lo = math.floor(pts[0][0] / step) * step + step
+        hi = max(p[0] for p in pts)
+        out = []
+        level = lo
+        while level <= hi + 1e-12:
+            first = next(p for p in pts if p[0] >= level)
+            out.append((round(level, 6), float(first[1]), float(first[2] if first[2] is not None else first[1])))
+            level += step
+        return out
 
 
 class Progress:

@@ -23,7 +23,7 @@ from .devices import device_option, on_each_device, ratio_table
 from .host import HostWatch
 
 
-def _scene(n: int, n_detector: int, n_voxel: int, n_views: int, mode: str, seed: int):
+def synthetic_scene(n: int, n_detector: int, n_voxel: int, n_views: int, mode: str, seed: int):
     import numpy as np
     import torch
 
@@ -48,7 +48,7 @@ def _scene(n: int, n_detector: int, n_voxel: int, n_views: int, mode: str, seed:
     return geo, Scan(geo, proj), (means, scales, quats, dens)
 
 
-def _trainer(scan, gaussians, backend: str, seed: int):
+def r2gs_trainer(scan, gaussians, backend: str, seed: int):
     from clgs.r2gs import R2GSConfig, build_trainer
 
     cfg = R2GSConfig(iterations=30_000, backend=backend, seed=seed, value_scale=1.0, log_every=0, checkpoint_every=0)
@@ -57,7 +57,7 @@ def _trainer(scan, gaussians, backend: str, seed: int):
     return t
 
 
-def _time(trainer, n: int, warmup: int) -> float:
+def time_steps(trainer, n: int, warmup: int) -> float:
     """Seconds per iteration, with the torch thread setting ``fit`` would use."""
     import time
 
@@ -191,23 +191,23 @@ def _bench(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, 
     from clgs import runtime
 
     watch = HostWatch()
-    geo, scan, gaussians = _scene(n, n_detector, n_voxel, n_views, mode, seed)
+    geo, scan, gaussians = synthetic_scene(n, n_detector, n_voxel, n_views, mode, seed)
     click.echo(f"scene: {n} Gaussians, {n_detector}^2 detector, {n_voxel}^3 volume, {n_views} {mode}-beam views; "
                f"loss L1 + 0.25 D-SSIM + 0.05 TV(32^3 patch), Adam")
     import os
 
     click.echo(f"device: {runtime.device_label()}; torch threads: {torch.get_num_threads()}; "
                f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (others' work slows every figure)")
-    cl = _trainer(scan, gaussians, "cl", seed)
-    t_cl = _time(cl, iterations, warmup=5)
+    cl = r2gs_trainer(scan, gaussians, "cl", seed)
+    t_cl = time_steps(cl, iterations, warmup=5)
     rows = [(f"OpenCL, {cl.torch_threads or torch.get_num_threads()} thr", iterations, t_cl)]
     if torch_iterations > 0:
         # torch's best thread setting counts: all cores, and one (faster when the cores are busy)
         t_torch = None
         for threads in sorted({torch.get_num_threads(), 1}, reverse=True):
-            tt = _trainer(scan, gaussians, "torch", seed)
+            tt = r2gs_trainer(scan, gaussians, "torch", seed)
             tt.torch_threads = threads
-            t = _time(tt, torch_iterations, warmup=1)
+            t = time_steps(tt, torch_iterations, warmup=1)
             rows.append((f"torch, {threads} thr", torch_iterations, t))
             t_torch = t if t_torch is None else min(t_torch, t)
     click.echo(f"{'backend':14s}{'iterations':>12s}{'ms / it':>12s}{'it / s':>10s}")
@@ -256,7 +256,7 @@ def _bench_shape(anatomy_name, subject, n_views, iterations, seed):
                "TV + shape prior + density prior), Adam")
     click.echo(f"device: {runtime.device_label()}; torch threads: {torch.get_num_threads()}; "
                f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (others' work slows every figure)")
-    t = _time(trainer, iterations, warmup=5)
+    t = time_steps(trainer, iterations, warmup=5)
     click.echo(f"shape-guided: {1.0 / t:.1f} it/s ({t * 1e3:.1f} ms / it; target >= 60 it/s); "
                f"30 000 iterations would take {30_000 * t / 60:.1f} min here")
     _echo_profile(trainer, t)

@@ -499,6 +499,9 @@ def make_group(anatomy) -> click.Group:
                     f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
         click.echo(f"reconstructed in {elapsed:.1f} s; final error:")
         _echo_metrics(_evaluate(anatomy, scan, result["volume"], os.path.join(work, "recon")))
+        from clgs.benchmarks.train import peak_memory_mib
+
+        click.echo(f"peak resident memory: {peak_memory_mib():.0f} MiB")
         click.echo(f"outputs in {work}")
 
     @group.command()

@@ -12,6 +12,7 @@ BENCHMARKS = {
     "ct": ("clgs.benchmarks.ct", "FDK and SART: wall time and quality at 5-50 views; against scikit-image"),
     "tv-patch": ("clgs.benchmarks.tv_patch", "TV patch: the fused device pass against the unfused path, same patches"),
     "train": ("clgs.benchmarks.train", "training iterations per second against the same iteration in torch"),
+    "scaling": ("clgs.benchmarks.scaling", "time per training iteration against the Gaussians and the detector size"),
 }
 
 
