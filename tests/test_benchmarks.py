@@ -71,3 +71,34 @@ def test_deformation_rows_compare_both_paths():
     assert [r["case"] for r in rows] == ["exp(v) forward", "exp(v) forward+backward",
                                          "field at 35k points forward+backward"]
     assert all(r["ms"] > 0 and r["ref_ms"] > 0 and math.isclose(r["speedup"], r["ref_ms"] / r["ms"]) for r in rows)
+
+
+def test_bench_train_prints_where_an_iteration_goes_and_memory():
+    out = _run("train", "--gaussians", "400", "--detector", "32", "--voxels", "16", "--views", "4",
+               "--iterations", "3", "--torch-iterations", "0")
+    assert "where an iteration goes" in out and "each kernel waited for" in out
+    assert re.search(r"OpenCL op Project\s+[0-9.]+", out) and re.search(r"OpenCL op ProjectBackward\s+[0-9.]+", out)
+    assert "torch operations (aten)" in out and "of which" in out
+    assert re.search(r"peak resident memory of this process: [0-9]+ MiB", out)
+
+
+def test_bench_train_on_two_devices_prints_the_ratio_table():
+    from clgs import runtime
+
+    working = runtime.working_devices()
+    specs = [c.index for c in runtime.candidates() if c.ok][:2]
+    if len(working) < 2:
+        specs = specs * 2  # the same device twice: the table still compares the two runs
+    out = _run("train", "--gaussians", "300", "--detector", "32", "--voxels", "16", "--views", "4",
+               "--iterations", "2", "--torch-iterations", "0", "--device", specs[0], "--device", specs[1])
+    assert out.count("== device: ") == 2
+    assert "side by side (same run)" in out and re.search(r"training iteration\s+[0-9.]+\s+[0-9.]+", out)
+
+
+def test_bench_scaling_prints_both_series_the_fit_and_draws_the_plot(tmp_path):
+    plot = tmp_path / "scaling.png"
+    out = _run("scaling", "--gaussians", "500", "--gaussians", "1000", "--detectors", "32", "--detectors", "48",
+               "--iterations", "1", "--views", "2", "--plot", str(plot))
+    assert len(re.findall(r"N\s+(500|1000), 256\^2:\s+[0-9.]+ ms / it", out)) == 2
+    assert len(re.findall(r"N\s+50000, (32|48)\^2:\s+[0-9.]+ ms / it", out)) == 2
+    assert "linear fit over N" in out and plot.is_file() and plot.stat().st_size > 1000
