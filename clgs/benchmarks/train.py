@@ -298,6 +298,8 @@ def profile_iteration(trainer, n: int = 20) -> dict:
         elif name.startswith("aten::") or name in ("detach", "detach_"):
             key = "torch operations (aten)"
             aten[name] = aten.get(name, 0.0) + ms
+        elif name.startswith("autograd::"):
+            key = "autograd engine"
         elif name.startswith("_") or name.endswith("Backward"):
             key = f"OpenCL op {name.lstrip('_')}"
         else:
