@@ -19,7 +19,9 @@ from .host import HostWatch
 def _time_iteration(n, det, views, iterations, seed):
     from .train import r2gs_trainer, synthetic_scene, time_steps
 
-    geo, scan, gaussians = synthetic_scene(n, det, 128, views, "cone", seed)
+    # the Gaussians keep their size in mm (as sized for 256^2): a finer detector sees each of them
+    # on more pixels, as it would a real object
+    geo, scan, gaussians = synthetic_scene(n, det, 128, views, "cone", seed, sized_for=256)
     trainer = r2gs_trainer(scan, gaussians, "cl", seed)
     return time_steps(trainer, iterations, warmup=3)
 

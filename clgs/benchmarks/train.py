@@ -23,7 +23,10 @@ from .devices import device_option, on_each_device, ratio_table
 from .host import HostWatch
 
 
-def synthetic_scene(n: int, n_detector: int, n_voxel: int, n_views: int, mode: str, seed: int):
+def synthetic_scene(n: int, n_detector: int, n_voxel: int, n_views: int, mode: str, seed: int,
+                    sized_for: int | None = None):
+    """(geometry, scan, Gaussians) of the benchmark scene: ``n`` Gaussians whose 3-sigma radii are
+    2-8 pixels of a ``sized_for`` detector (default: this one), in a 256 mm volume."""
     import numpy as np
     import torch
 
@@ -36,6 +39,8 @@ def synthetic_scene(n: int, n_detector: int, n_voxel: int, n_views: int, mode: s
     box = 0.5 * geo.sVoxel[::-1] * geo.scale
     # pixels per scene unit at the rotation axis, to size the footprints in detector pixels
     px = (geo.DSD / geo.DSO if mode == "cone" else 1.0) / (geo.dDetector[1] * geo.scale)
+    if sized_for is not None:  # the same objects seen by a finer or coarser detector
+        px *= sized_for / n_detector
     means = (rng.random((n, 3)) * 1.6 - 0.8) * box
     scales = rng.uniform(2.0, 8.0, (n, 1)) / 3.0 / px * rng.uniform(0.7, 1.3, (n, 3))
     quats = rng.normal(size=(n, 4))
