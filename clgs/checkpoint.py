@@ -41,7 +41,14 @@ def load(path) -> dict:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - report any unpickling failure the same way
-        raise CheckpointError(f"{path} is not a readable clgs checkpoint ({exc})") from exc
+        # torch's own message suggests weights_only=False, which would run whatever the file holds:
+        # never pass that advice on
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        if "weights_only" in first or "WeightsUnpickler" in first:
+            first = "it holds objects other than tensors and plain data"
+        raise CheckpointError(f"{path} is not a readable clgs checkpoint ({first}); it is damaged or was not made "
+                              "by clgs: delete it, or start the run again without --resume. clgs never loads "
+                              "a checkpoint in a way that could run code from it") from None
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise CheckpointError(f"{path} is not a clgs checkpoint (format {state.get('format') if isinstance(state, dict) else '?'})")
     return state

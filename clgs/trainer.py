@@ -17,8 +17,10 @@ reshuffled stack, evaluate the loss terms on a lazily-built :class:`Context`, ba
 Every ``log_every`` iterations the optional ``evaluate(trainer) -> dict`` adds a row to the log.
 Every ``checkpoint_every`` iterations, on Ctrl-C and at the end, a checkpoint is written.
 
-Ctrl-C: the first SIGINT (main thread) asks the loop to stop at the end of the current
-iteration; the loop then writes a checkpoint and returns with ``interrupted = True``. A second
+Ctrl-C: the first SIGINT (main thread), or a SIGTERM (what ``timeout``, batch schedulers and
+container stops send), asks the loop to stop at the end of the current iteration; the loop then
+writes a checkpoint and returns with ``interrupted = True`` and ``stop_signal`` set to the signal
+number (commands exit with 128 + that number: 130 for Ctrl-C, 143 for SIGTERM). A second
 SIGINT, or a KeyboardInterrupt raised elsewhere (e.g. by a hook), stops at once; a checkpoint is
 still written, and it is exact when the interruption came between iterations (hooks run there).
 
@@ -340,9 +342,11 @@ class Trainer:
         self._stop = False
         self.interrupted = False
         t_wall = time.perf_counter() - self.wall_offset
-        old_handler = None
+        self.stop_signal = None
+        old_handlers = {}
         if threading.current_thread() is threading.main_thread():
-            old_handler = signal.signal(signal.SIGINT, self._on_sigint)
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                old_handlers[sig] = signal.signal(sig, self._on_sigint)
         threads = torch.get_num_threads()
         if self.torch_threads:
             torch.set_num_threads(self.torch_threads)
@@ -363,9 +367,10 @@ class Trainer:
                     self.save_checkpoint(t_wall)
         except KeyboardInterrupt:
             self._stop = True
+            self.stop_signal = self.stop_signal or signal.SIGINT
         finally:
-            if old_handler is not None:
-                signal.signal(signal.SIGINT, old_handler)
+            for sig, handler in old_handlers.items():
+                signal.signal(sig, handler)
             torch.set_num_threads(threads)
             progress.close()
         if self._stop:
@@ -382,7 +387,9 @@ class Trainer:
         if self._stop:
             raise KeyboardInterrupt
         self._stop = True
-        msg = "interrupt: stopping after this iteration and saving a checkpoint (Ctrl-C again to abort at once)"
+        self.stop_signal = int(signum)
+        what = "interrupt" if signum == signal.SIGINT else f"signal {signal.Signals(signum).name}"
+        msg = f"{what}: stopping after this iteration and saving a checkpoint (Ctrl-C again to abort at once)"
         if getattr(self, "_progress", None) is not None and self._progress.bar is not None:
             self._progress.write(msg)
 

@@ -129,6 +129,26 @@ def test_sigint_stops_at_the_end_of_the_iteration(scene, tmp_path):
     assert ckpt.load(tmp_path / "checkpoint.pt")["iteration"] == 5
 
 
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_signal_saves_the_iteration_it_landed_in_and_is_recorded(scene, tmp_path, sig):
+    """SIGTERM (timeout, batch schedulers, container stops) saves as Ctrl-C does; the trainer
+    records which signal stopped it, so commands can exit with 128 + its number."""
+    class Send:
+        def after_backward(self, trainer, ctx):
+            if trainer.iteration == 3:
+                os.kill(os.getpid(), sig)
+
+    t = _trainer(scene, 20, tmp_path)
+    t.hooks.append(Send())
+    before = signal.getsignal(sig)
+    t.fit()
+    assert signal.getsignal(sig) is before
+    assert t.interrupted and t.iteration == 4 and t.stop_signal == sig
+    assert ckpt.load(tmp_path / "checkpoint.pt")["iteration"] == 4
+    done = _trainer(scene, 20, tmp_path).fit()
+    assert not done.interrupted and done.stop_signal is None
+
+
 def test_densification_respects_the_cap(scene):
     t = _trainer(scene, 60, max_gaussians=200, densify_interval=5, densify_start=5, densify_until=60)
     counts = []

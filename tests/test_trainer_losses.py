@@ -182,3 +182,23 @@ def test_cli_reconstruct_r2gs(tmp_path):
     assert r.exit_code == 0, r.output
     assert [row["iteration"] for row in TrainingLog.read_csv(out / "log.csv").rows] == [0, 6, 12, 18]
     assert math.isfinite(TrainingLog.read_csv(out / "log.csv").rows[-1]["psnr3d"])
+
+
+def test_a_hostile_checkpoint_is_refused_without_unsafe_advice(tmp_path):
+    """A checkpoint holding arbitrary objects is refused by the safe loader; the message says to
+    delete it or start without --resume, and never passes on torch's advice to load it unsafely."""
+    import pickle
+
+    from clgs import checkpoint as ckpt
+
+    class Payload:
+        def __reduce__(self):
+            return (print, ("this must never run",))
+
+    path = tmp_path / "checkpoint.pt"
+    with open(path, "wb") as fh:
+        pickle.dump({"format": "clgs-checkpoint", "x": Payload()}, fh)
+    with pytest.raises(ckpt.CheckpointError) as err:
+        ckpt.load(path)
+    text = str(err.value)
+    assert "weights_only" not in text and "without --resume" in text and "delete it" in text
