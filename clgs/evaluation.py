@@ -66,7 +66,9 @@ def evaluate_volume(anatomy, scan, volume) -> dict:
     vol = as_float32(volume)
     if vol.shape != scan.truth.shape:
         raise ValueError(f"reconstruction {vol.shape} and truth {scan.truth.shape} differ in shape")
-    out = metrics.evaluate_volume(vol, scan.truth)
+    out = metrics.volume_figures(vol, scan.truth)
+    if out["psnr3d"] is not None:
+        out = metrics.evaluate_volume(vol, scan.truth)
     if scan.surface is not None:
         from clgs.surface import SurfaceError
 

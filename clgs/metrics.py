@@ -230,6 +230,18 @@ def surface_distance(mesh_a, mesh_b, **kwargs) -> dict:
     return _sd(mesh_a, mesh_b, **kwargs)
 
 
+def volume_figures(pred, truth) -> dict:
+    """``psnr3d`` and ``ssim3d`` of a reconstruction, for logs and reports: where the truth makes
+    them undefined (constant, all zero) both are None and ``metrics_undefined`` says why, so that
+    a reconstruction is never lost to its metrics. Other errors (shapes, NaN) still raise."""
+    try:
+        return {"psnr3d": float(psnr3d(pred, truth)), "ssim3d": float(ssim3d(pred, truth))}
+    except MetricError as exc:
+        if "undefined" not in str(exc):
+            raise
+        return {"psnr3d": None, "ssim3d": None, "metrics_undefined": str(exc)}
+
+
 def evaluate_volume(pred, truth, mask=None) -> dict:
     """PSNR and SSIM (with per-axis SSIM), plus their masked versions when ``mask`` is given."""
     s, axes = ssim3d(pred, truth, return_axes=True)

@@ -270,8 +270,8 @@ def make_evaluator(scan, value_scale: float):
             from clgs import metrics
 
             vol = voxelize_volume(trainer, tensors) / value_scale
-            out["psnr3d"] = float(metrics.psnr3d(vol, truth))
-            out["ssim3d"] = float(metrics.ssim3d(vol, truth))
+            figures = metrics.volume_figures(vol, truth)  # None where the truth leaves them undefined
+            out.update({k: v for k, v in figures.items() if k in ("psnr3d", "ssim3d") and v is not None})
         return out
 
     return evaluate

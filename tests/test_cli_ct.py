@@ -466,3 +466,27 @@ def test_r2gs_resume_continues_to_the_planned_iterations(scan_dir, tmp_path):
     assert cli("--iterations", 20, "--gaussians", 300, "--log-every", 0, "--checkpoint-every", 0) == 20
     assert cli("--resume") == 20
     assert cli("--resume", "--iterations", 40) == 40
+
+
+@pytest.mark.parametrize("method, extra", [("sart", ["--iterations", 3]), ("r2gs", ["--iterations", 12])])
+def test_a_constant_truth_costs_no_reconstruction(tmp_path, method, extra):
+    """Metrics normalised by the truth's range are undefined on a constant truth: they are reported
+    as undefined, and the reconstruction is written all the same."""
+    np.save(tmp_path / "flat.npy", np.full((12, 12, 12), 0.02, np.float32))
+    run("simulate", tmp_path / "flat.npy", "--spacing", 2, "--views", 4, "--detector", 24, "--no-noise",
+        "--out", tmp_path / "scan")
+    res = run("reconstruct", tmp_path / "scan", "--method", method, *extra, "--out", tmp_path / "rec")
+    assert "metrics undefined" in res.output and "the truth is constant" in res.output
+    assert (tmp_path / "rec" / "volume.nii.gz").is_file()
+
+
+def test_volume_figures_report_undefined_metrics_and_still_raise_on_bad_input():
+    from clgs import metrics
+
+    flat = np.full((6, 6, 6), 0.5, np.float32)
+    got = metrics.volume_figures(flat * 0.9, flat)
+    assert got["psnr3d"] is None and got["ssim3d"] is None and "constant" in got["metrics_undefined"]
+    ok = metrics.volume_figures(ball_volume(12, 4.0) * 0.9, ball_volume(12, 4.0))
+    assert ok["psnr3d"] > 10 and 0 < ok["ssim3d"] <= 1 and "metrics_undefined" not in ok
+    with pytest.raises(metrics.MetricError):
+        metrics.volume_figures(flat[:5], flat)

@@ -522,8 +522,11 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, show_help):
         if sc.truth is not None:
             from clgs import metrics
 
-            s, axes = metrics.ssim3d(vol, sc.truth, return_axes=True)
-            report["metrics"] = {"psnr3d": metrics.psnr3d(vol, sc.truth), "ssim3d": s, "ssim3d_axes": axes}
+            figures = metrics.volume_figures(vol, sc.truth)
+            if figures["psnr3d"] is not None:
+                s, axes = metrics.ssim3d(vol, sc.truth, return_axes=True)
+                figures.update(ssim3d=s, ssim3d_axes=axes)
+            report["metrics"] = figures
         if folder is None:
             save_volume(out, vol, sc.geometry)
         else:
@@ -575,7 +578,10 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, show_help):
     line = f"{method.name}: {report['seconds']:.2f} s"
     if "metrics" in report:
         m = report["metrics"]
-        line += f", PSNR {_fmt(m['psnr3d'])} dB, SSIM {m['ssim3d']:.4f}"
+        if m.get("psnr3d") is None:
+            line += f"; metrics undefined ({m.get('metrics_undefined')}); the volume is written"
+        else:
+            line += f", PSNR {_fmt(m['psnr3d'])} dB, SSIM {m['ssim3d']:.4f}"
     click.echo(line)
     click.echo(f"wrote {out}")
 
