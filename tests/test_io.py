@@ -269,3 +269,29 @@ def test_mesh_errors(tmp_path):
     np.savez(tmp_path / "bad.npz", v=np.zeros(3))
     with pytest.raises(MeshError, match="'vertices' and 'faces'"):
         load_mesh(tmp_path / "bad.npz")
+
+
+def test_a_full_disk_names_the_file_and_leaves_nothing_behind(tmp_path, monkeypatch):
+    """ENOSPC while writing: the error names the output and says nothing was replaced; neither a
+    temporary file nor a half-made folder is left, and an existing output is kept."""
+    import errno
+
+    from clgs.io import atomic
+
+    target = tmp_path / "volume.npy"
+    target.write_bytes(b"old")
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with pytest.raises(atomic.DiskFullError, match=r"disk is full while writing .*volume\.npy.*nothing was replaced"):
+        with atomic.atomic_path(target) as tmp:
+            tmp.write_bytes(b"new")
+            full()
+    assert target.read_bytes() == b"old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["volume.npy"]
+    with pytest.raises(atomic.DiskFullError, match="run"):
+        with atomic.atomic_dir(tmp_path / "run") as tmp:
+            (tmp / "a.txt").write_text("x")
+            full()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["volume.npy"]

@@ -20,8 +20,27 @@ from pathlib import Path
 
 __all__ = [
     "atomic_path", "atomic_dir", "write_bytes", "write_text", "write_json", "save_npy", "save_npz",
-    "json_safe",
+    "json_safe", "DiskFullError",
 ]
+
+
+class DiskFullError(OSError):
+    """The disk filled up while an output was being written; nothing was replaced."""
+
+
+def _disk_full(exc: OSError, target: Path) -> OSError:
+    """``exc`` as a DiskFullError naming ``target`` when it is a full disk (or quota), else itself."""
+    import errno
+
+    if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+        return exc
+    try:
+        free = shutil.disk_usage(target.parent if target.parent.exists() else ".").free
+        room = f"{free / 2**20:.0f} MiB left there"
+    except OSError:
+        room = "no room left"
+    return DiskFullError(exc.errno, f"the disk is full while writing {target} ({room}); nothing was replaced "
+                                    "and no partial output was left: free some space and run again")
 
 
 def _temp_sibling(path: Path) -> Path:
@@ -63,6 +82,11 @@ def atomic_path(path, overwrite: bool = True):
             os.fsync(fh.fileno())
         os.replace(tmp, path)
         _fsync_dir(path.parent)
+    except OSError as exc:
+        full = _disk_full(exc, path)
+        if full is exc:
+            raise
+        raise full from None
     finally:
         if tmp.exists():
             tmp.unlink()
@@ -160,6 +184,11 @@ def atomic_dir(path, overwrite: bool = False):
         _fsync_dir(path.parent)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
+    except OSError as exc:
+        full = _disk_full(exc, path)
+        if full is exc:
+            raise
+        raise full from None
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
