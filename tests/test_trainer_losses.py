@@ -197,7 +197,7 @@ def test_a_hostile_checkpoint_is_refused_without_unsafe_advice(tmp_path):
 
     path = tmp_path / "checkpoint.pt"
     with open(path, "wb") as fh:
-        pickle.dump({"format": "clgs-checkpoint", "x": Payload()}, fh)
+        pickle.dump({"format": "clgs-checkpoint", "x": Payload()}, fh, protocol=2)
     with pytest.raises(ckpt.CheckpointError) as err:
         ckpt.load(path)
     text = str(err.value)
