@@ -19,6 +19,7 @@ COMMANDS = {
     "reconstruct": "clgs.commands.ct:reconstruct",
     "evaluate": "clgs.commands.ct:evaluate",
     "anatomies": "clgs.commands.anatomies:anatomies",
+    "import": "clgs.commands.import_raw:import_raw",
 }
 
 
