@@ -78,6 +78,7 @@ def import_raw(raw, out, flats, darks, air_columns, angles_file, arc, mode, DSO,
     angles, and the rotation axis (found from the projections, or given), then a circular
     geometry; the scan reconstructs with every method (clgs reconstruct SCAN ...)."""
     from clgs.io.raw import RawError, read_raw, scan_from_raw
+    from clgs.io.scan import ScanError
 
     if out.exists() and not force:
         raise click.ClickException(f"{out} already exists; pass --force to overwrite it (or choose another --out)")
@@ -100,12 +101,16 @@ def import_raw(raw, out, flats, darks, air_columns, angles_file, arc, mode, DSO,
             crop=_ints(crop, 4, "R0,R1,C0,C1", "--crop"), binning=b,
             air_columns=_ints(air_columns, 2, "FIRST,LAST", "--air-columns"), floor=floor, views=views)
         scan.save(out, overwrite=force)
-    except RawError as exc:
+    except (RawError, ScanError) as exc:
         raise click.ClickException(str(exc)) from None
+    except OSError as exc:
+        raise click.ClickException(f"could not write {out}: {exc}") from None
     g = scan.geometry
     c = report["centre"]
     click.echo(f"{raw}: {report['views']} views, flats {report['flats']}, darks {report['darks']} (I0 from "
-               f"{report['I0']}); floored {report['floored_pixels']} pixels ({report['floored_fraction']:.2%})")
+               f"{report['I0']}); floored {report['floored_pixels']} pixels ({report['floored_fraction']:.2%}); "
+               f"{report['brighter_than_flat_pixels']} brighter than the flat set to 0 "
+               f"(down to {report['most_negative']:.3g})")
     click.echo(f"rotation axis at column {c['column']:.2f} ({c['method']}"
                + (f", residual {c['rms_residual_pixels']:.2f} px" if "rms_residual_pixels" in c else "")
                + f"): offDetector {g.offDetector[1]:.3f} mm")

@@ -13,7 +13,8 @@ of each are averaged.
 fields the unattenuated intensity I0 is estimated per view from an air region (given columns, or
 by default the brightest 1 % of each view's pixels, which assumes some of each view sees past the
 object). Ratios at or below a floor (dead pixels, photon starvation) are set to the floor and
-counted; the count is reported.
+counted; the count is reported. Line integrals below 0 (brighter than the flat field: noise, or
+the beam drifting between the flat fields and the projections) are set to 0 and counted too.
 
 :func:`find_centre` estimates the column the rotation axis projects to, for a parallel or a
 circular cone-beam scan, by the centre-of-mass method: the attenuation-weighted mean column of
@@ -218,7 +219,12 @@ def line_integrals(raw: RawProjections, air_columns=None, floor: float = DEFAULT
     report["floored_fraction"] = float(starved.mean())
     ratio = np.where(starved, floor, ratio)
     proj = -np.log(ratio)
-    report["brighter_than_flat_pixels"] = int(np.count_nonzero(proj < 0))
+    # brighter than the flat field (noise, beam drift between flat and projection): no negative
+    # attenuation exists, so these are set to 0 and counted
+    negative = proj < 0
+    report["brighter_than_flat_pixels"] = int(np.count_nonzero(negative))
+    report["most_negative"] = float(proj.min()) if negative.any() else 0.0
+    proj[negative] = 0.0
     return proj.astype(np.float32), report
 
 
