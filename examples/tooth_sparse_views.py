@@ -10,6 +10,14 @@ fit on all 181 views), the reference is FDK (ramp filter) from every view, and e
 takes evenly spaced views. 2D PSNR over both reconstructed slices (normalised by the reference's
 range, as the 3D PSNR of ``clgs.metrics``) and 2D SSIM (scikit-image, mean over the two slices).
 Writes ``OUT/curves.png``, ``OUT/summary.json`` and ``OUT/slices.png``.
+
+When ASTRA is installed (``pip install astra-toolbox``: a benchmark-only extra, never needed to
+reconstruct), its CPU FBP and SART run on the same views in the same run, slice by slice, with
+the same rotation axis (each projection shifted so that the axis falls on the detector's middle,
+which ASTRA's CPU FBP assumes).
+ASTRA's image axes and rotation sense differ from clgs's: its results are turned (one of the
+eight flips and transposes, the one that best matches its own 181-view FBP to the reference) before
+they are compared.
 """
 import argparse
 import json
@@ -27,6 +35,63 @@ def _ssim2d(vol, ref):
     lo, hi = float(ref.min()), float(ref.max())
     a, b = (vol - lo) / (hi - lo), (ref - lo) / (hi - lo)
     return float(np.mean([structural_similarity(x, y, data_range=1.0) for x, y in zip(a, b)]))
+
+
+def _astra_runs(proj, theta, column, ref, sart_iterations):
+    """ASTRA's CPU FBP and SART of each detector row; [(name, volume (rows, N, N), seconds)] turned
+    into the reference's orientation (see the module doc), or [] without ASTRA."""
+    try:
+        import astra
+    except ImportError:
+        return None
+    from scipy import ndimage
+
+    rows, n = proj.shape[1], proj.shape[2]
+    # ASTRA's CPU FBP takes the plain parallel geometry only (axis at the detector's middle): move
+    # the axis there by shifting every projection (linear interpolation)
+    centred = ndimage.shift(np.asarray(proj, np.float64), (0, 0, (n - 1) / 2.0 - column), order=1, mode="nearest")
+    pg = astra.create_proj_geom("parallel", 1.0, n, np.asarray(theta, np.float64))
+    vg = astra.create_vol_geom(n, n)
+    projector = astra.create_projector("linear", pg, vg)
+    proj = centred
+
+    def run(alg, r, iterations=1):
+        sid = astra.data2d.create("-sino", pg, np.ascontiguousarray(proj[:, r, :], np.float32))
+        rid = astra.data2d.create("-vol", vg, 0.0)
+        cfg = astra.astra_dict(alg)
+        cfg.update(ReconstructionDataId=rid, ProjectionDataId=sid, ProjectorId=projector)
+        if alg == "SART":
+            cfg["option"] = {"MinConstraint": 0.0}
+        aid = astra.algorithm.create(cfg)
+        astra.algorithm.run(aid, iterations)
+        out = astra.data2d.get(rid)
+        astra.algorithm.delete(aid)
+        astra.data2d.delete([sid, rid])
+        return out
+
+    import time
+
+    results = []
+    for alg, its in (("FBP", 1), ("SART", sart_iterations * len(theta))):  # SART: one view per iteration
+        t0 = time.perf_counter()
+        vol = np.stack([run(alg, r, its) for r in range(rows)])
+        results.append((f"ASTRA {alg}", vol, time.perf_counter() - t0))
+    astra.projector.delete(projector)
+    return results
+
+
+def _orient(vol, turn):
+    flip_y, flip_x, transpose = turn
+    v = vol[:, ::-1] if flip_y else vol
+    v = v[:, :, ::-1] if flip_x else v
+    return np.ascontiguousarray(v.transpose(0, 2, 1) if transpose else v)
+
+
+def _best_turn(vol, ref):
+    import itertools
+
+    turns = list(itertools.product((False, True), repeat=3))
+    return max(turns, key=lambda t: float(np.corrcoef(_orient(vol, t).ravel(), ref.ravel())[0, 1]))
 
 
 def main():
@@ -58,6 +123,12 @@ def main():
     summary = {"raw": args.raw, "centre_column": report["centre"]["column"], "reference": "FDK, 181 views, ram-lak",
                "reference_seconds": ref_seconds, "runs": []}
     curves = {}
+    astra_turn = None
+    full_astra = _astra_runs(full.projections, full.geometry.angles, report["centre"]["column"], ref, 0)
+    if full_astra is not None:
+        astra_turn = _best_turn(full_astra[0][1], ref)
+        summary["astra"] = {"orientation (flip y, flip x, transpose)": list(astra_turn),
+                            "fbp_181_psnr_vs_reference": float(metrics.psnr3d(_orient(full_astra[0][1], astra_turn), ref))}
     for nv in args.views:
         keep = np.linspace(0, full.n_views, nv, endpoint=False).astype(int)
         with warnings.catch_warnings():
@@ -79,6 +150,11 @@ def main():
         sec = time.perf_counter() - t0
         curve = [(r["wall"], r["psnr3d"]) for r in res.log.rows if r.get("psnr3d") is not None]
         runs.append(("R2-Gaussian", res.volume, sec, curve))
+        if astra_turn is not None:
+            for name, v, s in _astra_runs(scan.projections, scan.geometry.angles, report["centre"]["column"], ref,
+                                          args.sart_iterations):
+                v = _orient(v, astra_turn)
+                runs.append((name, v, s, [(s, float(metrics.psnr3d(v, ref)))]))
         for name, v, s, c in runs:
             row = {"views": nv, "method": name, "psnr2d": float(metrics.psnr3d(v, ref)), "ssim2d": _ssim2d(v, ref),
                    "seconds": s}
@@ -95,7 +171,7 @@ def main():
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.5, 4))
-    styles = {"FDK": "s", "SART": "o-", "R2-Gaussian": "-"}
+    styles = {"FDK": "s", "SART": "o-", "R2-Gaussian": "-", "ASTRA FBP": "^", "ASTRA SART": "v"}
     for (name, nv), c in curves.items():
         c = np.asarray(c)
         ax.plot(c[:, 0], c[:, 1], styles[name], ms=3, label=f"{name}, {nv} views")
