@@ -7,7 +7,8 @@
 #    (PyPI's PoCL 3.0 does not). Needs root or password-less sudo; skipped, with a message, when
 #    neither is there or the system has no apt-get.
 # 2. pip: torch (the CPU build, pinned; install your own first on a GPU machine), clgs in
-#    editable mode with its test tools and SimpleITK (DICOM, MetaImage, NRRD), Intel's CPU OpenCL runtime (a dependency on x86-64 Linux:
+#    editable mode with its test tools, SimpleITK and h5py (DICOM, MetaImage, NRRD, HDF5), ASTRA
+#    (for side-by-side comparisons only), Intel's CPU OpenCL runtime (a dependency on x86-64 Linux:
 #    clgs registers it with the ICD loader itself), and the built-in anatomy plugins.
 # 3. clgs info: every OpenCL device with its probe result; fails when none works.
 #
@@ -47,7 +48,7 @@ else
 fi
 
 echo "== clgs set-up: Python packages"
-"$PY" -m pip install --quiet --disable-pip-version-check "torch==2.13.0" -e ".[test,formats]" \
+"$PY" -m pip install --quiet --disable-pip-version-check "torch==2.13.0" -e ".[test,formats,compare]" \
   -e anatomies/femur -e anatomies/patella
 
 echo "== clgs set-up: OpenCL devices"
