@@ -162,7 +162,7 @@ def read_r2gaussian(folder, split: str = "train", neg_tolerance: float = NEG_TOL
     geometry = geometry_from_scanner(scanner, angles)
     views = []
     for f in files:
-        p = read_npy(folder / f, "projection", META_DATA)
+        p = read_npy(_inside(folder, f, "projection"), "projection", META_DATA)
         if p.ndim != 2 or tuple(p.shape) != tuple(geometry.nDetector):
             raise ScanError(f"{folder / f}: projection of shape {p.shape} does not match the scanner's "
                             f"nDetector [V, U] = {list(geometry.nDetector)}")
@@ -171,7 +171,7 @@ def read_r2gaussian(folder, split: str = "train", neg_tolerance: float = NEG_TOL
     truth = None
     vol_key = "vol" if "vol" in meta else ("ct" if "ct" in meta else None)
     if vol_key is not None and meta[vol_key]:
-        vol = read_npy(folder / str(meta[vol_key]), "volume", META_DATA)
+        vol = read_npy(_inside(folder, str(meta[vol_key]), "volume"), "volume", META_DATA)
         expected = tuple(geometry.nVoxel[::-1])
         if vol.ndim != 3 or tuple(vol.shape) != expected:
             raise ScanError(f"{folder / str(meta[vol_key])}: volume of shape {vol.shape} does not match the "
@@ -187,6 +187,15 @@ def read_r2gaussian(folder, split: str = "train", neg_tolerance: float = NEG_TOL
         "provenance": {"source": "r2gaussian", "folder": str(folder), "split": split, "scanner": scanner},
     }
     return Scan(geometry, proj, truth, scan_meta)
+
+
+def _inside(folder, name, what):
+    from clgs.io.paths import OutsideFolderError, inside
+
+    try:
+        return inside(folder, name, what, META_DATA)
+    except OutsideFolderError as exc:
+        raise ScanError(str(exc)) from None
 
 
 def to_r2gaussian_folder(scan: Scan, folder, test: Scan | None = None, overwrite: bool = False) -> Path:

@@ -243,22 +243,32 @@ class Scan:
         meta = doc.get("meta") or {}
         if not isinstance(meta, dict):
             raise ScanError(f"{folder / SCAN_JSON}: 'meta' must be an object (key: value), got {meta!r}")
-        proj = read_npy(folder / files.get("projections", PROJECTIONS), "projections")
+        proj = read_npy(_inside(folder, files.get("projections") or PROJECTIONS, "projections"), "projections")
         with warnings.catch_warnings():
             warnings.simplefilter("always", ScanWarning)
             proj = check_projections(proj, geometry, neg_tolerance, source=str(folder / PROJECTIONS))
         truth = None
         if files.get("truth"):
-            truth = _check_truth(read_npy(folder / files["truth"], "truth"), geometry, str(folder / files["truth"]))
+            truth = _check_truth(read_npy(_inside(folder, files["truth"], "truth"), "truth"), geometry,
+                                 str(folder / files["truth"]))
         surface = None
         if files.get("truth_surface"):
             from clgs.io.mesh import MeshError, load_mesh
 
             try:
-                surface = load_mesh(folder / files["truth_surface"])
+                surface = load_mesh(_inside(folder, files["truth_surface"], "truth surface"))
             except MeshError as exc:
                 raise ScanError(str(exc)) from exc
         return cls(geometry, proj, truth, meta, surface)
+
+
+def _inside(folder: Path, name, what: str) -> Path:
+    from clgs.io.paths import OutsideFolderError, inside
+
+    try:
+        return inside(folder, name, what, SCAN_JSON)
+    except OutsideFolderError as exc:
+        raise ScanError(str(exc)) from None
 
 
 def read_json(path: Path):
@@ -279,4 +289,8 @@ def read_npy(path: Path, what: str, named_in: str = "the scan description") -> n
     try:
         return np.load(path, allow_pickle=False)
     except Exception as exc:  # noqa: BLE001 - any failure means an unreadable array
-        raise ScanError(f"{path}: unreadable {what} array ({exc})") from exc
+        reason = str(exc)
+        if "pickle" in reason:  # numpy's advice to load it unsafely is never passed on
+            reason = "it holds pickled Python objects, which clgs never loads"
+        raise ScanError(f"{path}: unreadable {what} array ({reason}); a scan's arrays are plain .npy "
+                        "files") from None
