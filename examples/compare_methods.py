@@ -38,7 +38,7 @@ def main():
     from clgs.ct.fdk import fdk
     from clgs.ct.sart import sart
     from clgs.io import atomic
-    from clgs.r2gs import reconstruct_r2gs
+    from clgs.methods.r2gs import reconstruct_r2gs
 
     settings = {}
     for pair in args.settings:

@@ -11,7 +11,7 @@ import sys
 import numpy as np
 
 from clgs.io.scan import Scan
-from clgs.r2gs import reconstruct_r2gs
+from clgs.methods.r2gs import reconstruct_r2gs
 
 
 def phantom_scan(n_views: int = 10, arc: float = np.pi) -> Scan:
@@ -24,7 +24,7 @@ def phantom_scan(n_views: int = 10, arc: float = np.pi) -> Scan:
     reconstruction sampled at the voxel centres scores only 25 dB against them.)"""
     from clgs.ct import phantoms
     from clgs.ct.noise import add_noise
-    from clgs.ct.projector import CTProjector
+    from clgs.ops.ct_projector import CTProjector
     from clgs.geometry import Geometry
 
     geo = Geometry.default(n_views=n_views, arc=arc, n_voxel=64, n_detector=128, volume_mm=256.0)

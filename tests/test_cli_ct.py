@@ -11,7 +11,7 @@ from clgs.cli import main
 from clgs.io.scan import Scan
 from clgs.io.volume import load_volume, save_volume
 
-pytest.importorskip("clgs.ct.projector")
+pytest.importorskip("clgs.ops.ct_projector")
 pytest.importorskip("clgs.ct.fdk")
 
 
@@ -39,7 +39,7 @@ def scan_dir(tmp_path_factory):
 
 
 def test_simulate_writes_a_complete_scan(scan_dir):
-    from clgs.ct.projector import CTProjector
+    from clgs.ops.ct_projector import CTProjector
 
     scan = Scan.load(scan_dir / "scan")
     g = scan.geometry
@@ -59,7 +59,7 @@ def test_simulate_writes_a_complete_scan(scan_dir):
 
 
 def test_simulate_no_noise_is_the_projector(scan_dir, tmp_path):
-    from clgs.ct.projector import CTProjector
+    from clgs.ops.ct_projector import CTProjector
 
     np.save(tmp_path / "ball.npy", ball_volume())
     run("simulate", tmp_path / "ball.npy", "--spacing", "2", "--views", 5, "--arc", 360, "--mode", "parallel",
@@ -178,7 +178,7 @@ def test_bad_inputs_give_clear_errors(scan_dir, tmp_path):
 
 def test_help_does_not_import_heavy_modules():
     """The three commands' help (and the method list) load neither NumPy nor torch nor OpenCL."""
-    code = ("import sys; from click.testing import CliRunner; from clgs.commands import ct; "
+    code = ("import sys; from click.testing import CliRunner; from clgs.cli import ct; "
             "outs = [CliRunner().invoke(c, ['--help']) for c in (ct.simulate, ct.reconstruct, ct.evaluate)]; "
             "assert all(r.exit_code == 0 for r in outs), [r.output for r in outs]; "
             "assert 'r2gs' in outs[1].output and 'sart' in outs[1].output; "

@@ -8,7 +8,7 @@ import torch
 
 from clgs import metrics
 from clgs.metrics import MetricError
-from clgs.surface import (SurfaceError, point_to_mesh_distance, sample_surface, surface_distance,
+from clgs.mesh.surface import (SurfaceError, point_to_mesh_distance, sample_surface, surface_distance,
                           surface_from_volume)
 
 

@@ -1,10 +1,10 @@
-"""Surface -> label -> signed distance -> CT-like density (clgs.phantom), on analytic shapes."""
+"""Surface -> label -> signed distance -> CT-like density (clgs.anatomy.phantom), on analytic shapes."""
 import numpy as np
 import pytest
 import trimesh
 
-from clgs import meshvol as mv
-from clgs import phantom as ph
+from clgs.mesh import voxels as mv
+from clgs.anatomy import phantom as ph
 from clgs.geometry import Grid
 
 
@@ -235,14 +235,14 @@ def test_align_rigid_recovers_pose_and_mirror(rng):
 
 def test_load_mesh_formats(tmp_path):
     """The loader the phantom's mesh import uses gives closed meshes back (STL corners merged)."""
-    from clgs.io.mesh import MeshError, load_mesh
+    from clgs.io.mesh import MeshError, check_mesh, load_mesh
 
     mesh = trimesh.creation.icosphere(2, radius=7.0)
     mesh.export(tmp_path / "m.stl")
     np.savez(tmp_path / "m.npz", vertices=mesh.vertices, faces=mesh.faces)
     for name in ("m.stl", "m.npz"):
         v, f = load_mesh(tmp_path / name)
-        mv.check_mesh(v, f)  # watertight
+        check_mesh(v, f, closed=True)  # watertight
         assert abs(mv.mesh_volume(v, f) - mesh.volume) < 1e-3 * mesh.volume
     with pytest.raises(MeshError, match="no such file"):
         load_mesh(tmp_path / "missing.stl")

@@ -4,7 +4,7 @@ Update for one subset ``S`` of views (all views when ``subsets == 1``, which is 
 
     x <- x + relaxation * (A_S^T ((b_S - A_S x) / (A_S 1))) / (A_S^T 1)
 
-with ``A`` the forward projector of :class:`clgs.ct.projector.CTProjector` and ``A^T`` its exact
+with ``A`` the forward projector of :class:`clgs.ops.ct_projector.CTProjector` and ``A^T`` its exact
 transpose: ``A 1`` are the ray lengths through the volume (row sums), ``A_S^T 1`` the column sums
 of the subset. Rays that barely touch the volume (row sum below 1e-6 of the largest) and voxels no
 ray of the subset reaches are left out, so nothing divides by zero. ``nonneg`` clamps the volume
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from clgs.ct import check_projections
+from clgs.io.validate import check_projections
 
 from clgs.geometry import Geometry
 
@@ -44,9 +44,9 @@ def sart(projections, geometry: Geometry, n_iter: int = 10, subsets: int = 1, re
     ``volume`` is a fresh (Z, Y, X) copy of the current estimate). ``verbose`` shows a tqdm bar.
     ``projector``: an existing :class:`CTProjector` for this geometry, to reuse its buffers.
     """
-    from clgs.ct.projector import CTProjector
+    from clgs.ops.ct_projector import CTProjector
 
-    b = check_projections(projections, geometry, "sart")
+    b = check_projections(projections, geometry, neg_tolerance=None, source="sart")
     if int(n_iter) < 0:
         raise ValueError(f"n_iter must be at least 0, got {n_iter}")
     if not np.isfinite(relaxation) or not 0 < relaxation < 2:

@@ -41,7 +41,7 @@ import numpy as np
 
 from clgs.geometry import Geometry, GeometryError
 from clgs.io import atomic
-from clgs.io.scan import NEG_TOLERANCE, Scan, ScanError, check_projections, read_json, read_npy
+from clgs.io.validate import NEG_TOLERANCE, ScanError, check_projections, read_json, read_npy
 
 __all__ = ["is_r2gaussian_folder", "read_r2gaussian", "to_r2gaussian_folder", "geometry_from_scanner",
            "scanner_from_geometry", "META_DATA"]
@@ -138,8 +138,10 @@ def _read_meta(folder: Path) -> dict:
     return meta
 
 
-def read_r2gaussian(folder, split: str = "train", neg_tolerance: float = NEG_TOLERANCE) -> Scan:
-    """Read an R2-Gaussian dataset folder as a :class:`Scan` (views of ``split``: train or test).
+def read_parts(folder, split: str = "train", neg_tolerance: float = NEG_TOLERANCE) -> tuple:
+    """Read an R2-Gaussian dataset folder: (geometry, projections, truth, meta) of a
+    :class:`clgs.io.scan.Scan` (``Scan.load`` and :func:`clgs.io.scan.read_r2gaussian` make it)
+    of the views of ``split`` (train or test).
 
     The truth (``vol`` or ``ct`` key) is transposed to (Z, Y, X); each projection is flipped
     vertically (see the module doc).
@@ -186,11 +188,11 @@ def read_r2gaussian(folder, split: str = "train", neg_tolerance: float = NEG_TOL
         "acquisition": acquisition,
         "provenance": {"source": "r2gaussian", "folder": str(folder), "split": split, "scanner": scanner},
     }
-    return Scan(geometry, proj, truth, scan_meta)
+    return geometry, proj, truth, scan_meta
 
 
-def to_r2gaussian_folder(scan: Scan, folder, test: Scan | None = None, overwrite: bool = False) -> Path:
-    """Write ``scan`` as an R2-Gaussian dataset folder (atomically): its views become ``proj_train``,
+def to_r2gaussian_folder(scan, folder, test=None, overwrite: bool = False) -> Path:
+    """Write ``scan`` (a :class:`clgs.io.scan.Scan`) as an R2-Gaussian dataset folder (atomically): its views become ``proj_train``,
     those of ``test`` (same scanner, other angles) ``proj_test``. The truth, if any, goes to
     ``vol_gt.npy`` in [x, y, z] order; every projection is flipped to image rows."""
     folder = Path(folder)

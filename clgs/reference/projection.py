@@ -1,4 +1,4 @@
-"""Plain torch references of the Gaussian projector (``cl/gaussian_project.cl``).
+"""Plain torch references of the Gaussian projector (``cl/projector.cl``).
 
 ``project_dense`` evaluates every (pixel, Gaussian) pair from first principles, with the rays of
 ``Geometry.rays`` and, for the affine mode, the Jacobian of the projection map obtained by
@@ -21,7 +21,7 @@ import math
 import numpy as np
 import torch
 
-from ..gaussian_math import unpack_sym
+from clgs.ops.gaussian_math import unpack_sym
 
 NEAR_PLANE = 0.2
 QCUT = 9.0

@@ -1,0 +1,15 @@
+"""Anatomy plugins and what they build on: the hooks (:mod:`.hookspecs`), the plugin manager
+(:mod:`.plugins`), the :class:`Anatomy` record (:mod:`.record`), the tissue model and subject
+population of a bone (:mod:`.phantom`), simulated scans of a subject (:mod:`.simulation`) and the
+evaluation of a reconstruction against its truth (:mod:`.evaluation`).
+
+A plugin needs only ``from clgs.anatomy import Anatomy, hookimpl``.
+
+May import: :mod:`clgs.shape`, :mod:`clgs.ct`, :mod:`clgs.ops`, :mod:`clgs.metrics`,
+:mod:`clgs.mesh`, :mod:`clgs.io`, :mod:`clgs.geometry`. Not fit, methods or the CLI. This
+package's own import stays light (no torch, no pyopencl): it is read to list plugins.
+"""
+from clgs.anatomy.hookspecs import hookimpl
+from clgs.anatomy.record import Anatomy
+
+__all__ = ["Anatomy", "hookimpl"]
