@@ -25,6 +25,7 @@
 #define BRICK_Z 8
 #endif
 #define BRICK_ROWS (BRICK_Y * BRICK_Z)
+/* The record sizes; clgs/ops/voxelizer.py reads them from here to lay the records out. */
 #define GSTRIDE 16
 #define GRADSTRIDE 10
 /* cells are widened by this fraction on both sides when binning, plus a few roundings of the

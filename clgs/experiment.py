@@ -156,7 +156,8 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
                 atomic.write_json(record_path, row)
                 rows.append(row)
                 write_reports(out, rows, summarise(rows, views, ablation_views), views, ablation_views)
-                echo(f"  {tag}: PSNR {row.get('psnr3d', float('nan')):.2f} dB, SSIM {row.get('ssim3d', float('nan')):.4f}, "
+                psnr, ssim = row.get("psnr3d", float("nan")), row.get("ssim3d", float("nan"))
+                echo(f"  {tag}: PSNR {psnr:.2f} dB, SSIM {ssim:.4f}, "
                      f"surface {row.get('surface_mean_mm', float('nan')):.2f} mm, {row['seconds']:.0f} s")
     summary = summarise(rows, views, ablation_views)
     write_reports(out, rows, summary, views, ablation_views)

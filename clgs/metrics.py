@@ -32,6 +32,8 @@ import math
 
 import numpy as np
 
+from clgs.errors import ClgsError
+
 __all__ = ["psnr3d", "ssim3d", "masked_psnr3d", "masked_ssim3d", "ssim_maps", "projection_psnr",
            "projection_ssim", "evaluate_volume", "surface_distance", "MetricError",
            "SSIM_WINDOW", "SSIM_SIGMA", "SSIM_C1", "SSIM_C2", "gaussian_window"]
@@ -42,7 +44,7 @@ SSIM_C1 = 0.01 ** 2
 SSIM_C2 = 0.03 ** 2
 
 
-class MetricError(ValueError):
+class MetricError(ClgsError, ValueError):
     """Inputs a metric cannot be computed on (shapes differ, constant truth, empty mask, NaN)."""
 
 

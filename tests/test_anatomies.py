@@ -10,6 +10,7 @@ clgs_patella = pytest.importorskip("clgs_patella", reason="install with: pip ins
 
 from clgs.mesh import voxels as mv  # noqa: E402
 from clgs.anatomy import phantom as ph  # noqa: E402
+from clgs.anatomy.alignment import align_rigid  # noqa: E402
 
 HELD_OUT = [f"{i:02d}" for i in range(20, 26)]
 MODEL_IDS = [f"{i:02d}" for i in range(20)]
@@ -152,7 +153,7 @@ def test_right_femur_from_a_file_is_mirrored_and_aligned(femur, tmp_path):
     assert subject.volume.shape == tuple(femur.grid.shape)
     # the fit is as good as fitting the left femur in its own frame (RMS = shape difference to the
     # template, a few mm), and it lands where femur 22 sits, up to that difference
-    direct = ph.align_rigid(v, femur.template_mesh()[0], allow_mirror=False)
+    direct = align_rigid(v, femur.template_mesh()[0], allow_mirror=False)
     assert al.rms_mm == pytest.approx(direct.rms_mm, abs=0.05) and al.rms_mm < 5.0
     from scipy.spatial import cKDTree  # (an STL file does not keep the vertex order)
 

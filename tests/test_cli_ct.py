@@ -299,7 +299,6 @@ def test_output_may_not_replace_or_overwrite_the_input_scan(scan_dir, tmp_path):
 
 
 def test_non_finite_and_out_of_range_method_options_are_refused_at_parse_time(scan_dir, tmp_path):
-    from clgs import methods
 
     out = tmp_path / "run"
     for method, option, value in [("r2gs", "--tv", "nan"), ("r2gs", "--tv", "inf"), ("r2gs", "--dssim", "inf"),
@@ -311,13 +310,15 @@ def test_non_finite_and_out_of_range_method_options_are_refused_at_parse_time(sc
         assert not out.exists() and list(tmp_path.iterdir()) == []  # no stray log.csv, no folder
     res = run("reconstruct", scan_dir / "scan", "-m", "r2gs", "--tv", "nan", "--out", out, ok=False)
     assert "x>=0" in res.output  # the option's own range is named
-    # the type for method options (usable by any method's click_options)
-    ff = methods.FiniteFloat(min=0)
+    # the type for method options (usable by any method's click options)
+    from clgs.cli.options import FiniteFloat
+
+    ff = FiniteFloat(min=0)
     assert ff.convert("0.5", None, None) == 0.5
     for bad in ("nan", "inf", "-inf", "1e999", "-1", "x"):
         with pytest.raises(__import__("click").BadParameter):
             ff.convert(bad, None, None)
-    assert methods.FiniteFloat()._describe_range() == "" and methods.FiniteFloat().name == "float"
+    assert FiniteFloat()._describe_range() == "" and FiniteFloat().name == "float"
 
 
 def test_seeds_name_the_option_and_its_range(scan_dir, tmp_path):

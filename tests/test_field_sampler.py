@@ -1,6 +1,5 @@
 """cl/field_sampler.cl against torch's grid_sample (border padding, align_corners=True), finite
 differences in float64, bits, degenerate input; and the deformation built on it."""
-import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F

@@ -217,9 +217,10 @@ def test_image_terms_without_dssim_run_no_ssim_pass():
 
 
 def test_r2gs_with_dssim_off_builds_l1_only_terms():
-    from clgs.methods.r2gs import R2GSConfig, r2gs_losses
+    from clgs.fit.assembly import projection_losses
+    from clgs.methods.r2gs import R2GSConfig
 
-    on, off = (r2gs_losses(R2GSConfig(lambda_dssim=w)) for w in (0.25, 0.0))
+    on, off = (projection_losses(R2GSConfig(lambda_dssim=w)) for w in (0.25, 0.0))
     assert on[0].fn.__self__.fused and not off[0].fn.__self__.fused
 
 

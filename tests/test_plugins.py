@@ -103,7 +103,7 @@ def test_two_distributions_with_the_same_anatomy_name(on_path):
     reg.load_entry_points()
     with pytest.raises(DuplicateAnatomyError) as err:
         reg.anatomies()
-    msg = str(err.value.message)
+    msg = str(err.value)
     assert "'bone'" in msg and "dup-alpha" in msg and "dup-beta" in msg
     # the command line reports it as an error naming both packages, without a traceback
     r = _clgs(["anatomies"], _env(on_path))

@@ -150,7 +150,8 @@ def test_shape_guided_fits_alpha_and_beats_its_start(template, shape_model, atla
 
 def test_stability_extreme_alpha_few_views_noise_and_offset(template, shape_model, atlas):
     """|alpha| = 10, 1 and 2 views, I0 = 1e3, a subject partly outside the template grid: finite, fold-free."""
-    from clgs.methods.shape_guided import ShapeGuidedSet, reconstruct_shape_guided
+    from clgs.methods.shape_guided import reconstruct_shape_guided
+    from clgs.shape.gaussian_set import ShapeGuidedSet
 
     parts = (template, shape_model, atlas)
     for kw in (dict(n_views=1), dict(n_views=2), dict(I0=1e3), dict(shift_mm=30.0)):
@@ -168,7 +169,8 @@ def test_stability_extreme_alpha_few_views_noise_and_offset(template, shape_mode
 
 
 def test_ablation_switches_change_the_model(template, shape_model, atlas):
-    from clgs.methods.shape_guided import ShapeGuidedSet, build_trainer, ShapeGuidedConfig
+    from clgs.methods.shape_guided import ShapeGuidedConfig, build_trainer
+    from clgs.shape.gaussian_set import ShapeGuidedSet
 
     scan = _scan(template)
     parts = (template, shape_model, atlas)
@@ -317,7 +319,7 @@ def test_surroundings_share_the_atlas_with_the_bone(template, atlas, tissue_atla
 
 
 def _start_volume(scan, parts, **kw):
-    from clgs.methods.r2gs import voxelize_volume
+    from clgs.fit.outputs import voxelize_volume
     from clgs.methods.shape_guided import ShapeGuidedConfig, build_trainer
 
     cfg = ShapeGuidedConfig(**{k: v for k, v in _small(iterations=1, **kw).items() if k != "progress"})

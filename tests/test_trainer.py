@@ -10,7 +10,8 @@ import torch
 from clgs.fit import checkpoint as ckpt
 from clgs.geometry import Geometry
 from clgs.io.scan import Scan
-from clgs.methods.r2gs import R2GSConfig, build_trainer, reconstruct_r2gs, value_scale_from
+from clgs.fit.assembly import value_scale_from
+from clgs.methods.r2gs import R2GSConfig, build_trainer, reconstruct_r2gs
 from clgs.fit.trainer import LossTerm
 
 
@@ -378,7 +379,7 @@ def test_iterations_leave_no_context_behind(scene):
 def test_scale_floor_follows_the_scans_resolution():
     """The smallest scale is 0.4 x the finer of voxel and axis-pixel size, never below the extent's
     0.05 %; a floor above the largest scale is a clear error."""
-    from clgs.methods.r2gs import scale_bounds_for
+    from clgs.fit.assembly import scale_bounds_for
 
     geo = Geometry.default(n_views=4, n_voxel=64, n_detector=128, volume_mm=256.0)
     pixel_at_axis = geo.dDetector[0] * geo.DSO / geo.DSD
@@ -394,7 +395,7 @@ def test_scale_floor_follows_the_scans_resolution():
 
 
 def test_trained_scales_respect_the_floor(scene):
-    from clgs.methods.r2gs import scale_bounds_for
+    from clgs.fit.assembly import scale_bounds_for
 
     t = _trainer(scene, 30, scale_floor=0.4)
     t.fit()
@@ -405,7 +406,7 @@ def test_trained_scales_respect_the_floor(scene):
 
 def test_resume_of_a_checkpoint_without_a_floor_keeps_its_bounds(scene, tmp_path):
     """Checkpoints written before ``scale_floor`` existed resume with the bounds they trained with."""
-    from clgs.methods.r2gs import run_config
+    from clgs.fit.config import run_config
 
     t = _trainer(scene, 12, tmp_path, scale_floor=None)
     t.fit()

@@ -41,7 +41,8 @@ def test_grid_matches_reference():
 
 def test_fast_references_match_the_dense_reference():
     params = scene(300, dtype=torch.float64)
-    torch.testing.assert_close(ref.voxelize_windowed(*params, GRID), ref.voxelize(*params, GRID), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(ref.voxelize_windowed(*params, GRID), ref.voxelize(*params, GRID),
+                               rtol=1e-12, atol=1e-12)
     pts = torch.rand(2000, 3, generator=torch.Generator().manual_seed(13), dtype=torch.float64) * 2.4 - 1.2
     expected = ref.voxelize_points(*params, pts)
     assert expected.max() > 0
@@ -235,7 +236,8 @@ def test_no_gaussians_and_a_single_voxel_grid():
     torch.testing.assert_close(out, ref.voxelize(*params, one), rtol=1e-12, atol=0)
     pt = voxelize_points(*params, torch.tensor([[0.05, -0.02, 0.01]], dtype=torch.float64))
     torch.testing.assert_close(pt, out.reshape(1), rtol=1e-12, atol=0)
-    assert torch.autograd.gradcheck(lambda *a: voxelize(*a, one), params, eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
+    assert torch.autograd.gradcheck(lambda *a: voxelize(*a, one), params, eps=1e-6, atol=1e-6, rtol=1e-4,
+                                    fast_mode=True)
     assert voxelize_points(*params, torch.zeros(0, 3, dtype=torch.float64)).shape == (0,)
 
 
@@ -275,7 +277,8 @@ def test_precision_entry_point_matches_and_differentiates():
     a = voxelize_precision(params[0], prec, params[3], extent, block)
     assert torch.equal(a, voxelize(*params, block))
     # and the torch formulas give the same field to rounding
-    b = voxelize_precision(params[0], precision(params[1], params[2]), params[3], axis_extent(params[1], params[2]), block)
+    b = voxelize_precision(params[0], precision(params[1], params[2]), params[3], axis_extent(params[1], params[2]),
+                           block)
     torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
     pts = torch.rand(50, 3, dtype=torch.float64) - 0.5
     assert torch.equal(voxelize_precision(params[0], prec, params[3], extent, pts), voxelize_points(*params, pts))
@@ -333,7 +336,7 @@ def test_small_grid_and_binned_paths_give_the_same_bits(monkeypatch):
         return [out, part, *torch.autograd.grad((out * w).sum() + (part * wb).sum(), params)]
 
     small = run()
-    monkeypatch.setattr(vz, "_SMALL_CELLS", 0)
+    monkeypatch.setattr(vz, "SMALL_CELLS", 0)
     monkeypatch.setattr(vz, "_UNSORTED_BYTES", 0)
     binned = run()
     assert float(small[0].detach().abs().max()) > 0 and all(float(g.abs().max()) > 0 for g in small[2:])

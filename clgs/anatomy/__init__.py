@@ -1,6 +1,7 @@
 """Anatomy plugins and what they build on: the hooks (:mod:`.hookspecs`), the plugin manager
-(:mod:`.plugins`), the :class:`Anatomy` record (:mod:`.record`), the tissue model and subject
-population of a bone (:mod:`.phantom`), simulated scans of a subject (:mod:`.simulation`) and the
+(:mod:`.plugins`), the :class:`Anatomy` record (:mod:`.record`), the tissue model of a bone's CT
+(:mod:`.phantom`), rigid alignment of surfaces (:mod:`.alignment`), a population of real surfaces
+as an anatomy (:mod:`.population`), simulated scans of a subject (:mod:`.simulation`) and the
 evaluation of a reconstruction against its truth (:mod:`.evaluation`).
 
 A plugin needs only ``from clgs.anatomy import Anatomy, hookimpl``.

@@ -20,11 +20,11 @@ import importlib.metadata
 import warnings
 from typing import Optional
 
-import click
 import pluggy
 
 from clgs.anatomy import hookspecs
-from clgs.anatomy import Anatomy
+from clgs.anatomy.record import Anatomy
+from clgs.errors import ClgsError
 
 GROUP = "clgs.anatomies"
 
@@ -33,7 +33,7 @@ class PluginWarning(UserWarning):
     """An anatomy plugin could not be used (it is skipped)."""
 
 
-class PluginError(click.ClickException):
+class PluginError(ClgsError):
     """A plugin problem that must stop the command (shown as a one-line error by the CLI)."""
 
 
@@ -41,7 +41,7 @@ class DuplicateAnatomyError(PluginError):
     """Two plugins provide an anatomy with the same name."""
 
 
-class UnknownAnatomyError(PluginError):
+class UnknownAnatomyError(PluginError, LookupError):
     """No installed plugin provides the requested anatomy."""
 
 
@@ -168,4 +168,5 @@ def anatomy_names() -> list:
 
 
 def get_anatomy(name: str) -> Anatomy:
+    """The installed anatomy called ``name`` (:class:`UnknownAnatomyError` names the ones there are)."""
     return registry().get(name)

@@ -73,7 +73,7 @@ def _useful(means, cov, geometry, view):
 
     import torch
 
-    from clgs.reference.projection import _affine_params
+    from clgs.reference.projection import affine_params as _affine_params
 
     nv, nu = geometry.nDetector
     total = 0

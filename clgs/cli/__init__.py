@@ -5,11 +5,14 @@ Nothing heavy (torch, pyopencl) is imported to print ``clgs --help``.
 """
 from __future__ import annotations
 
+import contextlib
 import importlib
 import importlib.util
 import os
 
 import click
+
+from clgs.errors import ClgsError
 
 # name -> "module:attribute" of a click command, imported on first use
 COMMANDS = {
@@ -27,8 +30,28 @@ def _load(target: str) -> click.Command:
     return getattr(importlib.import_module(module), attr)
 
 
+@contextlib.contextmanager
+def clgs_errors_as_messages():
+    """The one place where the library's errors (:class:`clgs.errors.ClgsError`) become click
+    errors: the message, no traceback, exit status 1."""
+    try:
+        yield
+    except ClgsError as exc:
+        raise click.ClickException(str(exc) or type(exc).__name__) from exc
+
+
 class LazyGroup(click.Group):
-    """Lists built-in commands and one group per installed anatomy plugin, importing lazily."""
+    """Lists built-in commands and one group per installed anatomy plugin, importing lazily.
+    Every command runs under :func:`clgs_errors_as_messages`, listing the plugins (for
+    ``--help``) included."""
+
+    def make_context(self, info_name, args, parent=None, **extra):
+        with clgs_errors_as_messages():
+            return super().make_context(info_name, args, parent=parent, **extra)
+
+    def invoke(self, ctx):
+        with clgs_errors_as_messages():
+            return super().invoke(ctx)
 
     def _anatomy_names(self):
         try:

@@ -20,7 +20,7 @@ import time
 
 import click
 
-from clgs.methods import FiniteFloat
+from clgs.cli.options import FiniteFloat, Seed, method_params
 
 
 # --------------------------------------------------------------------------------------- errors
@@ -153,9 +153,8 @@ def run_reconstruct(scan, anatomy, method: str, out=None, **options):
 # (its config dataclass's fields for the Gaussian methods, else its callable's parameters), the
 # values against the fields' types, the method's click options (ranges, choices), the config's own
 # checks (kinds, ranges: JsonConfig) and, for methods without a config, the ranges below.
-_CONFIGS = {  # method -> (config dataclass, extra keyword arguments its run passes on)
-    "r2gs": ("clgs.methods.r2gs:R2GSConfig", {}),
-    "shape": ("clgs.methods.shape_guided:ShapeGuidedConfig", {"level": float | None}),
+_EXTRA_KEYWORDS = {  # method -> keyword arguments its run passes on beside its config's fields
+    "shape": {"level": float | None},
 }
 _NOT_SETTINGS = {"scan", "out_dir", "out", "anatomy"}  # given by the command itself
 _RANGES = [  # for methods without a config dataclass (FDK, SART): the configs check their own ranges
@@ -184,7 +183,6 @@ def method_settings(method: str, m, run) -> tuple:
     ``--set`` may give the method; ``open`` when the method takes keywords this cannot list (any
     key is then passed on)."""
     import dataclasses
-    import importlib
     import inspect
 
     hints: dict = {}
@@ -196,18 +194,17 @@ def method_settings(method: str, m, run) -> tuple:
             takes_kwargs = True
         elif p.kind != p.VAR_POSITIONAL and i > 0 and k not in _NOT_SETTINGS:
             hints[k] = run_hints.get(k)
-    config, extra = _CONFIGS.get(method, (None, {}))
+    extra = _EXTRA_KEYWORDS.get(method, {})
     cls = None
-    if config is not None and takes_kwargs:
-        module, _, attr = config.partition(":")
-        cls = getattr(importlib.import_module(module), attr)
+    if m.config is not None and takes_kwargs:
+        cls = m.config_class()
         cls_hints = _type_hints(cls)
         for f in dataclasses.fields(cls):
             hints.setdefault(f.name, cls_hints.get(f.name))
         for k, h in extra.items():
             hints.setdefault(k, h)
     try:
-        options = {o.name: o for o in m.click_options() if o.name and o.name not in _NOT_SETTINGS}
+        options = {o.name: o for o in method_params(m) if o.name and o.name not in _NOT_SETTINGS}
     except Exception:  # noqa: BLE001 - a method without usable options: its parameters still count
         options = {}
     for k in options:
@@ -320,18 +317,12 @@ def _parse_options(pairs, raw: dict | None = None):
 
 
 # --------------------------------------------------------------------------------------- group
-def make_group(anatomy) -> click.Group:
-    """The click group ``clgs <anatomy.name>`` with the generic commands and the plugin's own."""
+def _simulate_command(anatomy) -> click.Command:
+    """``clgs <anatomy> simulate``."""
     name = anatomy.name
     scene = anatomy.scene or {}
 
-    @click.group(name=name, help=f"{anatomy.summary}\n\nPlugin: {anatomy.package or '?'} {anatomy.version}.")
-    def group():
-        pass
-
-    group.command_class = AnatomyCommand  # every generic command: the library's input errors as click errors
-
-    @group.command()
+    @click.command(cls=AnatomyCommand)
     @click.option("--subject", "subject_id", help="subject id (held-out ones: see `info`)")
     @click.option("--mesh", type=click.Path(exists=True, dir_okay=False), help="a surface file (mm) instead")
     @click.option("--out", required=True, type=click.Path(file_okay=False), help="scan folder to write")
@@ -340,9 +331,10 @@ def make_group(anatomy) -> click.Group:
     @click.option("--arc", type=FiniteFloat(min=0, min_open=True, max=360), default=float(scene.get("arc_deg", 180.0)),
                   show_default=True, help="arc in degrees (0 < arc <= 360)")
     @click.option("--noise/--no-noise", default=True, show_default=True, help="Poisson + electronic noise")
-    @click.option("--seed", default=0, show_default=True)
-    @click.option("--overwrite", is_flag=True, help="replace an existing scan folder")
-    def simulate(subject_id, mesh, out, views, arc, noise, seed, overwrite):
+    @click.option("--seed", type=Seed(), default=0, show_default=True, help="noise seed, 0 to 2**64 - 1")
+    @click.option("--force", is_flag=True, help="replace an existing scan folder")
+    @click.option("--overwrite", "force_alias", is_flag=True, hidden=True)  # the flag's earlier name
+    def simulate(subject_id, mesh, out, views, arc, noise, seed, force, force_alias):
         """Simulate a CT scan of a subject (default: the first held-out one) or of a surface file."""
         import math
 
@@ -361,13 +353,20 @@ def make_group(anatomy) -> click.Group:
             subject = _load_subject(anatomy, subject_id)
         scan = _simulate(anatomy, subject, views, math.radians(arc), noise, seed)
         try:
-            scan.save(out, overwrite=overwrite)
+            scan.save(out, overwrite=force or force_alias)
         except FileExistsError:
-            raise click.ClickException(f"{out} exists: pass --overwrite to replace it")
+            raise click.ClickException(f"{out} exists: pass --force to replace it")
         click.echo(f"{name}: subject {subject.id} -> {out} ({views} views over {arc:g} deg, "
                    f"{'noisy' if noise else 'noiseless'})")
 
-    @group.command()
+    return simulate
+
+
+def _reconstruct_command(anatomy) -> click.Command:
+    """``clgs <anatomy> reconstruct``."""
+    name = anatomy.name
+
+    @click.command(cls=AnatomyCommand)
     @click.argument("scan_dir", type=click.Path(exists=True, file_okay=False))
     @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
     @click.option("--method", default=None, help="shape (default with a shape model) | r2gs | fdk | sart | ...")
@@ -405,11 +404,19 @@ def make_group(anatomy) -> click.Group:
             scan = scan.subset(np.linspace(0, scan.n_views, views, endpoint=False).astype(int))
         t0 = time.perf_counter()
         result = run_reconstruct(scan, anatomy, method, out=out, **opts)
-        click.echo(f"{name}: {method} reconstruction of {scan.n_views} views in {time.perf_counter() - t0:.1f} s -> {out}")
+        seconds = time.perf_counter() - t0
+        click.echo(f"{name}: {method} reconstruction of {scan.n_views} views in {seconds:.1f} s -> {out}")
         if scan.truth is not None and "volume" in result:
             _echo_metrics(_evaluate(anatomy, scan, result["volume"], out))
 
-    @group.command("build-model")
+    return reconstruct
+
+
+def _build_model_command(anatomy) -> click.Command:
+    """``clgs <anatomy> build-model``."""
+    name = anatomy.name
+
+    @click.command("build-model", cls=AnatomyCommand)
     @click.option("--out", "out_path", type=click.Path(dir_okay=False), help="model file (default: the plugin's)")
     @click.option("--variance", type=float, default=None, help="fraction of variance to keep [0.95]")
     @click.option("--n-modes", type=int, default=None, help="keep exactly this many modes")
@@ -439,7 +446,12 @@ def make_group(anatomy) -> click.Group:
             path = build_model(template, {sid: partial(loader, sid) for sid in ids}, target, force=force, **settings)
         click.echo(f"{name}: model {path} ready ({time.perf_counter() - t0:.1f} s)")
 
-    @group.command()
+    return build_model_cmd
+
+
+def _evaluate_command(anatomy) -> click.Command:
+    """``clgs <anatomy> evaluate``."""
+    @click.command(cls=AnatomyCommand)
     @click.argument("scan_dir", type=click.Path(exists=True, file_okay=False))
     @click.argument("volume", type=click.Path(exists=True))
     def evaluate(scan_dir, volume):
@@ -453,7 +465,15 @@ def make_group(anatomy) -> click.Group:
         loaded = load_volume(volume)
         _echo_metrics(_evaluate(anatomy, scan, loaded[0], os.path.dirname(volume)))
 
-    @group.command()
+    return evaluate
+
+
+def _demo_command(anatomy) -> click.Command:
+    """``clgs <anatomy> demo``."""
+    name = anatomy.name
+    scene = anatomy.scene or {}
+
+    @click.command(cls=AnatomyCommand)
     @click.option("--subject", "subject_id", default=None, help="held-out subject (default: the first)")
     @click.option("--views", default=5, show_default=True, type=click.IntRange(min=1))
     @click.option("--method", default=None, help="default: shape when the anatomy has a model, else r2gs")
@@ -461,7 +481,7 @@ def make_group(anatomy) -> click.Group:
     @click.option("--iterations", default=600, show_default=True, type=click.IntRange(min=1),
                   help="optimisation steps for iterative methods (the papers use 30000: hours on a CPU; "
                        "the shape-guided method peaks near 600 on the femur, see the README)")
-    @click.option("--seed", default=0, show_default=True)
+    @click.option("--seed", type=Seed(), default=0, show_default=True, help="random seed, 0 to 2**64 - 1")
     @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="method option (repeatable)")
     def demo(subject_id, views, method, out, iterations, seed, settings):
         """Simulate a held-out subject, reconstruct it from few views, print error vs time."""
@@ -501,7 +521,14 @@ def make_group(anatomy) -> click.Group:
         _echo_metrics(_evaluate(anatomy, scan, result["volume"], os.path.join(work, "recon")))
         click.echo(f"outputs in {work}")
 
-    @group.command()
+    return demo
+
+
+def _experiment_command(anatomy) -> click.Command:
+    """``clgs <anatomy> experiment``."""
+    name = anatomy.name
+
+    @click.command(cls=AnatomyCommand)
     @click.option("--views", multiple=True, type=click.IntRange(min=1),
                   help="view counts, e.g. --views 5 10 [default: 5 10]")
     @click.argument("more_views", nargs=-1, type=click.IntRange(min=1), metavar="")
@@ -513,7 +540,7 @@ def make_group(anatomy) -> click.Group:
                   help="view count of the ablation (0: none)")
     @click.option("--out", required=True, type=click.Path(file_okay=False),
                   help="experiment folder (an interrupted experiment resumes from it)")
-    @click.option("--seed", default=0, show_default=True)
+    @click.option("--seed", type=Seed(), default=0, show_default=True, help="random seed, 0 to 2**64 - 1")
     @click.option("--log-every", default=500, show_default=True, help="evaluate every N iterations (curves)")
     @click.option("--progress/--no-progress", default=True, help="progress bar per run")
     def experiment(views, more_views, subjects, iterations, ablation_views, out, seed, log_every, progress):
@@ -540,7 +567,14 @@ def make_group(anatomy) -> click.Group:
             click.echo(f"{v} views: shape-guided minus R2-Gaussian {g['mean']:+.2f} dB (ahead on "
                        f"{g['subjects_ahead']}/{g['subjects']} subjects)")
 
-    @group.command()
+    return experiment
+
+
+def _info_command(anatomy) -> click.Command:
+    """``clgs <anatomy> info``."""
+    name = anatomy.name
+
+    @click.command(cls=AnatomyCommand)
     def info():
         """Template size, model modes, variance kept, registration residuals."""
         click.echo(f"{name}: {anatomy.summary}")
@@ -584,6 +618,24 @@ def make_group(anatomy) -> click.Group:
         elif meta.get("atlas_note"):
             click.echo(f"            {meta['atlas_note']}")
 
+    return info
+
+
+# the commands every anatomy gets, each made for one anatomy
+GENERIC_COMMANDS = (_simulate_command, _reconstruct_command, _build_model_command, _evaluate_command, _demo_command,
+                    _experiment_command, _info_command)
+
+
+def make_group(anatomy) -> click.Group:
+    """The click group ``clgs <anatomy.name>`` with the generic commands and the plugin's own."""
+    name = anatomy.name
+
+    @click.group(name=name, help=f"{anatomy.summary}\n\nPlugin: {anatomy.package or '?'} {anatomy.version}.")
+    def group():
+        pass
+
+    for make in GENERIC_COMMANDS:
+        group.add_command(make(anatomy))
     for cmd in anatomy.commands or []:
         if not isinstance(cmd, click.Command):
             raise click.ClickException(f"{name} plugin ({anatomy.package}): extra commands must be click commands, "

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import click
 
-from clgs.methods import FiniteFloat, Seed, check_option_values
+from clgs.cli.options import FiniteFloat, Seed, check_option_values, method_params
 
 VOLUME_SUFFIXES = (".npy", ".nii", ".nii.gz")
 
@@ -204,22 +204,16 @@ def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, 
     """A scanner centred on the volume whose square detector sees all of it (5 % margin)."""
     import numpy as np
 
-    from clgs.geometry import Geometry
+    from clgs.geometry import Geometry, GeometryError, shadow_half_extents
 
     base = Geometry.default(n_views=views, arc=math.radians(arc_deg), mode=mode, n_voxel=max(shape),
                             n_detector=detector, volume_mm=float(max(np.multiply(shape, spacing))))
     DSO = base.DSO if DSO is None else DSO
     DSD = base.DSD if DSD is None else DSD
-    size = np.multiply(shape, spacing)  # (Z, Y, X) mm
-    r_xy = 0.5 * float(np.hypot(size[1], size[2]))  # in-plane half-diagonal: the widest shadow
-    if mode == "cone":
-        if r_xy >= DSO:
-            raise click.UsageError(f"the volume (in-plane half-diagonal {r_xy:.1f} mm) reaches the source orbit "
-                                   f"DSO={DSO} mm; increase --DSO")
-        half_u = DSD * r_xy / math.sqrt(DSO ** 2 - r_xy ** 2)
-        half_v = 0.5 * size[0] * DSD / (DSO - r_xy)
-    else:
-        half_u, half_v = r_xy, 0.5 * size[0]
+    try:
+        half_u, half_v = shadow_half_extents(np.multiply(shape, spacing), DSO, DSD, mode)
+    except GeometryError as exc:
+        raise click.UsageError(f"{exc} (--DSO)") from None
     if pixel is None:
         pixel = 2.0 * max(half_u, half_v) * 1.05 / detector
     d = base.to_dict()
@@ -263,6 +257,10 @@ def simulate(volume, out, views, arc, mode, DSD, DSO, detector, pixel, spacing, 
 
     The volume is centred on the rotation axis; the scan folder stores the projections, the
     geometry, the acquisition settings and the volume itself as ground truth.
+    \f
+
+    (One function: the options' checks, the scanner, the projection and the writing share the
+    parsed values; the heavier parts are helpers.)
     """
     import numpy as np
 
@@ -383,8 +381,62 @@ class _ReconstructCommand(click.Command):
 
 
 def _method_command(method) -> click.Command:
-    return click.Command(f"reconstruct --method {method.name}", params=method.click_options(),
+    return click.Command(f"reconstruct --method {method.name}", params=method_params(method),
                          help=method.help, add_help_option=False)
+
+
+def _show_method_help(ctx, method, mcmd) -> None:
+    """``clgs reconstruct --method NAME --help``: the command's help, then the method's options."""
+    click.echo(ctx.get_help())
+    mctx = click.Context(mcmd, info_name=mcmd.name, parent=ctx)
+    formatter = mctx.make_formatter()
+    formatter.write_paragraph()
+    with formatter.section(f"Options of --method {method.name}"):
+        formatter.write_dl([p.get_help_record(mctx) for p in mcmd.params if p.get_help_record(mctx)] or
+                           [("(none)", "")])
+    click.echo(formatter.getvalue().rstrip())
+    ctx.exit(0)
+
+
+def _method_options(ctx, method, mcmd) -> tuple:
+    """(options given, keyword arguments of the run) from the words after SCAN, checked."""
+    try:
+        mctx = mcmd.make_context(mcmd.name, list(ctx.args), parent=ctx)
+    except click.BadParameter as exc:  # a known option with a bad value: the message says it all
+        raise click.UsageError(exc.format_message(), ctx) from None
+    except click.UsageError as exc:
+        known = ", ".join(o for p in mcmd.params for o in p.opts) or "none"
+        raise click.UsageError(f"{exc.format_message()} (options of --method {method.name}: {known}; "
+                               "they go after SCAN)", ctx) from None
+    try:  # NaN / inf floats and impossible seeds are refused now, whatever type the method's options declared
+        check_option_values(mcmd.params, mctx.params, mctx)
+    except click.UsageError as exc:
+        raise click.UsageError(exc.format_message(), ctx) from None
+    options = {k: v for k, v in mctx.params.items() if v is not None}
+    kwargs = dict(options)
+    if options.get("resume") and "iterations" in mctx.params and "iterations" not in options:
+        kwargs["iterations"] = None  # a resumed run goes on to the iterations it was started with
+    return options, kwargs
+
+
+def _prepare_outputs(scan, out, json_out, force, into_folder: bool, resuming: bool) -> tuple:
+    """Check every output location before the run, so no result is lost at the end; returns the
+    folders this command creates (removed again if the run fails before writing in them)."""
+    _check_not_input(out, [("scan", scan, True)])
+    if json_out is not None:
+        _check_not_input(json_out, [("scan", scan, True)], "--json")
+        if Path(json_out).resolve() == Path(out).resolve():
+            raise click.UsageError("--json and --out name the same file; give the report another name")
+    if not resuming:
+        _check_output(out, force)
+    if json_out is not None:
+        _check_output(json_out, force, "--json")
+    _check_writable(out, into=into_folder and out.is_dir())
+    if json_out is not None:
+        _check_writable(json_out, "--json")
+    created = _new_folders(out if into_folder else Path(os.path.abspath(out)).parent)
+    created_json = _new_folders(Path(os.path.abspath(json_out)).parent) if json_out is not None else []
+    return created, created_json
 
 
 @click.command(cls=_ReconstructCommand, add_help_option=False,
@@ -406,6 +458,10 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, show_help):
 
     With a ground truth in the scan, prints 3D PSNR / SSIM (as R2-Gaussian computes them) and
     the wall time.
+    \f
+
+    (Long because the run's outputs are cleaned up on any failure: the try blocks hold the steps
+    between checking the outputs and writing the report; parsing and checks are helpers.)
     """
     from clgs import methods
 
@@ -417,57 +473,15 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, show_help):
         raise click.ClickException(f"method {method_name!r} could not be loaded: {exc}") from None
     mcmd = _method_command(method)
     if show_help:
-        click.echo(ctx.get_help())
-        mctx = click.Context(mcmd, info_name=mcmd.name, parent=ctx)
-        formatter = mctx.make_formatter()
-        formatter.write_paragraph()
-        with formatter.section(f"Options of --method {method.name}"):
-            formatter.write_dl([p.get_help_record(mctx) for p in mcmd.params if p.get_help_record(mctx)] or
-                               [("(none)", "")])
-        click.echo(formatter.getvalue().rstrip())
-        ctx.exit(0)
+        _show_method_help(ctx, method, mcmd)
     if scan is None:
         raise click.UsageError("missing argument SCAN (a scan folder)")
     if out is None:
         raise click.UsageError("missing option --out (a volume file or a folder)")
-    extra = list(ctx.args)
-    try:
-        mctx = mcmd.make_context(mcmd.name, extra, parent=ctx)
-    except click.BadParameter as exc:  # a known option with a bad value: the message says it all
-        raise click.UsageError(exc.format_message(), ctx) from None
-    except click.UsageError as exc:
-        known = ", ".join(o for p in mcmd.params for o in p.opts) or "none"
-        raise click.UsageError(f"{exc.format_message()} (options of --method {method.name}: {known}; "
-                               "they go after SCAN)", ctx) from None
-    try:  # NaN / inf floats and impossible seeds are refused now, whatever type the method's options declared
-        check_option_values(mcmd.params, mctx.params, mctx)
-    except click.UsageError as exc:
-        raise click.UsageError(exc.format_message(), ctx) from None
-    options = {k: v for k, v in mctx.params.items() if v is not None}
-    kwargs = dict(options)
-    if options.get("resume") and "iterations" in mctx.params and "iterations" not in options:
-        kwargs["iterations"] = None  # a resumed run goes on to the iterations it was started with
+    options, kwargs = _method_options(ctx, method, mcmd)
     into_folder = not _is_volume_path(out) and not method.atomic_dir
     resuming = bool(options.get("resume")) and into_folder and out.is_dir()
-    _check_not_input(out, [("scan", scan, True)])
-    if json_out is not None:
-        _check_not_input(json_out, [("scan", scan, True)], "--json")
-        if Path(json_out).resolve() == Path(out).resolve():
-            raise click.UsageError("--json and --out name the same file; give the report another name")
-    if not resuming:
-        _check_output(out, force)
-    if json_out is not None:
-        _check_output(json_out, force, "--json")
-    # every output location is checked before the run, so no result is lost at the end
-    _check_writable(out, into=into_folder and out.is_dir())
-    if json_out is not None:
-        _check_writable(json_out, "--json")
-    # folders this command creates; removed again if the run fails before writing anything in them
-    created = _new_folders(out if into_folder else Path(os.path.abspath(out)).parent)
-    if json_out is not None:
-        created_json = _new_folders(Path(os.path.abspath(json_out)).parent)
-    else:
-        created_json = []
+    created, created_json = _prepare_outputs(scan, out, json_out, force, into_folder, resuming)
 
     import numpy as np
 
@@ -599,7 +613,12 @@ def _truth_from(path: Path, spacing):
 @click.option("--force", is_flag=True, help="overwrite an existing --json")
 def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, spacing, json_out, force):
     """Compare VOLUME with the truth: 3D PSNR / SSIM (as R2-Gaussian), masked variants, and the
-    surface distance in mm when --level is given. VOLUME may also be a reconstruct output folder."""
+    surface distance in mm when --level is given. VOLUME may also be a reconstruct output folder.
+
+    \f
+    (One function: the truth, the mask, the metrics and the optional surface distance use the
+    same loaded arrays.)
+    """
     import numpy as np
 
     from clgs import metrics

@@ -43,6 +43,8 @@ def sart(projections, geometry: Geometry, n_iter: int = 10, subsets: int = 1, re
     ``callback(iteration, volume)`` runs after each iteration (``iteration`` counts from 1;
     ``volume`` is a fresh (Z, Y, X) copy of the current estimate). ``verbose`` shows a tqdm bar.
     ``projector``: an existing :class:`CTProjector` for this geometry, to reuse its buffers.
+    One function: the iteration loop keeps its ray and voxel normalisations and buffers in locals,
+    so each update is a few array operations.
     """
     from clgs.ops.ct_projector import CTProjector
 

@@ -15,12 +15,13 @@ from pathlib import Path
 
 import torch
 
+from clgs.errors import ClgsError
 from clgs.io import atomic
 
 FORMAT = "clgs-checkpoint-1"
 
 
-class CheckpointError(ValueError):
+class CheckpointError(ClgsError, ValueError):
     """A checkpoint that does not belong to this run or cannot be read."""
 
 
@@ -43,7 +44,8 @@ def load(path) -> dict:
     except Exception as exc:  # noqa: BLE001 - report any unpickling failure the same way
         raise CheckpointError(f"{path} is not a readable clgs checkpoint ({exc})") from exc
     if not isinstance(state, dict) or state.get("format") != FORMAT:
-        raise CheckpointError(f"{path} is not a clgs checkpoint (format {state.get('format') if isinstance(state, dict) else '?'})")
+        found = state.get("format") if isinstance(state, dict) else "?"
+        raise CheckpointError(f"{path} is not a clgs checkpoint (format {found})")
     return state
 
 

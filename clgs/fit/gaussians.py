@@ -119,7 +119,8 @@ class GaussianSet:
         n = means.shape[0]
         if means.shape != (n, 3) or scales.shape != (n, 3) or quats.shape != (n, 4) or densities.shape != (n,):
             raise ValueError(f"GaussianSet needs means (N,3), scales (N,3), quats (N,4), densities (N,); got "
-                             f"{tuple(means.shape)}, {tuple(scales.shape)}, {tuple(quats.shape)}, {tuple(densities.shape)}")
+                             f"{tuple(means.shape)}, {tuple(scales.shape)}, {tuple(quats.shape)}, "
+                             f"{tuple(densities.shape)}")
         if not raw:
             scales = self.scale_inverse(scales)
             densities = inverse_softplus(densities)

@@ -120,7 +120,7 @@ class Backend:
 
     def _cl_voxelize(self, means, scales, quats, densities, grid):
         from clgs.geometry import Grid
-        from clgs.ops.voxelizer import _columns, cov_prec, grid_candidates, voxelize_precision
+        from clgs.ops.voxelizer import columns, cov_prec, grid_candidates, voxelize_precision
 
         kept = self._kept(scales, quats) if isinstance(grid, Grid) else None
         if kept is not None:
@@ -129,7 +129,7 @@ class Backend:
             # Only the Gaussians that can reach the grid (a 3-sigma box is at most 3 max(scale)
             # wide on any axis): for a 32^3 patch that is a few percent of them, and their
             # precisions are all that needs building.
-            idx = grid_candidates(means, _columns(scales.detach()).amax(0) * 3.003, grid)
+            idx = grid_candidates(means, columns(scales.detach()).amax(0) * 3.003, grid)
             if idx is not None:
                 means, scales, quats, densities = (t.index_select(0, idx) for t in (means, scales, quats, densities))
         _, prec, extent = cov_prec(scales, quats, cov=False, prec=True, extent=True)
@@ -374,7 +374,8 @@ class Trainer:
         # checkpoint first: the closing row below is off the logging schedule, and a resumed run
         # must log exactly what an uninterrupted one does
         self.save_checkpoint(t_wall)
-        if self.log_every > 0 and self._count > 0 and (not self.log.rows or self.log.rows[-1]["iteration"] != self.iteration):
+        logged = bool(self.log.rows) and self.log.rows[-1]["iteration"] == self.iteration
+        if self.log_every > 0 and self._count > 0 and not logged:
             self._log_row(t_wall, {})
         return self
 

@@ -30,14 +30,14 @@ from __future__ import annotations
 
 import math
 import threading
+import weakref
 
 import numpy as np
 import pyopencl as cl
 import torch
 
-from clgs import runtime
 from clgs.geometry import Grid
-from clgs.ops.voxelizer import (GRADSTRIDE, GSTRIDE, _SMALL_CELLS, Voxelizer, _np_dtype, _want,
+from clgs.ops.voxelizer import (GRADSTRIDE, GSTRIDE, SMALL_CELLS, Voxelizer, np_dtype, wanted_gradients,
                         default_voxelizer, grid_axes)
 from clgs.runtime import round_up
 
@@ -46,6 +46,7 @@ _MAX_CHUNKS = 64
 _GRAD_ITEMS = 128  # work-items of patch_grad (each takes every 128th kept Gaussian)
 _ALIGN = 4096  # host block sections (sub-buffer origins must be aligned)
 _lock = threading.Lock()
+_runners: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()  # Voxelizer -> its PatchTV
 
 
 def _tv_weights(shape, dt):
@@ -99,8 +100,12 @@ class PatchTV:
         """(TV value (python float in the inputs' precision), kept indices (K,) int64, gradient rows
         (K, 10) for a unit upstream gradient or None, the field (Z, Y, X) or None).
 
-        ``want``: the gradients to compute (``WANT_MEAN``, ``WANT_PREC``, ``WANT_RHO``); empty: none."""
-        dt = _np_dtype(means.dtype)
+        ``want``: the gradients to compute (``WANT_MEAN``, ``WANT_PREC``, ``WANT_RHO``); empty: none.
+
+        One function: the launches are enqueued back to back on buffers carved from one block and
+        waited for once; splitting them would scatter that buffer layout.
+        """
+        dt = np_dtype(means.dtype)
         vox = self.vox
         n = int(means.shape[0])
         nz, ny, nx = (int(s) for s in grid.shape)
@@ -109,15 +114,15 @@ class PatchTV:
             empty = np.zeros((0,), np.int64)
             return (0.0, torch.from_numpy(empty), torch.zeros((0, GRADSTRIDE), dtype=means.dtype) if want else None,
                     torch.zeros(grid.shape, dtype=means.dtype) if field else None)
-        prog = vox._program(dt, tuple(sorted(want)))
+        prog = vox.program(dt, tuple(sorted(want)))
         ins = [t.detach().contiguous().numpy() for t in (means, prec, densities, extent)]
-        bufs = [vox._input(a) for a in ins]
+        bufs = [vox.device_input(a) for a in ins]
         xs, ys, zs = grid_axes(grid, dt)
         nxp = round_up(nx, 8) + 8
         xs_p = np.concatenate([xs, (np.float64(grid.origin[0]) + np.float64(grid.spacing[0])
                                     * np.arange(nx, nxp)).astype(dt)])
-        axes = [vox._input(a) for a in (xs_p, ys, zs)]
-        origin, inv, (nbx, nby, nbz) = vox._brick_cells(grid)
+        axes = [vox.device_input(a) for a in (xs_p, ys, zs)]
+        origin, inv, (nbx, nby, nbz) = vox.brick_cells(grid)
         ncells = nbx * nby * nbz
         nchunks = max(1, min(_MAX_CHUNKS, math.ceil(n / _CHUNK)))
         chunk = math.ceil(n / nchunks)
@@ -151,19 +156,19 @@ class PatchTV:
         for _attempt in range(3):
             cap = self._cap_list
             lst = vox.io.scratch("p_list", 4 * cap)
-            vox._run(prog.kernel("patch_cull"), nchunks, mb, eb, np.int32(n), np.int32(chunk), np.int32(nchunks),
+            vox.run(prog.kernel("patch_cull"), nchunks, mb, eb, np.int32(n), np.int32(chunk), np.int32(nchunks),
                      *cell_args, *far, slack, hist, count, kept)
-            vox._run(prog.kernel("patch_scan"), 1, count, hist, np.int32(nchunks), np.int32(ncells), np.int32(cap),
+            vox.run(prog.kernel("patch_scan"), 1, count, hist, np.int32(nchunks), np.int32(ncells), np.int32(cap),
                      koff, start, meta_b)
-            vox._run(prog.kernel("patch_fill"), nchunks, mb, pb, db, eb, np.int32(chunk), np.int32(nchunks),
+            vox.run(prog.kernel("patch_fill"), nchunks, mb, pb, db, eb, np.int32(chunk), np.int32(nchunks),
                      *cell_args, count, kept, koff, hist, meta_b, packed, kidx_b, lst)
-            vox._run(prog.kernel("vox_grid"), ncells, packed, start, lst, np.int32(1), xb, yb, zb, np.int32(nx),
+            vox.run(prog.kernel("vox_grid"), ncells, packed, start, lst, np.int32(1), xb, yb, zb, np.int32(nx),
                      np.int32(ny), np.int32(nz), np.int32(nbx), np.int32(nby), np.int32(ncells), fbuf,
                      np.int32(pitch), np.int32(8))
-            vox._run(prog.kernel("patch_tv"), nz, fbuf, np.int32(nx), np.int32(ny), np.int32(nz), np.int32(pitch),
+            vox.run(prog.kernel("patch_tv"), nz, fbuf, np.int32(nx), np.int32(ny), np.int32(nz), np.int32(pitch),
                      w[0], w[1], w[2], gbuf, part_b)
             if want:
-                vox._run(prog.kernel("patch_grad"), _GRAD_ITEMS, packed, meta_b, xb, yb, zb, np.int32(nx),
+                vox.run(prog.kernel("patch_grad"), _GRAD_ITEMS, packed, meta_b, xb, yb, zb, np.int32(nx),
                          np.int32(ny), np.int32(nz), np.int32(pitch), gbuf, grad_b)
             self.vox.io.fetch([(block_b, block[:nbytes])])  # the one wait
             if not meta[2]:
@@ -183,7 +188,8 @@ class PatchTV:
 
         sums = part[:3 * nz].reshape(nz, 3).astype(np.float64).sum(0)
         count = tv_count((nz, ny, nx))
-        value = dt(sum(float(sums[a]) for a, size in ((2, nz), (1, ny), (0, nx)) if size > 1) / count) if count else dt(0)
+        total = sum(float(sums[a]) for a, size in ((2, nz), (1, ny), (0, nx)) if size > 1)
+        value = dt(total / count) if count else dt(0)
         idx = torch.from_numpy(kidx[:k].astype(np.int64))
         rows = torch.from_numpy(grad[:k * GRADSTRIDE].reshape(k, GRADSTRIDE).copy()) if want else None
         out_field = None
@@ -201,7 +207,7 @@ class _TVPatch(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, prec, densities, extent, grid, runner):
         needs = ctx.needs_input_grad[:3]
-        value, idx, rows, _ = runner.forward(means, prec, densities, extent, grid, _want(needs))
+        value, idx, rows, _ = runner.forward(means, prec, densities, extent, grid, wanted_gradients(needs))
         ctx.n = means.shape[0]
         ctx.idx, ctx.rows = idx, rows
         return means.new_tensor(value)
@@ -227,9 +233,9 @@ def _runner(voxelizer: Voxelizer | None) -> PatchTV:
     """The ``PatchTV`` of a voxelizer (one each, kept on it, so its pooled buffers live as long)."""
     vox = voxelizer or default_voxelizer()
     with _lock:
-        r = getattr(vox, "_patch_tv", None)
+        r = _runners.get(vox)
         if r is None:
-            r = vox._patch_tv = PatchTV(vox)
+            r = _runners[vox] = PatchTV(vox)
         return r
 
 
@@ -245,11 +251,11 @@ def tv_patch(means, prec, densities, extent, grid: Grid, voxelizer: Voxelizer | 
             f"{tuple(means.shape)}, {tuple(prec.shape)}, {tuple(densities.shape)}, {tuple(extent.shape)}")
     if any(t.dtype != means.dtype for t in (prec, densities, extent)):
         raise TypeError("means, prec, densities and extent must share one dtype (float32 or float64)")
-    _np_dtype(means.dtype)
+    np_dtype(means.dtype)
     Voxelizer._check_grid(grid)
     vox = voxelizer or default_voxelizer()
-    _, _, nb = vox._brick_cells(grid)
-    if int(np.prod(nb)) > _SMALL_CELLS:
+    _, _, nb = vox.brick_cells(grid)
+    if int(np.prod(nb)) > SMALL_CELLS:
         from clgs.fit.losses import tv3d
         from clgs.ops.voxelizer import voxelize_precision
 
@@ -277,11 +283,11 @@ def patch_tv(backend, tensors, grid: Grid) -> torch.Tensor:
     kept = backend._kept(scales, quats)
     if kept is not None:
         return tv_patch(means, kept[1], densities, kept[2], grid)
-    from clgs.ops.voxelizer import _columns, cov_prec, grid_candidates
+    from clgs.ops.voxelizer import columns, cov_prec, grid_candidates
 
     # no matrices from this step's projection: build them only for the Gaussians a 3 max(scale)
     # cube lets reach the block (as Backend._cl_voxelize does)
-    idx = grid_candidates(means, _columns(scales.detach()).amax(0) * 3.003, grid)
+    idx = grid_candidates(means, columns(scales.detach()).amax(0) * 3.003, grid)
     if idx is not None:
         means, scales, quats, densities = (t.index_select(0, idx) for t in (means, scales, quats, densities))
     _, prec, extent = cov_prec(scales, quats, cov=False, prec=True, extent=True)

@@ -10,6 +10,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from clgs.errors import ClgsError
 from clgs.io import atomic
 
 __all__ = ["Mesh", "MeshError", "check_mesh", "save_mesh", "load_mesh", "MESH_SUFFIXES"]
@@ -17,7 +18,7 @@ __all__ = ["Mesh", "MeshError", "check_mesh", "save_mesh", "load_mesh", "MESH_SU
 MESH_SUFFIXES = (".stl", ".ply", ".obj", ".npz")
 
 
-class MeshError(ValueError):
+class MeshError(ClgsError, ValueError):
     """A mesh file that cannot be read or written as asked."""
 
 

@@ -43,7 +43,7 @@ from clgs.geometry import Geometry, GeometryError
 from clgs.io import atomic
 from clgs.io.validate import NEG_TOLERANCE, ScanError, check_projections, read_json, read_npy
 
-__all__ = ["is_r2gaussian_folder", "read_r2gaussian", "to_r2gaussian_folder", "geometry_from_scanner",
+__all__ = ["is_r2gaussian_folder", "to_r2gaussian_folder", "geometry_from_scanner",
            "scanner_from_geometry", "META_DATA"]
 
 META_DATA = "meta_data.json"
@@ -192,9 +192,10 @@ def read_parts(folder, split: str = "train", neg_tolerance: float = NEG_TOLERANC
 
 
 def to_r2gaussian_folder(scan, folder, test=None, overwrite: bool = False) -> Path:
-    """Write ``scan`` (a :class:`clgs.io.scan.Scan`) as an R2-Gaussian dataset folder (atomically): its views become ``proj_train``,
-    those of ``test`` (same scanner, other angles) ``proj_test``. The truth, if any, goes to
-    ``vol_gt.npy`` in [x, y, z] order; every projection is flipped to image rows."""
+    """Write ``scan`` (a :class:`clgs.io.scan.Scan`) as an R2-Gaussian dataset folder (atomically):
+    its views become ``proj_train``, those of ``test`` (same scanner, other angles) ``proj_test``.
+    The truth, if any, goes to ``vol_gt.npy`` in [x, y, z] order; every projection is flipped to
+    image rows."""
     folder = Path(folder)
     if test is not None:
         gt, gs = test.geometry.to_dict(), scan.geometry.to_dict()

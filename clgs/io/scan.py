@@ -28,7 +28,6 @@ renamed, so a reader never sees a half-written scan.
 """
 from __future__ import annotations
 
-import json
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path

@@ -8,12 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
+from clgs.errors import ClgsError
 from clgs.geometry import Geometry
 
 NEG_TOLERANCE = 0.05  # of the largest line integral: smaller negatives are noise, set to 0
 
 
-class ScanError(ValueError):
+class ScanError(ClgsError, ValueError):
     """A scan that cannot be used: missing files, mismatched shapes, impossible values."""
 
 

@@ -21,6 +21,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
+from clgs.errors import ClgsError
 from clgs.io import atomic
 
 __all__ = ["VolumeError", "LoadedVolume", "save_volume", "load_volume", "volume_affine",
@@ -29,7 +30,7 @@ __all__ = ["VolumeError", "LoadedVolume", "save_volume", "load_volume", "volume_
 VOLUME_SUFFIXES = (".npy", ".nii", ".nii.gz")
 
 
-class VolumeError(ValueError):
+class VolumeError(ClgsError, ValueError):
     """A volume file that cannot be read or written as asked."""
 
 

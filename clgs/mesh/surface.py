@@ -17,13 +17,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from clgs.errors import ClgsError
 from clgs.io.mesh import Mesh, check_mesh
 
 __all__ = ["surface_from_volume", "surface_distance", "point_to_mesh_distance", "sample_surface",
            "SurfaceError"]
 
 
-class SurfaceError(ValueError):
+class SurfaceError(ClgsError, ValueError):
     """A surface that cannot be extracted or compared (level outside the range, empty mesh)."""
 
 

@@ -2,12 +2,14 @@
 
 A :class:`Method` has a ``name``, a ``run`` callable ``run(scan, out_dir, **options) -> dict``
 (the dict holds at least ``"volume"``: (Z, Y, X) float32 in the scan's units, 1/mm; optionally
-``"files"`` it wrote and ``"info"`` figures for the report), its click ``options`` and a one-line
-``help``. ``out_dir`` is a folder the method may fill with extra outputs, or None when the user
-asked for a single volume file. Options left unset on the command line are not passed, so the
-callable's own defaults apply; one exception: a resumed run (``--resume`` given) of a method with
-an ``iterations`` option gets ``iterations=None`` when ``--iterations`` is not given, meaning "the
-iterations the interrupted run was started with", never a new-run default.
+``"files"`` it wrote and ``"info"`` figures for the report), its ``options`` (:class:`Option`
+records, or click parameters) and, for a method with a settings dataclass, its ``config`` (the
+fields listed in its ``CLI`` are options too), and a one-line ``help``. ``out_dir`` is a folder
+the method may fill with extra outputs, or None when the user asked for a single volume file.
+Options left unset on the command line are not passed, so the callable's own defaults apply;
+one exception: a resumed run (``--resume`` given) of a method with an ``iterations`` option gets
+``iterations=None`` when ``--iterations`` is not given, meaning "the iterations the interrupted
+run was started with", never a new-run default.
 
 Registering a method (e.g. from a plugin or another clgs module)::
 
@@ -21,111 +23,45 @@ expose it as ``METHOD``); R2-Gaussian (``r2gs``) is declared that way, from :mod
 Installed distributions may also declare methods in the entry-point group ``clgs.methods``
 (name -> a :class:`Method` object or a module that registers it).
 
-Option types: click's ``float`` and ``FloatRange`` accept ``nan`` and ``inf`` (NaN passes every
-range check), which end as a NumPy error deep in a run; :class:`FiniteFloat` refuses them at
-parse time, and :class:`Seed` takes random seeds (0 to 2**64 - 1). :func:`check_option_values`
-applies the same rules to values parsed by any method's options (whatever type they declared), so
-``clgs reconstruct`` refuses a non-finite float or a negative seed before a run starts.
+One module per built-in method (:mod:`.fdk`, :mod:`.sart`, :mod:`.r2gs`, :mod:`.shape_guided`),
+each thin: the work is in :mod:`clgs.ct` and :mod:`clgs.fit`. The command line makes the click
+options (:mod:`clgs.cli.options`); this package imports neither click nor anything heavy.
 
-This module imports only click and the standard library.
+May import: :mod:`clgs.fit`, :mod:`clgs.shape`, :mod:`clgs.anatomy`, :mod:`clgs.ct` and every
+layer below them. Not the experiment or the CLI.
 """
 from __future__ import annotations
 
 import importlib
-import math
 from dataclasses import dataclass, field
-from typing import Callable, Union
+from typing import Callable, Optional, Union
 
-import click
+from clgs.errors import ClgsError
 
-__all__ = ["Method", "register", "register_lazy", "get", "names", "describe", "MethodError", "FiniteFloat", "Seed",
-           "check_option_values", "SEED_MAX"]
-
-SEED_MAX = 2 ** 64 - 1  # torch.Generator.manual_seed's upper bound; NumPy takes any non-negative integer
+__all__ = ["Method", "Option", "register", "register_lazy", "get", "names", "describe", "MethodError"]
 
 
-class FiniteFloat(click.FloatRange):
-    """A float option that refuses NaN and +-inf, optionally bounded like :class:`click.FloatRange`
-    (``FiniteFloat(min=0)``, ``FiniteFloat(0, 2, min_open=True, max_open=True)``). ``hint`` is
-    added to the message when a value is refused (e.g. why the bound is there)."""
+@dataclass(frozen=True)
+class Option:
+    """One command-line option of a method, as data (:mod:`clgs.cli.options` makes the click
+    option). ``flag``: ``--name``; ``name``: the keyword of the method's ``run``; ``kind``: ``int``,
+    ``float`` (finite), ``choice``, ``flag`` (on when given), ``switch`` (``--x/--no-x``), ``seed``
+    or ``str``; ``default``: what the help shows as the default (the method's own applies when the
+    option is not given); ``min``/``max`` (``*_open``: excluded) bound numbers."""
 
-    def __init__(self, min=None, max=None, min_open: bool = False, max_open: bool = False, hint: str = ""):
-        super().__init__(min=min, max=max, min_open=min_open, max_open=max_open)
-        self.name = "float" if min is None and max is None else "float range"
-        self.hint = hint
-
-    def _describe_range(self) -> str:
-        if self.min is None and self.max is None:
-            return ""
-        return super()._describe_range()
-
-    def _with_hint(self, message: str) -> str:
-        return f"{message.rstrip('.')} ({self.hint})" if self.hint else message
-
-    def convert(self, value, param, ctx):
-        try:
-            number = float(value)
-        except (TypeError, ValueError):
-            self.fail(self._with_hint(f"{value!r} is not a number"), param, ctx)
-        if not math.isfinite(number):
-            rng = self._describe_range()
-            self.fail(self._with_hint(f"{value!r} is not a finite number; give a finite value"
-                                      + (f" in the range {rng}" if rng else "")), param, ctx)
-        try:
-            return super().convert(number, param, ctx)
-        except click.BadParameter as exc:
-            exc.message = self._with_hint(exc.message)
-            raise
+    flag: str
+    name: str
+    kind: str = "float"
+    help: str = ""
+    default: Optional[str] = None
+    choices: tuple = ()
+    min: Optional[float] = None
+    max: Optional[float] = None
+    min_open: bool = False
+    max_open: bool = False
 
 
-class Seed(click.ParamType):
-    """A random seed: an integer from 0 to 2**64 - 1 (what both NumPy and torch accept)."""
-
-    name = "integer"
-
-    def convert(self, value, param, ctx):
-        if isinstance(value, bool):
-            self.fail(f"{value!r} is not a valid seed", param, ctx)
-        try:
-            number = int(value)
-        except (TypeError, ValueError):
-            self.fail(f"{value!r} is not a valid seed: give an integer from 0 to 2**64 - 1", param, ctx)
-        if isinstance(value, float) and number != value:
-            self.fail(f"{value!r} is not a valid seed: give an integer from 0 to 2**64 - 1", param, ctx)
-        if not 0 <= number <= SEED_MAX:
-            self.fail(f"{number} is not a valid seed: give an integer from 0 to 2**64 - 1", param, ctx)
-        return number
-
-
-def _values(value):
-    if isinstance(value, (list, tuple)):
-        for v in value:
-            yield from _values(v)
-    else:
-        yield value
-
-
-def check_option_values(params, values: dict, ctx=None) -> None:
-    """Refuse, as :class:`click.BadParameter` naming the option, values a method cannot use
-    whatever type its options declared: a NaN or infinite float (``click.FLOAT`` and
-    ``FloatRange`` let them through), and a seed (an option whose name is ``seed``) outside
-    0 .. 2**64 - 1. ``params``: the click parameters; ``values``: name -> parsed value."""
-    for p in params:
-        value = values.get(p.name)
-        if value is None:
-            continue
-        for v in _values(value):
-            if isinstance(v, float) and not math.isfinite(v):
-                describe = getattr(p.type, "_describe_range", None)
-                rng = describe() if callable(describe) else ""
-                raise click.BadParameter(f"{v} is not a finite number; give a finite value"
-                                         + (f" in the range {rng}" if rng else ""), ctx=ctx, param=p)
-            if p.name == "seed" and isinstance(v, int) and not isinstance(v, bool) and not 0 <= v <= SEED_MAX:
-                raise click.BadParameter(f"{v} is not a valid seed: give an integer from 0 to 2**64 - 1",
-                                         ctx=ctx, param=p)
-
-
-class MethodError(LookupError):
+class MethodError(ClgsError, LookupError):
     """An unknown method, or one whose module does not provide what it should."""
 
 
@@ -151,10 +87,17 @@ class Method:
     # half-written). False: the method manages its folder itself (e.g. checkpoints it can resume).
     atomic_dir: bool = True
 
+    # a settings dataclass (or "module:attr") whose fields named in its ``CLI`` are options too
+    config: Union[type, str, None] = None
+
     def callable(self) -> Callable:
         return _resolve(self.run)
 
-    def click_options(self) -> list:
+    def config_class(self) -> Optional[type]:
+        return None if self.config is None else _resolve(self.config)
+
+    def option_list(self) -> list:
+        """The method's own options: :class:`Option` records (or click parameters)."""
         opts = _resolve(self.options)
         if callable(opts) and not isinstance(opts, (list, tuple)):
             opts = opts()
@@ -235,26 +178,25 @@ def get(name: str) -> Method:
 
 
 # ------------------------------------------------------------------------------ built-ins
-_FILTERS = ["ram-lak", "shepp-logan", "cosine", "hamming", "hann"]  # clgs.ct.fdk.FILTERS, without importing it
+_FILTERS = ("ram-lak", "shepp-logan", "cosine", "hamming", "hann")  # clgs.ct.fdk.FILTERS, without importing it
 
 register(Method(
     "fdk", "clgs.methods.fdk:run", help="FDK filtered backprojection (fast, streaky at few views)",
     options=[
-        click.Option(["--filter", "filter"], type=click.Choice(_FILTERS), default=None,
-                     help="FDK ramp filter window [default: ram-lak]"),
-        click.Option(["--short-scan", "short_scan"], type=click.Choice(["auto", "on", "off"]), default=None,
-                     help="redundancy (Parker-like) weights for arcs short of a full circle [default: auto]"),
+        Option("--filter", "filter", "choice", "FDK ramp filter window", default="ram-lak", choices=_FILTERS),
+        Option("--short-scan", "short_scan", "choice",
+               "redundancy (Parker-like) weights for arcs short of a full circle", default="auto",
+               choices=("auto", "on", "off")),
     ],
 ))
 register(Method(
     "sart", "clgs.methods.sart:run", help="SART / OS-SART iterative reconstruction (non-negative)",
     options=[
-        click.Option(["--iterations", "iterations"], type=click.IntRange(min=1), default=None,
-                     help="number of SART iterations (full passes over the views)"),
-        click.Option(["--subsets", "subsets"], type=click.IntRange(min=1), default=None,
-                     help="ordered subsets per iteration (1 = SART, more = OS-SART)"),
-        click.Option(["--relaxation", "relaxation"], type=FiniteFloat(0, 2, min_open=True, max_open=True),
-                     default=None, help="relaxation factor of each update, in (0, 2)"),
+        Option("--iterations", "iterations", "int", "number of SART iterations (full passes over the views)",
+               min=1),
+        Option("--subsets", "subsets", "int", "ordered subsets per iteration (1 = SART, more = OS-SART)", min=1),
+        Option("--relaxation", "relaxation", "float", "relaxation factor of each update, in (0, 2)", min=0, max=2,
+               min_open=True, max_open=True),
     ],
 ))
 register_lazy("r2gs", "clgs.methods.r2gs", help="R2-Gaussian: radiative Gaussian splatting (slow, best at few views)")

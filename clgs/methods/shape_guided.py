@@ -44,15 +44,20 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from clgs.anatomy.evaluation import bone_surface  # the outer bone surface written with the outputs
 from clgs.fit.gaussians import GaussianSet, Schedule, init_from_volume, r2gs_schedules
-from clgs.methods.r2gs import (GaussianFitConfig, fdk_volume, gaussians_in_scan_units, make_trainer, r2gs_losses, restore,
-                       run_config, scale_bounds_for, value_scale_from, volume_box, voxelize_volume)
+from clgs.fit.assembly import (fdk_volume, make_trainer, projection_losses, restore, scale_bounds_for,
+                               value_scale_from, volume_box)
+from clgs.fit.config import GaussianFitConfig, run_config, setting
+from clgs.fit.outputs import gaussians_in_scan_units, voxelize_volume
+from clgs.fit.outputs import write_outputs as write_common
 from clgs.fit.trainer import LossTerm, Trainer
+from clgs.methods import Method, Option
+from clgs.methods.gaussian import RUN_OPTIONS, method_output
+from clgs.shape.gaussian_set import ShapeGuidedSet
+from clgs.shape.priors import DensityPrior, random_subgrid, shape_prior_term
 
-CHECKPOINT = "checkpoint.pt"
 
 
 @dataclass
@@ -60,15 +65,25 @@ class ShapeGuidedConfig(GaussianFitConfig):
     """The paper's defaults (35k shape-guided + 15k free Gaussians, 30k iterations); the settings
     shared with R2-Gaussian mode (densification, loss weights, ...) are :class:`GaussianFitConfig`'s."""
 
-    n_shape: int = 35_000
-    n_free: int = 15_000
-    tau: float = 0.5
+    n_shape: int = setting(35_000, "--shape-gaussians", "shape-guided Gaussians", min=1)
+    n_free: int = setting(15_000, "--free-gaussians", "free (R2-Gaussian) Gaussians at the start")
+    tau: float = setting(0.5, "--tau", "thinning along the surface normal", max=1)
     boundary_weight: float = 4.0
-    shape_prior: bool = True  # bind the shape set to the shape model (False: "density init only")
-    density_prior: bool = True
-    free_init: str = "atlas"  # "atlas": the atlas's tissue around the bone; "fdk": R2-Gaussian's FDK start
-    alpha_init_iterations: int = 100  # alpha-only registration before training (0: start at alpha = 0)
-    density_prior_field: str = "all"  # "all": the whole model against the atlas; "shape": Gs in the bone
+    # bind the shape set to the shape model (False: "density init only")
+    shape_prior: bool = setting(True, "--shape-prior",
+                                "bind the shape-guided Gaussians to the shape model")
+    density_prior: bool = setting(True, "--density-prior", "atlas density prior")
+    # "atlas": the atlas's tissue around the bone; "fdk": R2-Gaussian's FDK start
+    free_init: str = setting("atlas", "--free-init",
+                             "start the free Gaussians on the atlas's tissue around the bone, or on the FDK")
+    # alpha-only registration before training (0: start at alpha = 0)
+    alpha_init_iterations: int = setting(100, "--alpha-init-iterations",
+                                         "iterations registering alpha to the projections before training "
+                                         "(0: alpha = 0)")
+    # "all": the whole model against the atlas; "shape": Gs in the bone
+    density_prior_field: str = setting("all", "--density-prior-field",
+                                       "field held to the atlas: the whole model, or the shape-guided Gaussians inside "
+                                       "the bone (the paper)")
     lambda_shape: float = 1e-4
     lambda_density: float = 0.5
     density_s: float = 0.05
@@ -79,94 +94,16 @@ class ShapeGuidedConfig(GaussianFitConfig):
     lr_scale: float = 0.005
     lr_rotation: float = 0.01
 
+    CLI = ("iterations", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every",
+           "checkpoint_every", "max_gaussians", "n_shape", "n_free", "tau", "shape_prior", "density_prior",
+           "density_prior_field", "free_init", "alpha_init_iterations")
     KIND = "shape-guided"
     CHOICES = {**GaussianFitConfig.CHOICES, "free_init": ("atlas", "fdk"), "density_prior_field": ("all", "shape")}
     POSITIVE = GaussianFitConfig.POSITIVE | {"tau", "density_s"}
     AT_LEAST = {**GaussianFitConfig.AT_LEAST, "density_points": 2}
 
 
-# ---------------------------------------------------------------------- the shape-guided set
-class ShapeGuidedSet(GaussianSet):
-    """Gaussians whose centres are ``p_ref + u(alpha)(p_ref)`` (mm), mapped to the scene.
-
-    Leaves: ``alpha`` (M,), raw scales, quaternions, raw densities. ``p_ref`` is fixed."""
-
-    MIN_SQUARINGS = 2
-
-    def __init__(self, p_ref_mm, scales, quats, densities, *, shape_model, geometry, box, scale_bounds,
-                 schedules, alpha=None, name: str = "shape", raw: bool = False, sampler=None):
-        dt = torch.float32
-        self.sampler = sampler  # a FieldSampler (OpenCL) or None (torch's grid_sample)
-        self.shape_model = shape_model.to(dt) if shape_model.dtype != dt else shape_model
-        self.p_ref = torch.as_tensor(np.asarray(p_ref_mm, np.float64), dtype=dt)
-        self._origin = torch.as_tensor(np.asarray(geometry.offOrigin[::-1], np.float64), dtype=dt)
-        self._scale = float(geometry.scale)
-        placeholder = torch.zeros((len(self.p_ref), 3), dtype=dt)
-        super().__init__(placeholder, scales, quats, densities, box=box, scale_bounds=scale_bounds,
-                         schedules=schedules, densify=False, name=name, raw=raw)
-        del self.params["means"]
-        a = torch.zeros(self.shape_model.n_modes, dtype=dt) if alpha is None else torch.as_tensor(alpha, dtype=dt)
-        self.params = {"alpha": a.detach().clone().requires_grad_(True), **self.params}
-        self.last_u = None  # the latest displacement field (detached), for the density prior
-
-    def __len__(self):
-        return int(self.p_ref.shape[0])
-
-    @property
-    def alpha(self) -> torch.Tensor:
-        return self.params["alpha"]
-
-    def displacement(self) -> torch.Tensor:
-        """u(alpha) on the model grid. Squarings follow the half-cell rule with a floor of
-        ``MIN_SQUARINGS`` (2, not the model's default 4): on the femur model at alpha = 3 sigma
-        the map then differs from a 12-squaring one by 0.64 mm (0.2 voxel) and costs half as much,
-        which matters since this runs, forward and backward, every iteration."""
-        from clgs.shape.model import exp_velocity
-
-        u = exp_velocity(self.shape_model.velocity(self.alpha), self.shape_model.spacing,
-                         min_squarings=self.MIN_SQUARINGS, sampler=self.sampler)
-        self.last_u = u.detach()
-        return u
-
-    def centres_mm(self, u=None) -> torch.Tensor:
-        u = self.displacement() if u is None else u
-        # torch here: the field's gradient at these ~35k scattered points is faster with grid_sample
-        # (``clgs bench kernels``, deformation rows: 7 ms against 9-11 for the OpenCL gather, which
-        # sorts the points and passes over the whole grid); the exponentiation and the forward-only
-        # samples are faster in OpenCL
-        return self.p_ref + self.shape_model.sample(u, self.p_ref)
-
-    def tensors(self):
-        p = self.params
-        means = (self.centres_mm() - self._origin) * self._scale
-        return means, self.scale_activation(p["scales"]), p["quats"], F.softplus(p["densities"])
-
-    def to_template(self, points_mm: torch.Tensor) -> torch.Tensor:
-        """Points of the subject carried back to the template: x' = x - u(x'), two fixed-point steps."""
-        if self.last_u is None:
-            with torch.no_grad():
-                self.displacement()
-        x = points_mm
-        for _ in range(2):
-            x = points_mm - self.shape_model.sample(self.last_u, x, self.sampler)
-        return x
-
-    def to_numpy(self) -> dict:
-        out = super().to_numpy()
-        out["alpha"] = self.alpha.detach().numpy().astype(np.float32)
-        out["p_ref_mm"] = self.p_ref.numpy().astype(np.float32)
-        return out
-
-    def state_dict(self) -> dict:
-        return {**super().state_dict(), "p_ref": self.p_ref.clone()}
-
-    def load_state_dict(self, state: dict) -> None:
-        self.p_ref = state["p_ref"].clone()
-        for k in self.params:
-            self.params[k] = state[k].detach().clone().requires_grad_(True)
-        self.last_u = None
-
-
+# ---------------------------------------------------------------------- schedules
 def shape_schedules(cfg: ShapeGuidedConfig, iterations: int, *, free_means: bool) -> dict:
     """The paper's learning rates for the shape set: alpha 0.1 decaying to 1% by the midpoint and
     frozen for the first ``alpha_freeze`` iterations; density and scale constant; rotation to 10%."""
@@ -183,95 +120,6 @@ def shape_schedules(cfg: ShapeGuidedConfig, iterations: int, *, free_means: bool
 
 
 # ---------------------------------------------------------------------- priors
-def shape_prior_term(set_name: str = "shape"):
-    """|alpha|^2 of the shape set."""
-
-    def fn(ctx):
-        s = _set(ctx.trainer, set_name)
-        return (s.alpha * s.alpha).sum()
-
-    return fn
-
-
-def _set(trainer, name):
-    for s in trainer.sets:
-        if s.name == name:
-            return s
-    raise KeyError(name)
-
-
-def random_subgrid(grid, n: int, generator: torch.Generator):
-    """An ``n^3`` strided grid spanning ``grid``'s box with a random sub-stride offset."""
-    from clgs.geometry import Grid
-
-    shape = np.asarray(grid.shape)  # (Z, Y, X)
-    sp = np.asarray(grid.spacing, float)  # (x, y, z)
-    counts = np.minimum(shape, n)
-    extent = (shape[::-1] - 1) * sp  # (x, y, z)
-    step = np.where(counts[::-1] > 1, extent / np.maximum(counts[::-1], 1), 0.0)
-    offset = torch.rand(3, generator=generator, dtype=torch.float64).numpy() * step
-    origin = np.asarray(grid.origin, float) + offset
-    return Grid(tuple(int(c) for c in counts), tuple(origin), tuple(np.where(step > 0, step, sp)))
-
-
-class DensityPrior:
-    """``L_density`` of the module doc, evaluated lazily per iteration.
-
-    ``field="shape"``: the shape set's field ``V_s`` inside the template's bone (carried by the
-    current deformation), as the paper writes it. ``field="all"``: the whole model's field
-    everywhere on the sub-grid, against the atlas of the whole scan (bone and the tissue around
-    it), with the same confidence ``w``; the free Gaussians then get the atlas's help where the
-    few views leave them undetermined (measured on the femur at 5 views and 600 iterations:
-    +0.3 dB over ``"shape"``)."""
-
-    def __init__(self, atlas, template, geometry, value_scale: float, s: float, n_points: int,
-                 set_name: str = "shape", field: str = "shape"):
-        if field not in ("shape", "all"):
-            raise ValueError(f"density prior field must be 'shape' or 'all', got {field!r}")
-        self.atlas, self.template, self.geometry = atlas, template, geometry
-        self.value_scale = float(value_scale)
-        self.s2 = float(s) ** 2
-        self.n_points = int(n_points)
-        self.set_name = set_name
-        self.field = field
-        lo, hi = template.bounds()
-        self._lo, self._hi = torch.as_tensor(lo, dtype=torch.float32), torch.as_tensor(hi, dtype=torch.float32)
-        self._label = torch.as_tensor(template.label.astype(np.float32))[None, None]
-
-    def _inside_template(self, pts_mm: torch.Tensor) -> torch.Tensor:
-        g = ((pts_mm - self._lo) / (self._hi - self._lo) * 2 - 1).reshape(1, 1, 1, -1, 3)
-        m = F.grid_sample(self._label, g, mode="bilinear", padding_mode="zeros", align_corners=True)
-        return m.reshape(-1)
-
-    def __call__(self, ctx):
-        trainer = ctx.trainer
-        s = _set(trainer, self.set_name)
-        grid = random_subgrid(self.geometry.volume_grid(scene=True), self.n_points, ctx.generator)
-        if self.field == "all":
-            tensors = ctx.tensors
-        else:
-            n = len(s)
-            offset = 0
-            for other in trainer.sets:  # the shape set's rows within the concatenated scene tensors
-                if other is s:
-                    break
-                offset += len(other)
-            tensors = tuple(t[offset:offset + n] for t in ctx.tensors)
-        v = ctx.voxelize(grid, tensors).reshape(-1)
-        with torch.no_grad():
-            pts = torch.as_tensor(grid.points().reshape(-1, 3), dtype=torch.float32)
-            pts_mm = pts / self.geometry.scale + torch.as_tensor(np.asarray(self.geometry.offOrigin[::-1]),
-                                                                 dtype=torch.float32)
-            x_t = s.to_template(pts_mm) if isinstance(s, ShapeGuidedSet) else pts_mm
-            mean = self.atlas.mean_at(x_t.double()).float() * self.value_scale
-            var = self.atlas.var_at(x_t.double()).float() * self.value_scale ** 2
-            w = torch.exp(-var / self.s2)
-            if self.field == "shape":
-                w = w * self._inside_template(x_t)
-        return (w * (v - mean) ** 2).mean()
-
-
-# ---------------------------------------------------------------------- building a run
 @dataclass
 class ShapeGuidedResult:
     volume: np.ndarray
@@ -379,7 +227,11 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
     Start (a new run): the shape set on the template (:func:`clgs.shape.initialise.initialise`); the free
     set on the atlas's tissue around the bone (``free_init="atlas"``, with an atlas that has some)
     or on the FDK outside the template's bone (``"fdk"``, or without one); then, bound to a shape model,
-    alpha registered to the projections (:func:`fit_initial_alpha`)."""
+    alpha registered to the projections (:func:`fit_initial_alpha`).
+
+    Long because each branch (resumed, shape prior on or off, free set from the atlas or the FDK)
+    builds the same three pieces in its own order; the pieces themselves are helpers.
+    """
     from clgs.shape.initialise import initialise, initialise_surroundings
 
     if cfg.free_init not in ("atlas", "fdk"):
@@ -453,7 +305,7 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
         # must not be pulled to its zeros there
         if len(sample_surrounding_centres(template, atlas, 1, threshold=cfg.init_threshold)) == 0:
             prior_field = "shape"
-    losses = r2gs_losses(cfg)
+    losses = projection_losses(cfg)
     if bound:
         losses.append(LossTerm("shape", cfg.lambda_shape, shape_prior_term()))
     if cfg.density_prior and atlas is not None:
@@ -521,7 +373,6 @@ def write_outputs(trainer, out_dir, value_scale, volume, template, alpha, level=
     """The r2gs outputs plus alpha and the two surfaces; each file atomically."""
     from clgs.io import atomic
     from clgs.io.mesh import save_mesh
-    from clgs.methods.r2gs import write_outputs as write_common
 
     out_dir = Path(out_dir)
     paths = write_common(trainer, out_dir, value_scale, volume)
@@ -551,66 +402,19 @@ def _anatomy_for(scan, anatomy):
 def run_method(scan, out_dir=None, iterations: int | None = None, anatomy=None, resume: bool = False,
                progress: bool = True, **settings) -> dict:
     """The ``shape`` entry of :mod:`clgs.methods`."""
-    import click
-
     anatomy = _anatomy_for(scan, anatomy)
     result = reconstruct_shape_guided(scan, anatomy, out_dir, iterations, resume=resume, progress=progress,
                                       **settings)
-    click.echo(result.summary, err=True)
-    if result.interrupted:
-        where = f"; continue with --resume --out {out_dir}" if out_dir is not None else ""
-        click.echo(f"interrupted at iteration {result.trainer.iteration}: outputs so far written{where}", err=True)
-    info = {"iterations": result.trainer.iteration, "n_gaussians": result.trainer.n_gaussians,
-            "training_seconds": result.trainer.seconds, "seconds": result.seconds,
-            "value_scale": result.value_scale, "interrupted": result.interrupted,
-            "alpha": [float(a) for a in result.alpha], "history": result.log.rows}
     files = {p.name: str(p) for p in sorted(Path(out_dir).iterdir())} if out_dir is not None else {}
-    return {"volume": result.volume, "files": files, "info": info}
+    return method_output(result, out_dir, files, seconds=result.seconds, alpha=[float(a) for a in result.alpha],
+                         history=result.log.rows)
 
 
-def click_options() -> list:
-    import click
-
-    from clgs.methods import FiniteFloat
-
-    from clgs.methods.r2gs import click_options as r2gs_options
-
-    keep = {"iterations", "resume", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every",
-            "checkpoint_every", "progress", "max_gaussians"}
-    opts = [o for o in r2gs_options() if o.name in keep]
-    return opts + [
-        click.Option(["--anatomy", "anatomy"], default=None,
-                     help="anatomy plugin giving template, shape model and atlas [default: the scan's]"),
-        click.Option(["--shape-gaussians", "n_shape"], type=click.IntRange(min=1), default=None,
-                     help="shape-guided Gaussians [default: 35000]"),
-        click.Option(["--free-gaussians", "n_free"], type=click.IntRange(min=0), default=None,
-                     help="free (R2-Gaussian) Gaussians at the start [default: 15000]"),
-        click.Option(["--tau", "tau"], type=FiniteFloat(0, 1, min_open=True), default=None,
-                     help="thinning along the surface normal [default: 0.5]"),
-        click.Option(["--shape-prior/--no-shape-prior", "shape_prior"], default=None,
-                     help="bind the shape-guided Gaussians to the shape model [default: on]"),
-        click.Option(["--density-prior/--no-density-prior", "density_prior"], default=None,
-                     help="atlas density prior [default: on]"),
-        click.Option(["--density-prior-field", "density_prior_field"], type=click.Choice(["all", "shape"]),
-                     default=None, help="field held to the atlas: the whole model, or the shape-guided Gaussians "
-                                        "inside the bone (the paper) [default: all]"),
-        click.Option(["--free-init", "free_init"], type=click.Choice(["atlas", "fdk"]), default=None,
-                     help="start the free Gaussians on the atlas's tissue around the bone, or on the FDK "
-                          "[default: atlas]"),
-        click.Option(["--alpha-init-iterations", "alpha_init_iterations"], type=click.IntRange(min=0), default=None,
-                     help="iterations registering alpha to the projections before training (0: alpha = 0) "
-                          "[default: 100]"),
-    ]
-
-
-def _method():
-    from clgs.methods import Method
-
-    return Method("shape", run_method, options=click_options, atomic_dir=False,
-                  help="shape-guided Gaussian splatting with an anatomy's shape model and density atlas")
-
-
-METHOD = _method()
+METHOD = Method("shape", run_method, config=ShapeGuidedConfig, atomic_dir=False,
+                options=[Option("--anatomy", "anatomy", "str",
+                                "anatomy plugin giving template, shape model and atlas", default="the scan's"),
+                         *RUN_OPTIONS],
+                help="shape-guided Gaussian splatting with an anatomy's shape model and density atlas")
 
 __all__ = ["ShapeGuidedConfig", "ShapeGuidedSet", "ShapeGuidedResult", "reconstruct_shape_guided",
            "build_trainer", "bone_surface", "DensityPrior", "random_subgrid"]

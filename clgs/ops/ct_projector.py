@@ -22,8 +22,10 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+import pyopencl as cl
 
 from clgs.geometry import Geometry
+from clgs.ops.operator import Operator
 
 _VIEW_STRIDE = 16
 _ZB = 32  # z voxels per backprojector work-item (cl/ct_backprojector.cl)
@@ -44,7 +46,10 @@ def _round8(n):
     return (int(n) + 7) // 8 * 8
 
 
-class CTProjector:
+BACKWARD_SOURCE = "ct_backprojector.cl"  # the transpose, built on the forward's file
+
+
+class CTProjector(Operator):
     """Matched forward projector / backprojector for one :class:`~clgs.geometry.Geometry`.
 
     ``forward(volume)`` takes a (Z, Y, X) volume in values per mm and returns (n_views, V, U)
@@ -55,16 +60,18 @@ class CTProjector:
     kept and reused between calls.
     """
 
+    SOURCE = "ct_projector.cl"
+
     def __init__(self, geometry: Geometry):
         if not isinstance(geometry, Geometry):
             raise TypeError(f"CTProjector needs a clgs.geometry.Geometry, got {type(geometry).__name__}")
+        super().__init__()
         self.geometry = geometry
         self.cone = geometry.mode == "cone"
         nz, ny, nx = geometry.nVoxel
         self.shape = (nz, ny, nx)
         self.spacing_xyz = np.asarray(geometry.dVoxel[::-1], np.float64)
         self._views_all = self._index_views()
-        self._buffers: dict = {}
         self._view_cache: dict = {}
         self._check_geometry()
 
@@ -146,11 +153,9 @@ class CTProjector:
                     "only, so z is sampled more coarsely than one voxel there", stacklevel=3)
 
     def _program(self, dtype, kind):
-        from clgs.runtime import get_program
-
         real = "double" if dtype == np.float64 else "float"
-        fname = "ct_projector.cl" if kind == "forward" else "ct_backprojector.cl"
-        return get_program(fname, {"REAL": real, "CONE": self.cone})
+        source = self.SOURCE if kind == "forward" else BACKWARD_SOURCE
+        return self.variant((real, kind), {"REAL": real, "CONE": self.cone}, source)
 
     def _views(self, views, dtype):
         if views is None:
@@ -174,16 +179,12 @@ class CTProjector:
 
     def _column_table(self, views, dtype, vbuf, n, prog):
         """Device table of each view's per-column ray set-up (kernel ct_columns), cached."""
-        import pyopencl as cl
-
-        from clgs.runtime import get_context, get_queue
-
         key = ("columns", None if views is None else np.asarray(views, np.int64).tobytes(), np.dtype(dtype).str)
         hit = self._view_cache.get(key)
         if hit is None:
             nu = self.geometry.nDetector[1]
-            hit = cl.Buffer(get_context(), cl.mem_flags.READ_WRITE, size=n * nu * 8 * np.dtype(dtype).itemsize)
-            prog.kernel("ct_columns")(get_queue(), (nu, n), None, vbuf, hit, np.int32(nu))
+            hit = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, size=n * nu * 8 * np.dtype(dtype).itemsize)
+            prog.kernel("ct_columns")(self.queue, (nu, n), None, vbuf, hit, np.int32(nu))
             self._view_cache[key] = hit
         return hit
 
@@ -210,32 +211,15 @@ class CTProjector:
         return hit
 
     def _buffer(self, name, nbytes):
-        import pyopencl as cl
+        return self.io.scratch(name, nbytes)
 
-        from clgs.runtime import get_context
-
-        buf = self._buffers.get(name)
-        if buf is None or buf.size < nbytes:
-            buf = cl.Buffer(get_context(), cl.mem_flags.READ_WRITE, size=max(int(nbytes), 8))
-            self._buffers[name] = buf
-        return buf
-
-    @staticmethod
-    def _constant_buffer(array):
-        import pyopencl as cl
-
-        from clgs.runtime import get_context
-
-        return cl.Buffer(get_context(), cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=array)
+    def _constant_buffer(self, array):
+        return cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=array)
 
     def _to_device(self, name, array):
         """Copy ``array`` into the reusable device buffer ``name`` (grown when too small)."""
-        import pyopencl as cl
-
-        from clgs.runtime import get_queue
-
         buf = self._buffer(name, array.nbytes)
-        cl.enqueue_copy(get_queue(), buf, array)
+        cl.enqueue_copy(self.queue, buf, array)
         return buf
 
     # ------------------------------------------------------------------------------ public
@@ -282,10 +266,6 @@ class CTProjector:
 
     def forward_padded(self, padded, views=None) -> np.ndarray:
         """Forward projection of a padded volume (see :meth:`pad_volume`): (n, U, Vp) float array."""
-        import pyopencl as cl
-
-        from clgs.runtime import get_queue
-
         dtype = np.float64 if padded.dtype == np.float64 else np.float32
         padded = np.ascontiguousarray(padded, dtype)
         nz, ny, nx = self.shape
@@ -299,7 +279,7 @@ class CTProjector:
         out_buf = self._buffer("proj_out", n * nu * nvp * padded.itemsize)
         k = self._program(dtype, "forward").kernel("ct_forward")
         sx, sy, sz = (dtype(s) for s in self.spacing_xyz)
-        q = get_queue()
+        q = self.queue
         k(q, (nvp // 8, nu, n), None, vol_buf, vbuf, out_buf, np.int32(nx), np.int32(ny), np.int32(nz),
           np.int32(nu), np.int32(nvp), sx, sy, sz)
         out = np.empty((n, nu, nvp), dtype)
@@ -311,10 +291,6 @@ class CTProjector:
 
         Rows v >= V of ``tp`` are ignored.
         """
-        import pyopencl as cl
-
-        from clgs.runtime import get_queue
-
         dtype = np.float64 if tp.dtype == np.float64 else np.float32
         rec, vbuf = self._views(views, dtype)
         n = rec.shape[0]
@@ -329,7 +305,7 @@ class CTProjector:
         p_buf = self._to_device("proj_in", scaled)
         out_buf = self._buffer("vol_out", nx * ny * nzp * scaled.itemsize)
         prog = self._program(dtype, "backward")
-        q = get_queue()
+        q = self.queue
         t_buf = self._column_table(views, dtype, vbuf, n, prog)
         k = prog.kernel("ct_backward")
         k(q, (nzp // _ZB, ny, nx), None, p_buf, vbuf, t_buf, out_buf, np.int32(n), np.int32(nx), np.int32(ny),

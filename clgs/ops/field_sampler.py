@@ -18,14 +18,12 @@ cells it is a corner of (``sample_grad_field``). The same input gives the same b
 """
 from __future__ import annotations
 
-import threading
 
 import numpy as np
-import pyopencl as cl
 import torch
 
 from clgs import runtime
-from clgs.runtime.buffers import BufferPool
+from clgs.ops.operator import Operator
 from clgs.runtime import round_up
 
 SOURCE = "field_sampler.cl"
@@ -34,19 +32,14 @@ CELLS_PER_ITEM = 32
 GUARD = 16  # spare entries around the cell sums (cl/field_sampler.cl)
 
 
-class FieldSampler:
+class FieldSampler(Operator):
     """Runs ``cl/field_sampler.cl`` on one context and queue; owns its pooled buffers. One call at
     a time (a lock serialises them)."""
 
-    def __init__(self, ctx=None, queue=None):
-        self.ctx = ctx or runtime.get_context()
-        self.queue = queue or runtime.get_queue()
-        self.io = BufferPool(self, self.ctx.devices[0].type & cl.device_type.CPU)
-        self._lock = threading.Lock()
+    SOURCE = SOURCE
 
     def _program(self, dtype):
-        return runtime.get_program(SOURCE, {"REAL": runtime.real_name(dtype, "the field"),
-                                            "CELLS_PER_ITEM": CELLS_PER_ITEM}, ctx=self.ctx)
+        return self.build({"REAL": runtime.real_name(dtype, "the field"), "CELLS_PER_ITEM": CELLS_PER_ITEM})
 
     @staticmethod
     def _dims(field: np.ndarray):

@@ -114,13 +114,14 @@ written by one work-item, so same input gives the same bits.
 from __future__ import annotations
 
 import os
-import threading
 
 import numpy as np
 import torch
 
-from clgs.runtime.buffers import BufferPool
+from clgs import runtime
+from clgs.errors import ClgsError
 from clgs.ops.gaussian_math import covariance, precision
+from clgs.ops.operator import Operator
 from clgs.runtime import launch, real_name, round_up, shared
 
 MODES = ("affine", "exact")
@@ -128,7 +129,7 @@ VP = 20
 _HIST_BUDGET = 1 << 22  # views x chunks x tiles: the tile counts take 5 ints each (20 bytes)
 
 
-class ProjectorError(ValueError):
+class ProjectorError(ClgsError, ValueError):
     """Inputs the projector cannot handle, with what to do about them."""
 
 
@@ -161,8 +162,6 @@ def tile_width(device=None) -> tuple[int, bool]:
     if env:
         return _check_width(env, f"${WIDTH_ENV}"), True
     if device is None:
-        from clgs import runtime
-
         device = runtime.device()
     return (16 if int(device.native_vector_width_float) == 16 else 8), False
 
@@ -194,13 +193,15 @@ def view_params(geometry, views, dtype=np.float32) -> np.ndarray:
 
 
 
-class GaussianProjector:
+class GaussianProjector(Operator):
     """Owns the compiled programs (per beam, mode, precision, gradients) and the work buffers.
 
     Buffers grow when a larger scene comes along and are reused across calls. On a CPU device
     inputs and outputs are NumPy memory wrapped with ``USE_HOST_PTR`` (no copies); on a GPU they
     are copied through pooled device buffers. One projector serialises its own calls.
     """
+
+    SOURCE = "projector.cl"
 
     # Work-group sizes. PoCL's CPU device runs these kernels fastest one work-item per group
     # (its work-group vectoriser only gets in the way of explicit real8 code); GPUs want groups.
@@ -220,13 +221,7 @@ class GaussianProjector:
 
     def __init__(self, width: int | None = None):
         """``width`` (8 or 16) forces that vector width on every kernel; None: ``tile_width()``."""
-        from clgs import runtime
-
-        self._runtime = runtime
-        self.ctx = runtime.get_context()
-        self.queue = runtime.get_queue()
-        self.cpu = runtime.is_cpu_device()
-        self.io = BufferPool(self, self.cpu)
+        super().__init__()
         self.LOCAL_G = self.LOCAL_G_CPU if self.cpu else self.LOCAL_G_GPU
         self.LOCAL_TILE = self.LOCAL_TILE_CPU if self.cpu else self.LOCAL_TILE_GPU
         self.PER = self.PER_CPU if self.cpu else self.PER_GPU
@@ -241,7 +236,6 @@ class GaussianProjector:
         self.tile = None  # (TW, TH) to use for every forward instead of the automatic tile (tests, tuning)
         self.backward_width = None  # likewise for the backward's BW
         self._vp_cache: dict = {}
-        self._progs: dict = {}
         # Gaussians are set up and binned in chunks, a work-item per (chunk, view), each chunk's
         # tile lists in one region (cl/projector.cl): enough chunks to keep every compute
         # unit busy, and no more on CPUs, where the render reads each tile's entries region by
@@ -250,7 +244,6 @@ class GaussianProjector:
         self.max_chunks = min(256, max(32, 8 * cus)) if self.cpu else 256
         self._pair_ratio = 2.0  # Gaussian-tile pairs per Gaussian and view in the last forward
         self.on_launch = None  # profiling hook: called with (kernel name, event) for every launch
-        self._lock = threading.Lock()
 
     # ----------------------------------------------------------------------------- plumbing
     def widths(self, beam: str, mode: str) -> tuple[int, int]:
@@ -273,12 +266,9 @@ class GaussianProjector:
         runtime's own cache costs tens of microseconds a call)."""
         key = (beam, mode, real, tuple(grads), self.tile and tuple(self.tile), self.backward_width,
                tuple(sorted(self.extra_defines.items())))
-        prog = self._progs.get(key)
-        if prog is None:
-            prog = self._progs[key] = self._program(beam, mode, real, grads)
-        return prog
+        return self.variant(key, lambda: self._defines(beam, mode, real, grads))
 
-    def _program(self, beam, mode, real, grads):
+    def _defines(self, beam, mode, real, grads) -> dict:
         TW, TH = self.tile_for(beam, mode)
         defines = {"REAL": real, "CONE": beam == "cone", "EXACT": mode == "exact", "TW": TW, "TH": TH,
                    "BW": self.widths(beam, mode)[1]}
@@ -286,7 +276,7 @@ class GaussianProjector:
         defines["NO_GRAD_COV"] = not grads[1]
         defines["NO_GRAD_DENSITY"] = not grads[2]
         defines.update(self.extra_defines)
-        return self._runtime.get_program("projector.cl", defines, self.ctx)
+        return defines
 
     def _launch(self, prog, name: str, gsize, lsize, *args):
         """Enqueue a kernel (only changed arguments are set, see ``runtime.launch``)."""

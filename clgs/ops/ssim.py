@@ -33,11 +33,11 @@ stops with a ``FloatingPointError`` naming the iteration and view when the loss 
 """
 from __future__ import annotations
 
-import threading
 
 import numpy as np
 import torch
-from clgs.runtime.buffers import BufferPool
+from clgs.errors import ClgsError
+from clgs.ops.operator import Operator
 from clgs.metrics import SSIM_C1 as C1
 from clgs.metrics import SSIM_C2 as C2
 from clgs.metrics import SSIM_SIGMA as SIGMA
@@ -114,7 +114,7 @@ def target_maps(b: torch.Tensor, size: int = WINDOW, sigma: float = SIGMA):
 
 
 
-class SSIMError(ValueError):
+class SSIMError(ClgsError, ValueError):
     """Inputs the OpenCL image loss cannot take, with what to do about them."""
 
 
@@ -172,7 +172,7 @@ class SSIMTarget:
         return bufs
 
 
-class ImageLoss:
+class ImageLoss(Operator):
     """Owns the compiled programs (float / double) and the scratch buffers of the L1 + SSIM
     kernels; one instance serialises its own calls.
 
@@ -182,40 +182,32 @@ class ImageLoss:
 
     RB_CPU, RB_GPU = 8, 1  # rows per work-item: CPUs want few, long work-items; GPUs many
 
+    SOURCE = "ssim.cl"
+
     def __init__(self):
-        from clgs import runtime
-        self._runtime = runtime
-        self.ctx = runtime.get_context()
-        self.queue = runtime.get_queue()
-        self.cpu = runtime.is_cpu_device()
-        self.io = BufferPool(self, self.cpu)
+        super().__init__()
         self.rb = self.RB_CPU if self.cpu else self.RB_GPU
         self.local = (1, 1) if self.cpu else None
         w = window(WINDOW, SIGMA, torch.float64).tolist()
         self._w64 = w
-        self._programs: dict = {}
         self._layout: dict = {}  # name -> (its buffer, the layout it was zeroed for)
         self._token = 0
         self._grad_token = None  # the forward whose coefficients the scratch T holds
         self._weights = None  # the last backward's (w_l1, w_ssim)
         self._spec = None  # (token, weights, inputs) of a backward pass the forward enqueued
-        self._lock = threading.Lock()
 
     # ------------------------------------------------------------------ plumbing
     def program(self, real: str):
-        prog = self._programs.get(real)
-        if prog is None:
-            prog = self._programs[real] = self._build(real)
-        return prog
+        return self.variant(real, lambda: self._defines(real))
 
-    def _build(self, real: str):
+    def _defines(self, real: str) -> dict:
         r = WINDOW // 2
         ws = self._w64[r:]  # centre first
         if real == "float":  # the window as torch rounds it for float32 (the literal is exact)
             ws = [float(np.float32(x)) for x in ws]
         defines = {"REAL": real, "RB": self.rb, "SC1": repr(C1), "SC2": repr(C2)}
         defines.update({f"WT{k}": repr(float(x)) for k, x in enumerate(ws)})
-        return self._runtime.get_program("ssim.cl", defines, self.ctx)
+        return defines
 
     def target(self, b, maps=None) -> SSIMTarget:
         return SSIMTarget(b, maps)
@@ -279,7 +271,8 @@ class ImageLoss:
         tb = target.buffers(self.ctx, self.queue, self.io.host_memory)
         b_out = self.io.scratch(f"out{dt.itemsize}", a.nbytes)
         i32 = np.int32
-        self._launch(self.program(real_name(dt, "images", SSIMError)), "ssim_grad", (-(-H // self.rb), B), i32(H), i32(W),
+        prog = self.program(real_name(dt, "images", SSIMError))
+        self._launch(prog, "ssim_grad", (-(-H // self.rb), B), i32(H), i32(W),
                      i32(target.nseg), dt.type(w_l1 / n), dt.type(w_ssim / n), T, self.io.input(a), tb["b"], b_out)
         return b_out
 

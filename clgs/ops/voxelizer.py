@@ -67,6 +67,7 @@ On a CPU device (PoCL) inputs and outputs wrap host memory without copies.
 from __future__ import annotations
 
 import math
+import re
 import threading
 
 import numpy as np
@@ -74,25 +75,35 @@ import pyopencl as cl
 import torch
 
 from clgs import runtime
-from clgs.runtime.buffers import BufferPool
+from clgs.ops.operator import Operator
 from clgs.geometry import Grid
 from clgs.runtime import round_up
 
 SOURCE = "voxelizer.cl"
-GSTRIDE = 16  # reals per packed Gaussian: p (3), rho, P (6), e (3), pad (3)
-GRADSTRIDE = 10  # reals per gradient row: dp (3), dP (6), drho
+
+
+def _kernel_constant(name: str) -> int:
+    """An integer ``#define`` of the kernel file, so that a record size is written in one place."""
+    match = re.search(rf"^#define {name} (\d+)\s*$", (runtime.cl_source_dir() / SOURCE).read_text(), re.M)
+    if match is None:
+        raise RuntimeError(f"{SOURCE} defines no {name}")
+    return int(match.group(1))
+
+
+GSTRIDE = _kernel_constant("GSTRIDE")  # reals per packed Gaussian: p (3), rho, P (6), e (3), pad (3)
+GRADSTRIDE = _kernel_constant("GRADSTRIDE")  # reals per gradient row: dp (3), dP (6), drho
 _LOCAL = 8  # one work-group size for every kernel: PoCL recompiles per (kernel, local size)
 _MIN_CHUNK = 256  # Gaussians per binning work-item, at least
 _MAX_HIST = 1 << 22  # cap on (cells x chunks) histogram entries
 # small grids (a TV patch): bin by one work-item in one launch below these many bricks and
 # bricks x Gaussians (the list's room); in the backward, no sort below this many bytes of dL/dfield
-_SMALL_CELLS = 512
+SMALL_CELLS = 512
 _SMALL_PAIRS = 1 << 22
 _UNSORTED_BYTES = 1 << 20
 
 
 
-def _np_dtype(dtype: torch.dtype):
+def np_dtype(dtype: torch.dtype):
     if dtype == torch.float32:
         return np.float32
     if dtype == torch.float64:
@@ -121,7 +132,7 @@ def pack_gaussians(means, prec, densities, extent) -> torch.Tensor:
     return torch.cat([means, densities.reshape(n, 1), prec, extent, pad], 1).contiguous()
 
 
-def _columns(x: torch.Tensor) -> torch.Tensor:
+def columns(x: torch.Tensor) -> torch.Tensor:
     """(N, K) -> contiguous (K, N) copy, written through a transposed view (several times faster
     on a CPU than ``x.t().contiguous()`` for a few columns)."""
     out = x.new_empty((x.shape[1], x.shape[0]))
@@ -239,27 +250,27 @@ class _PointBins:
         return (idx[:, 2] * nc[1] + idx[:, 1]) * nc[0] + idx[:, 0]
 
 
-class Voxelizer:
+class Voxelizer(Operator):
     """Runs ``cl/voxelizer.cl``: owns programs per (precision, gradient set) and scratch buffers.
 
     Not thread-safe (scratch buffers are reused between calls); use one per thread.
     """
 
+    SOURCE = SOURCE
+
     def __init__(self, ctx=None, queue=None, brick=(8, 8)):
-        self.ctx = ctx or runtime.get_context()
-        self.queue = queue or runtime.get_queue()
+        super().__init__(ctx, queue)
         self.brick_y, self.brick_z = int(brick[0]), int(brick[1])
-        self.io = BufferPool(self, self.ctx.devices[0].type & cl.device_type.CPU)
 
     # ------------------------------------------------------------------------- plumbing
-    def _program(self, np_dtype, grads=()):
+    def program(self, np_dtype, grads=()):
         defines = {"REAL": "double" if np_dtype == np.float64 else "float",
                    "BRICK_Y": self.brick_y, "BRICK_Z": self.brick_z}
         for g in grads:
             defines[g] = True
-        return runtime.get_program(SOURCE, defines, ctx=self.ctx)
+        return self.build(defines)
 
-    def _input(self, arr: np.ndarray):
+    def device_input(self, arr: np.ndarray):
         """(buffer, array): a read-only buffer of ``arr`` and the array it reads, which the caller
         keeps until the kernels are done (empty arrays become one element: no zero-size buffers)."""
         arr = np.ascontiguousarray(arr)
@@ -267,7 +278,7 @@ class Voxelizer:
             arr = np.zeros(1, arr.dtype)
         return self.io.wrap(arr), arr
 
-    def _run(self, kernel, n_items: int, *args):
+    def run(self, kernel, n_items: int, *args):
         _declare_scalars(kernel, args)
         kernel.set_args(*args)
         cl.enqueue_nd_range_kernel(self.queue, kernel, (round_up(max(n_items, 1), _LOCAL),), (_LOCAL,))
@@ -288,10 +299,10 @@ class Voxelizer:
         start = self.io.scratch("start", 4 * (ncells + 1))
         cl.enqueue_fill_buffer(self.queue, hist, np.int32(0), 0, 4 * ncells * nchunks)
         ranges = self.io.scratch("ranges", 32 * n)
-        self._run(prog.kernel("bin_count"), nchunks, gbuf, np.int32(n), np.int32(chunk), np.int32(nchunks),
+        self.run(prog.kernel("bin_count"), nchunks, gbuf, np.int32(n), np.int32(chunk), np.int32(nchunks),
                   np.int32(bool(home)), *cell_args, hist, ranges)
-        self._run(prog.kernel("bin_cell_offsets"), ncells, hist, np.int32(nchunks), np.int32(ncells), total)
-        self._run(prog.kernel("bin_scan"), 1, total, np.int32(ncells), start)
+        self.run(prog.kernel("bin_cell_offsets"), ncells, hist, np.int32(nchunks), np.int32(ncells), total)
+        self.run(prog.kernel("bin_scan"), 1, total, np.int32(ncells), start)
         length = np.empty(1, np.int32)
         cl.enqueue_copy(self.queue, length, start, src_offset=4 * ncells)
         length = int(length[0])
@@ -305,7 +316,7 @@ class Voxelizer:
         lst = self.io.scratch("list", 4 * max(length, 1))
         packed = self.io.scratch("packed", GSTRIDE * np.dtype(real).itemsize * max(length, 1)) if copy else lst
         if length > 0:
-            self._run(prog.kernel("bin_fill"), nchunks, gbuf, np.int32(n), np.int32(chunk), np.int32(nchunks),
+            self.run(prog.kernel("bin_fill"), nchunks, gbuf, np.int32(n), np.int32(chunk), np.int32(nchunks),
                       np.int32(nc[0]), np.int32(nc[1]), hist, ranges, start, lst, np.int32(bool(copy)), packed)
         return start, (packed if copy else lst), length
 
@@ -319,7 +330,7 @@ class Voxelizer:
             raise ValueError(f"grid spacing must be positive and finite, origin finite: {grid}")
 
     # ------------------------------------------------------------------------- grid
-    def _brick_cells(self, grid: Grid):
+    def brick_cells(self, grid: Grid):
         """Bricks as binning cells: (lower corner, 1 / brick size, bricks per axis), all (x, y, z)."""
         nz, ny, nx = (int(s) for s in grid.shape)
         h = np.asarray(grid.spacing, np.float64)
@@ -330,30 +341,30 @@ class Voxelizer:
     def grid_forward(self, gauss: torch.Tensor, grid: Grid) -> torch.Tensor:
         """Field on ``grid`` from packed Gaussians ``gauss`` (N, 16) -> (Z, Y, X) tensor."""
         self._check_grid(grid)
-        dt = _np_dtype(gauss.dtype)
+        dt = np_dtype(gauss.dtype)
         nz, ny, nx = (int(s) for s in grid.shape)
         out = np.zeros((nz, ny, nx), dt)
         n = gauss.shape[0]
         if n == 0:
             return torch.from_numpy(out)
         real = dt
-        prog = self._program(dt)
+        prog = self.program(dt)
         xs, ys, zs = grid_axes(grid, dt)
         nxp = round_up(nx, 8) + 8
         xs_p = np.concatenate([xs, (np.float64(grid.origin[0]) + np.float64(grid.spacing[0])
                                     * np.arange(nx, nxp)).astype(dt)])
         gnp = gauss.detach().numpy()
-        gbuf, gkeep = self._input(gnp)
-        xb, xk = self._input(xs_p)
-        yb, yk = self._input(ys)
-        zb, zk = self._input(zs)
-        origin, inv, (nbx, nby, nbz) = self._brick_cells(grid)
+        gbuf, gkeep = self.device_input(gnp)
+        xb, xk = self.device_input(xs_p)
+        yb, yk = self.device_input(ys)
+        zb, zk = self.device_input(zs)
+        origin, inv, (nbx, nby, nbz) = self.brick_cells(grid)
         nbricks = nbx * nby * nbz
-        if nbricks <= _SMALL_CELLS and nbricks * n <= _SMALL_PAIRS:
+        if nbricks <= SMALL_CELLS and nbricks * n <= _SMALL_PAIRS:
             # a small grid (a TV patch): lists by one work-item, no host round trip
             start = self.io.scratch("start", 4 * (nbricks + 1))
             lst = self.io.scratch("list", 4 * nbricks * n)
-            self._run(prog.kernel("bin_small"), 1, gbuf, np.int32(n), real(origin[0]), real(origin[1]),
+            self.run(prog.kernel("bin_small"), 1, gbuf, np.int32(n), real(origin[0]), real(origin[1]),
                       real(origin[2]), real(inv[0]), real(inv[1]), real(inv[2]), np.int32(nbx), np.int32(nby),
                       np.int32(nbz), start, lst)
             packed, length, indexed = gbuf, 1, 1
@@ -362,7 +373,7 @@ class Voxelizer:
             lst, indexed = start, 0
         if length:
             obuf = self.io.output(out)
-            self._run(prog.kernel("vox_grid"), nbricks, packed, start, lst, np.int32(indexed), xb, yb, zb,
+            self.run(prog.kernel("vox_grid"), nbricks, packed, start, lst, np.int32(indexed), xb, yb, zb,
                       np.int32(nx), np.int32(ny), np.int32(nz), np.int32(nbx), np.int32(nby), np.int32(nbricks), obuf,
                       np.int32(nx), np.int32(0))
             self.io.fetch([(obuf, out)])
@@ -375,31 +386,31 @@ class Voxelizer:
         """(N, 10) gradient rows ``[dp (3), dP (6), drho]`` from dL/dfield ``grad_out`` (Z, Y, X).
 
         ``want`` is a subset of ``("WANT_MEAN", "WANT_PREC", "WANT_RHO")``."""
-        dt = _np_dtype(gauss.dtype)
+        dt = np_dtype(gauss.dtype)
         n = gauss.shape[0]
         grad = np.zeros((n, GRADSTRIDE), dt)
         if n == 0 or not want:
             return torch.from_numpy(grad)
         nz, ny, nx = (int(s) for s in grid.shape)
-        prog = self._program(dt, tuple(sorted(want)))
+        prog = self.program(dt, tuple(sorted(want)))
         xs, ys, zs = grid_axes(grid, dt)
         nxp = round_up(nx, 8) + 8
         xs_p = np.concatenate([xs, (np.float64(grid.origin[0]) + np.float64(grid.spacing[0])
                                     * np.arange(nx, nxp)).astype(dt)])
         g_np = grad_out.detach().to(gauss.dtype).contiguous().numpy()
-        gbuf, gkeep = self._input(gauss.detach().numpy())
-        xb, xk = self._input(xs_p)
-        yb, yk = self._input(ys)
-        zb, zk = self._input(zs)
-        ob, ok = self._input(g_np)
+        gbuf, gkeep = self.device_input(gauss.detach().numpy())
+        xb, xk = self.device_input(xs_p)
+        yb, yk = self.device_input(ys)
+        zb, zk = self.device_input(zs)
+        ob, ok = self.device_input(g_np)
         if g_np.nbytes <= _UNSORTED_BYTES:  # dL/dfield stays in cache: no sort, no round trip
             order, kept, sort = gbuf, n, 0
         else:
-            _, order, kept = self._bin(prog, gbuf, n, dt, *self._brick_cells(grid), home=True)
+            _, order, kept = self._bin(prog, gbuf, n, dt, *self.brick_cells(grid), home=True)
             sort = 1
         if kept:
             rbuf = self.io.output(grad, initial=True)
-            self._run(prog.kernel("vox_grid_grad"), kept, gbuf, order, np.int32(sort), np.int32(kept), xb, yb, zb,
+            self.run(prog.kernel("vox_grid_grad"), kept, gbuf, order, np.int32(sort), np.int32(kept), xb, yb, zb,
                       np.int32(nx), np.int32(ny), np.int32(nz), ob, rbuf)
             self.io.fetch([(rbuf, grad)])
         else:
@@ -411,16 +422,16 @@ class Voxelizer:
     def cov_prec_forward(self, scales: torch.Tensor, quats: torch.Tensor, want: int):
         """(covariance, precision, 3-sigma half-widths) of N Gaussians, (N, 6), (N, 6), (N, 3), each
         computed when bit 0, 1, 2 of ``want`` is set (else an empty tensor); no autograd."""
-        dt = _np_dtype(scales.dtype)
+        dt = np_dtype(scales.dtype)
         n = scales.shape[0]
         shapes = ((n, 6), (n, 6), (n, 3))
         outs = [np.empty(shape if want >> b & 1 else (0,), dt) for b, shape in enumerate(shapes)]
         if n:
-            prog = self._program(dt)
-            sb, sk = self._input(scales.detach().numpy())
-            qb, qk = self._input(quats.detach().numpy())
+            prog = self.program(dt)
+            sb, sk = self.device_input(scales.detach().numpy())
+            qb, qk = self.device_input(quats.detach().numpy())
             bufs = [self.io.output(o) if o.size else sb for o in outs]
-            self._run(prog.kernel("cov_prec"), -(-n // 8), sb, qb, np.int32(n), np.int32(want), dt(_tiny(dt)), *bufs)
+            self.run(prog.kernel("cov_prec"), -(-n // 8), sb, qb, np.int32(n), np.int32(want), dt(_tiny(dt)), *bufs)
             self.io.fetch([(b, o) for b, o in zip(bufs, outs) if o.size])
             del sk, qk
         return tuple(torch.from_numpy(o) for o in outs)
@@ -428,24 +439,25 @@ class Voxelizer:
     def cov_prec_backward(self, scales: torch.Tensor, quats: torch.Tensor, g_cov, g_prec):
         """(dL/dscales (N, 3), dL/dquats (N, 4)) from the packed gradients of the covariance and of
         the precision (N, 6) (either may be None)."""
-        dt = _np_dtype(scales.dtype)
+        dt = np_dtype(scales.dtype)
         n = scales.shape[0]
         ds, dq = np.empty((n, 3), dt), np.empty((n, 4), dt)
         if n:
-            prog = self._program(dt)
-            sb, sk = self._input(scales.detach().numpy())
-            qb, qk = self._input(quats.detach().numpy())
+            prog = self.program(dt)
+            sb, sk = self.device_input(scales.detach().numpy())
+            qb, qk = self.device_input(quats.detach().numpy())
             has, keep, gbufs = 0, [], []
             for bit, g in enumerate((g_cov, g_prec)):
                 if g is None:
                     gbufs.append(sb)
                     continue
                 has |= 1 << bit
-                gb, gk = self._input(g.detach().to(scales.dtype).contiguous().numpy())
+                gb, gk = self.device_input(g.detach().to(scales.dtype).contiguous().numpy())
                 gbufs.append(gb)
                 keep.append(gk)
             dsb, dqb = self.io.output(ds), self.io.output(dq)
-            self._run(prog.kernel("cov_prec_grad"), -(-n // 8), sb, qb, np.int32(n), np.int32(has), dt(_tiny(dt)), *gbufs, dsb, dqb)
+            self.run(prog.kernel("cov_prec_grad"), -(-n // 8), sb, qb, np.int32(n), np.int32(has), dt(_tiny(dt)),
+                     *gbufs, dsb, dqb)
             self.io.fetch([(dsb, ds), (dqb, dq)])
             del sk, qk, keep
         return torch.from_numpy(ds), torch.from_numpy(dq)
@@ -457,7 +469,7 @@ class Voxelizer:
 
     def points_forward(self, gauss: torch.Tensor, points: np.ndarray, bins: _PointBins | None = None):
         """Field at ``points`` (M, 3) -> ((M,) tensor, the point bins for the backward)."""
-        dt = _np_dtype(gauss.dtype)
+        dt = np_dtype(gauss.dtype)
         m, n = points.shape[0], gauss.shape[0]
         if m == 0:
             return torch.zeros(0, dtype=gauss.dtype), None
@@ -465,18 +477,18 @@ class Voxelizer:
             bins = self.point_bins(points, gauss[:, 10:13])
         if n == 0:
             return torch.zeros(m, dtype=gauss.dtype), bins
-        prog = self._program(dt)
-        gbuf, gkeep = self._input(gauss.detach().numpy())
+        prog = self.program(dt)
+        gbuf, gkeep = self.device_input(gauss.detach().numpy())
         start, packed, length = self._bin(prog, gbuf, n, dt, bins.origin, (bins.inv,) * 3, bins.nc, copy=True)
         out = np.zeros(bins.total, dt)
         if length:
-            xb, xk = self._input(bins.X)
-            yb, yk = self._input(bins.Y)
-            zb, zk = self._input(bins.Z)
-            cb, ck = self._input(bins.chunk_cell)
+            xb, xk = self.device_input(bins.X)
+            yb, yk = self.device_input(bins.Y)
+            zb, zk = self.device_input(bins.Z)
+            cb, ck = self.device_input(bins.chunk_cell)
             obuf = self.io.output(out)
             nchunks = bins.total // 8
-            self._run(prog.kernel("vox_points"), nchunks, packed, start, xb, yb, zb, cb, np.int32(nchunks), obuf)
+            self.run(prog.kernel("vox_points"), nchunks, packed, start, xb, yb, zb, cb, np.int32(nchunks), obuf)
             self.io.fetch([(obuf, out)])
             del xk, yk, zk, ck
         else:
@@ -486,23 +498,23 @@ class Voxelizer:
 
     def points_backward(self, gauss: torch.Tensor, bins: _PointBins, grad_out: torch.Tensor, want) -> torch.Tensor:
         """(N, 10) gradient rows from dL/dfield at the points (M,)."""
-        dt = _np_dtype(gauss.dtype)
+        dt = np_dtype(gauss.dtype)
         n = gauss.shape[0]
         grad = np.zeros((n, GRADSTRIDE), dt)
         if n == 0 or bins is None or not want:
             return torch.from_numpy(grad)
-        prog = self._program(dt, tuple(sorted(want)))
+        prog = self.program(dt, tuple(sorted(want)))
         gp = np.zeros(bins.total, dt)
         gp[bins.slot] = grad_out.detach().to(gauss.dtype).numpy()
-        gbuf, gkeep = self._input(gauss.detach().numpy())
-        xb, xk = self._input(bins.X)
-        yb, yk = self._input(bins.Y)
-        zb, zk = self._input(bins.Z)
-        pb, pk = self._input(gp)
-        sb, sk = self._input(bins.cell_pstart)
+        gbuf, gkeep = self.device_input(gauss.detach().numpy())
+        xb, xk = self.device_input(bins.X)
+        yb, yk = self.device_input(bins.Y)
+        zb, zk = self.device_input(bins.Z)
+        pb, pk = self.device_input(gp)
+        sb, sk = self.device_input(bins.cell_pstart)
         rbuf = self.io.output(grad)
         o, nc = bins.origin, bins.nc
-        self._run(prog.kernel("vox_points_grad"), n, gbuf, np.int32(n),
+        self.run(prog.kernel("vox_points_grad"), n, gbuf, np.int32(n),
                   dt(o[0]), dt(o[1]), dt(o[2]), dt(bins.inv), dt(bins.inv), dt(bins.inv),
                   np.int32(nc[0]), np.int32(nc[1]), np.int32(nc[2]), sb, xb, yb, zb, pb, rbuf)
         self.io.fetch([(rbuf, grad)])
@@ -516,7 +528,7 @@ def default_voxelizer() -> Voxelizer:
     return runtime.shared(Voxelizer)
 
 
-def _want(needs) -> tuple:
+def wanted_gradients(needs) -> tuple:
     names = ("WANT_MEAN", "WANT_PREC", "WANT_RHO")
     return tuple(name for name, need in zip(names, needs) if need)
 
@@ -538,7 +550,7 @@ class _GridField(torch.autograd.Function):
     def backward(ctx, grad_out):
         (gauss,) = ctx.saved_tensors
         needs = ctx.needs_input_grad[:3]
-        grad = ctx.vox.grid_backward(gauss, ctx.grid, grad_out, _want(needs))
+        grad = ctx.vox.grid_backward(gauss, ctx.grid, grad_out, wanted_gradients(needs))
         return (*_split(grad, needs), None, None, None)
 
 
@@ -555,7 +567,7 @@ class _PointField(torch.autograd.Function):
     def backward(ctx, grad_out):
         (gauss,) = ctx.saved_tensors
         needs = ctx.needs_input_grad[:3]
-        grad = ctx.vox.points_backward(gauss, ctx.bins, grad_out, _want(needs))
+        grad = ctx.vox.points_backward(gauss, ctx.bins, grad_out, wanted_gradients(needs))
         return (*_split(grad, needs), None, None, None)
 
 
@@ -619,7 +631,7 @@ def _prepare(means, scales, quats, densities):
             f"{tuple(means.shape)}, {tuple(scales.shape)}, {tuple(quats.shape)}, {tuple(densities.shape)}"
         )
     dtype = means.dtype
-    _np_dtype(dtype)
+    np_dtype(dtype)
     if any(t.dtype != dtype for t in (scales, quats, densities)):
         raise TypeError("means, scales, quats and densities must share one dtype (float32 or float64)")
     with torch.no_grad():
@@ -669,7 +681,7 @@ def voxelize_precision(means, prec, densities, extent, where, voxelizer: Voxeliz
         )
     if any(t.dtype != means.dtype for t in (prec, densities, extent)):
         raise TypeError("means, prec, densities and extent must share one dtype (float32 or float64)")
-    _np_dtype(means.dtype)
+    np_dtype(means.dtype)
     vox = voxelizer or default_voxelizer()
     extent = extent.detach()
     if isinstance(where, Grid):
@@ -681,7 +693,7 @@ def voxelize_precision(means, prec, densities, extent, where, voxelizer: Voxeliz
     pts = where.detach().cpu().numpy() if isinstance(where, torch.Tensor) else np.asarray(where)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must be (M, 3), got shape {pts.shape}")
-    pts = np.ascontiguousarray(pts, dtype=_np_dtype(means.dtype))
+    pts = np.ascontiguousarray(pts, dtype=np_dtype(means.dtype))
     if not np.all(np.isfinite(pts)):
         raise ValueError("points must be finite (found NaN or Inf)")
     return _PointField.apply(means, prec, densities, extent, pts, vox)

@@ -27,7 +27,7 @@ from typing import Callable, Iterable, Optional, Union
 
 import numpy as np
 
-from clgs.shape.template import (Subject, Template, _atomic_save_npz, _json_array, _json_from_array, box_grid, grid_points,
+from clgs.shape.template import (Subject, Template, save_npz_atomic, json_array, json_from_array, box_grid, grid_points,
                            mesh_to_sdf)
 
 BUILDER_VERSION = 2  # 2: the atlas samples a CT with its border value past its grid (was air)
@@ -47,7 +47,8 @@ def _subject_items(subjects):
     items = []
     for s in subjects:
         if not isinstance(s, Subject):
-            raise TypeError(f"subjects must be clgs.shape.template.Subject objects (or a mapping id -> loader), got {type(s)}")
+            raise TypeError("subjects must be clgs.shape.template.Subject objects (or a mapping id -> loader), "
+                            f"got {type(s)}")
         items.append((s.id, lambda s=s: s))
     return items
 
@@ -100,7 +101,11 @@ def build_model(template: Template, subjects: Union[Iterable[Subject], Mapping],
     settings of :class:`clgs.shape.registration.RegistrationSettings`. atlas: build the density atlas
     from subjects' CT volumes (skipped with a note when no subject has one). force: rebuild even
     if an up-to-date file exists. on_subject(i, id): called after each subject (tests use it).
-    threads: torch threads per registration (1: small fields, and a shared machine). Returns out_path."""
+    threads: torch threads per registration (1: small fields, and a shared machine). Returns out_path.
+
+    Long because it is the pipeline's script: cache check, registration of every subject,
+    PCA, atlas and metadata, each a call to a helper, with progress and caching around them.
+    """
     import torch
     from tqdm import tqdm
 
@@ -147,7 +152,7 @@ def build_model(template: Template, subjects: Union[Iterable[Subject], Mapping],
             try:
                 with np.load(path, allow_pickle=False) as z:
                     record = {k: z[k] for k in z.files}
-                meta = _json_from_array(record["metadata"])
+                meta = json_from_array(record["metadata"])
                 if meta.get("id") != sid or tuple(record["velocity"].shape) != (3,) + tuple(mshape):
                     record = None
             except Exception:  # a damaged cache entry is simply redone
@@ -172,10 +177,10 @@ def build_model(template: Template, subjects: Union[Iterable[Subject], Mapping],
                 # its border take the border value (clamped), not air, which would inflate the
                 # atlas variance in the template's first and last slices
                 record["warped_ct"] = subject.volume_at(mapped, fill=None).reshape(template.shape)
-            record["metadata"] = _json_array({"id": sid, "residuals": result.residuals,
+            record["metadata"] = json_array({"id": sid, "residuals": result.residuals,
                                               "subject_hash": subject.content_hash()})
-            _atomic_save_npz(path, record)
-        meta = _json_from_array(record["metadata"])
+            save_npz_atomic(path, record)
+        meta = json_from_array(record["metadata"])
         velocities.append(np.asarray(record["velocity"], np.float32).reshape(-1))
         residuals[sid] = meta["residuals"]
         if "warped_ct" in record:

@@ -31,7 +31,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from clgs.shape.template import _atomic_save_npz, _json_array, _json_from_array, _triple
+from clgs.errors import ClgsError
+from clgs.shape.template import save_npz_atomic, json_array, json_from_array, zyx_triple
 
 MODEL_FORMAT = "clgs.shape_model"
 MODEL_VERSION = 1
@@ -41,7 +42,7 @@ MIN_SQUARINGS = 4
 MAX_SQUARINGS = 40
 
 
-class ModelFileError(ValueError):
+class ModelFileError(ClgsError, ValueError):
     """A model file that is missing, of another format or version, or internally inconsistent."""
 
 
@@ -78,21 +79,21 @@ def sample_field(field: torch.Tensor, points: torch.Tensor, spacing, origin, sam
     ``sampler``: a :class:`clgs.ops.field_sampler.FieldSampler` computes it in OpenCL (same values to
     rounding); None uses torch's ``grid_sample``."""
     shape = tuple(field.shape[1:])
-    origin_xyz = torch.tensor(_triple("origin", origin)[::-1], dtype=field.dtype, device=field.device)
+    origin_xyz = torch.tensor(zyx_triple("origin", origin)[::-1], dtype=field.dtype, device=field.device)
     points = torch.as_tensor(points, dtype=field.dtype, device=field.device)
     if sampler is not None:
         from clgs.ops.field_sampler import sample
 
-        dz, dy, dx = _triple("spacing", spacing)
+        dz, dy, dx = zyx_triple("spacing", spacing)
         step = torch.tensor([dx, dy, dz], dtype=field.dtype)
         return sample(field, ((points - origin_xyz) / step).T.contiguous(), sampler).T
-    scale = _norm_scale(shape, _triple("spacing", spacing), field)
+    scale = _norm_scale(shape, zyx_triple("spacing", spacing), field)
     return _sample_norm(field, (points - origin_xyz) * scale - 1.0)
 
 
 def squarings_for(v: torch.Tensor, spacing, min_squarings: int = MIN_SQUARINGS) -> int:
     """Number N of squarings so that |v| / 2^N < half a grid cell along every axis."""
-    dz, dy, dx = _triple("spacing", spacing)
+    dz, dy, dx = zyx_triple("spacing", spacing)
     with torch.no_grad():
         d = torch.tensor([dx, dy, dz], dtype=v.dtype, device=v.device).view(3, 1, 1, 1)
         cells = float((v.detach().abs() / d).max()) if v.numel() else 0.0
@@ -117,7 +118,7 @@ def exp_velocity(v: torch.Tensor, spacing, n_squarings: Optional[int] = None,
         n_squarings = squarings_for(v, spacing, min_squarings)
     if sampler is not None:
         return _exp_in_voxels(v, spacing, n_squarings, sampler)
-    scale = _norm_scale(shape, _triple("spacing", spacing), v).view(3, 1, 1, 1)
+    scale = _norm_scale(shape, zyx_triple("spacing", spacing), v).view(3, 1, 1, 1)
     ident = _identity_grid(shape, v)
     u = v * (scale / (2.0 ** n_squarings))  # normalised units
     for _ in range(n_squarings):
@@ -129,7 +130,7 @@ def exp_velocity(v: torch.Tensor, spacing, n_squarings: Optional[int] = None,
 def _exp_in_voxels(v: torch.Tensor, spacing, n_squarings: int, sampler) -> torch.Tensor:
     from clgs.ops.field_sampler import sample
 
-    dz, dy, dx = _triple("spacing", spacing)
+    dz, dy, dx = zyx_triple("spacing", spacing)
     step = torch.tensor([dx, dy, dz], dtype=v.dtype).view(3, 1, 1, 1)
     axes = [torch.arange(n, dtype=v.dtype) for n in v.shape[1:]]
     k, j, i = torch.meshgrid(*axes, indexing="ij")
@@ -146,7 +147,7 @@ def jacobian_determinant(u, spacing) -> np.ndarray:
     Values <= 0 mark folding."""
     u = u.detach().cpu().numpy() if isinstance(u, torch.Tensor) else np.asarray(u)
     u = u.astype(np.float64)
-    dz, dy, dx = _triple("spacing", spacing)
+    dz, dy, dx = zyx_triple("spacing", spacing)
     J = np.empty(u.shape[1:] + (3, 3))
     for c in range(3):
         gz, gy, gx = np.gradient(u[c], dz, dy, dx)
@@ -179,8 +180,8 @@ class ShapeModel:
         if (sigma < 0).any():
             raise ModelFileError("mode standard deviations (sigma) must be >= 0")
         self.mean, self.modes, self.sigma = mean, modes, sigma
-        self.spacing = _triple("spacing", spacing)
-        self.origin = _triple("origin", origin)
+        self.spacing = zyx_triple("spacing", spacing)
+        self.origin = zyx_triple("origin", origin)
         if min(self.spacing) <= 0:
             raise ModelFileError(f"grid spacing must be positive, got {self.spacing}")
         self.meta = dict(meta or {})
@@ -231,13 +232,6 @@ class ShapeModel:
         """A field u (3, Z, Y, X) at points (N, 3) (x, y, z mm) -> (N, 3); clamped outside the grid."""
         return sample_field(u, points, self.spacing, self.origin, sampler)
 
-    def deform(self, points, alpha=None, u: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """Template points (N, 3) mm mapped to the subject: p + u(alpha)(p). Pass ``u`` to reuse it."""
-        points = torch.as_tensor(points, dtype=self.dtype)
-        if u is None:
-            u = self.displacement(alpha)
-        return points + self.sample(u, points)
-
     def jacobian_determinant(self, alpha=None, u=None) -> np.ndarray:
         """det of the map's Jacobian on the grid (Z, Y, X); <= 0 means folding."""
         if u is None:
@@ -279,8 +273,8 @@ class DensityAtlas:
         if var.min() < 0:
             raise ModelFileError("density atlas variance must be >= 0")
         self.mean, self.var = mean, var
-        self.spacing = _triple("spacing", spacing)
-        self.origin = _triple("origin", origin)
+        self.spacing = zyx_triple("spacing", spacing)
+        self.origin = zyx_triple("origin", origin)
         self.meta = dict(meta or {})
         self._torch = {}
 
@@ -354,8 +348,8 @@ def save_model(path, shape_model: Optional[ShapeModel], atlas: Optional[DensityA
         record["atlas_shape"] = list(atlas.shape)
         arrays.update(atlas_mean=atlas.mean, atlas_var=atlas.var, atlas_spacing=np.asarray(atlas.spacing),
                       atlas_origin=np.asarray(atlas.origin))
-    arrays["metadata"] = _json_array(record)
-    _atomic_save_npz(path, arrays)
+    arrays["metadata"] = json_array(record)
+    save_npz_atomic(path, arrays)
 
 
 def read_metadata(path) -> dict:
@@ -367,7 +361,7 @@ def read_metadata(path) -> dict:
         with z:
             if "metadata" not in z.files:
                 raise ModelFileError(f"{path} is not a clgs model file (no metadata record)")
-            meta = _json_from_array(z["metadata"])
+            meta = json_from_array(z["metadata"])
     except FileNotFoundError:
         raise ModelFileError(f"model file {path} does not exist: build it first (clgs <anatomy> build-model)")
     except ModelFileError:
@@ -406,7 +400,8 @@ def _load_arrays(path, meta: dict, need_shape_model: bool):
                 raise ModelFileError(f"{path}: shape model arrays missing: {sorted(need - files)}")
             sm = ShapeModel(z["velocity_mean"], z["modes"], z["sigma"], tuple(z["spacing"]), tuple(z["origin"]),
                             meta=meta)
-            if list(sm.shape) != list(meta.get("grid_shape", sm.shape)) or sm.n_modes != meta.get("n_modes", sm.n_modes):
+            same_grid = list(sm.shape) == list(meta.get("grid_shape", sm.shape))
+            if not same_grid or sm.n_modes != meta.get("n_modes", sm.n_modes):
                 raise ModelFileError(f"{path}: arrays do not match the metadata (grid {sm.shape} vs "
                                      f"{meta.get('grid_shape')}, modes {sm.n_modes} vs {meta.get('n_modes')})")
         elif need_shape_model:

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from clgs.shape.model import exp_velocity, jacobian_determinant, sample_field, squarings_for
-from clgs.shape.template import _triple, box_grid, grid_points
+from clgs.shape.template import zyx_triple, box_grid, grid_points
 
 
 @dataclass(frozen=True)
@@ -146,8 +146,8 @@ def _register(fixed_sdf, fixed_spacing, fixed_origin, moving_sdf, moving_spacing
     s = settings or RegistrationSettings()
     torch.manual_seed(s.seed)
     dtype = torch.float32
-    f_sp, f_or = _triple("spacing", fixed_spacing), _triple("origin", fixed_origin)
-    m_sp, m_or = _triple("spacing", moving_spacing), _triple("origin", moving_origin)
+    f_sp, f_or = zyx_triple("spacing", fixed_spacing), zyx_triple("origin", fixed_origin)
+    m_sp, m_or = zyx_triple("spacing", moving_spacing), zyx_triple("origin", moving_origin)
     fixed = torch.as_tensor(np.asarray(fixed_sdf, np.float32))[None]
     moving = torch.as_tensor(np.asarray(moving_sdf, np.float32))[None]
     if fixed.dim() != 4 or moving.dim() != 4:

@@ -28,7 +28,7 @@ TEMPLATE_VERSION = 1
 
 
 # --------------------------------------------------------------------------------------- grids
-def _triple(name, value, dtype=float):
+def zyx_triple(name, value, dtype=float):
     arr = np.asarray(value, dtype=np.float64).reshape(-1)
     if arr.size != 3 or not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} must be 3 finite numbers (Z, Y, X), got {value!r}")
@@ -37,7 +37,8 @@ def _triple(name, value, dtype=float):
 
 def grid_points(shape, spacing, origin) -> np.ndarray:
     """All voxel centres of a grid as an array (Z, Y, X, 3) of (x, y, z) in mm."""
-    shape, spacing, origin = _triple("shape", shape, int), _triple("spacing", spacing), _triple("origin", origin)
+    shape = zyx_triple("shape", shape, int)
+    spacing, origin = zyx_triple("spacing", spacing), zyx_triple("origin", origin)
     axes = [origin[a] + spacing[a] * np.arange(shape[a]) for a in range(3)]  # z, y, x axes
     z, y, x = np.meshgrid(*axes, indexing="ij")
     return np.stack([x, y, z], -1)
@@ -88,7 +89,8 @@ def _grid(shape, spacing, origin):
     """This module's (Z, Y, X) shape/spacing/origin as a :class:`clgs.geometry.Grid` (x, y, z)."""
     from clgs.geometry import Grid
 
-    shape, spacing, origin = _triple("shape", shape, int), _triple("spacing", spacing), _triple("origin", origin)
+    shape = zyx_triple("shape", shape, int)
+    spacing, origin = zyx_triple("spacing", spacing), zyx_triple("origin", origin)
     return Grid(shape, origin[::-1], spacing[::-1])
 
 
@@ -140,18 +142,18 @@ def mesh_from_sdf(sdf, spacing, origin, level: float = 0.0):
     return verts.astype(np.float64), faces
 
 
-def _atomic_save_npz(path, arrays: dict):
+def save_npz_atomic(path, arrays: dict):
     """Compressed npz, written atomically (:func:`clgs.io.atomic.save_npz`)."""
     from clgs.io import atomic
 
     atomic.save_npz(path, compressed=True, **arrays)
 
 
-def _json_array(obj) -> np.ndarray:
+def json_array(obj) -> np.ndarray:
     return np.frombuffer(json.dumps(obj, sort_keys=True).encode("utf-8"), dtype=np.uint8).copy()
 
 
-def _json_from_array(arr) -> dict:
+def json_from_array(arr) -> dict:
     return json.loads(bytes(np.asarray(arr, np.uint8)).decode("utf-8"))
 
 
@@ -175,8 +177,8 @@ class Template:
     meta: dict = field(default_factory=dict)
 
     def __post_init__(self):
-        self.spacing = _triple("spacing", self.spacing)
-        self.origin = _triple("origin", self.origin)
+        self.spacing = zyx_triple("spacing", self.spacing)
+        self.origin = zyx_triple("origin", self.origin)
         if min(self.spacing) <= 0:
             raise ValueError(f"template spacing must be positive, got {self.spacing}")
         self.sdf = np.asarray(self.sdf, np.float32)
@@ -203,18 +205,12 @@ class Template:
         if shape is None:
             shape, sp, origin = box_grid(v.min(0) - margin, v.max(0) + margin, spacing=float(spacing))
         else:
-            sp = _triple("spacing", spacing if np.ndim(spacing) else (spacing,) * 3)
+            sp = zyx_triple("spacing", spacing if np.ndim(spacing) else (spacing,) * 3)
             if origin is None:
                 raise ValueError("give origin together with shape")
         label = mesh_to_label(v, f, shape, sp, origin)
         sdf = mesh_to_sdf(v, f, shape, sp, origin, label=label)
         return cls(label, sdf, v, f, sp, origin, name=name, meta=dict(meta or {}))
-
-    @classmethod
-    def from_sdf(cls, sdf, spacing, origin, name: str = "", meta=None) -> "Template":
-        """A template from a signed distance volume (mm, negative inside); surface by marching cubes."""
-        verts, faces = mesh_from_sdf(sdf, spacing, origin)
-        return cls(np.asarray(sdf) < 0, sdf, verts, faces, spacing, origin, name=name, meta=dict(meta or {}))
 
     # ---- geometry
     @property
@@ -274,10 +270,10 @@ class Template:
     def save(self, path) -> None:
         """One npz (format ``clgs.shape.template``), written atomically."""
         meta = {"format": TEMPLATE_FORMAT, "version": TEMPLATE_VERSION, "name": self.name, "meta": self.meta}
-        _atomic_save_npz(path, dict(
+        save_npz_atomic(path, dict(
             label=self.label.astype(np.uint8), sdf=self.sdf, vertices=self.vertices, faces=self.faces,
             normals=self.normals, spacing=np.asarray(self.spacing), origin=np.asarray(self.origin),
-            metadata=_json_array(meta)))
+            metadata=json_array(meta)))
 
     @classmethod
     def load(cls, path) -> "Template":
@@ -294,7 +290,7 @@ class Template:
         with np.load(path, allow_pickle=False) as z:
             if "metadata" not in z.files:
                 raise ValueError(f"{path} is not a clgs template (no metadata)")
-            meta = _json_from_array(z["metadata"])
+            meta = json_from_array(z["metadata"])
             if meta.get("format") != TEMPLATE_FORMAT:
                 raise ValueError(f"{path} is not a clgs template (format {meta.get('format')!r})")
             if meta.get("version", 0) > TEMPLATE_VERSION:
@@ -330,11 +326,8 @@ class Subject:
                 raise ValueError(f"subject {self.id}: volume must be (Z, Y, X), got {self.volume.shape}")
             if self.spacing is None or self.origin is None:
                 raise ValueError(f"subject {self.id}: a volume needs its spacing and origin (Z, Y, X mm)")
-            self.spacing = _triple("spacing", self.spacing)
-            self.origin = _triple("origin", self.origin)
-
-    def label_on(self, shape, spacing, origin) -> np.ndarray:
-        return mesh_to_label(self.vertices, self.faces, shape, spacing, origin)
+            self.spacing = zyx_triple("spacing", self.spacing)
+            self.origin = zyx_triple("origin", self.origin)
 
     def sdf_on(self, shape, spacing, origin) -> np.ndarray:
         """Signed distance (mm) of the subject's surface on a grid."""
@@ -346,9 +339,6 @@ class Subject:
         if self.volume is None:
             raise ValueError(f"subject {self.id} has no CT volume")
         return sample_volume(self.volume, self.spacing, self.origin, points, fill=fill)
-
-    def volume_on(self, shape, spacing, origin) -> np.ndarray:
-        return self.volume_at(grid_points(shape, spacing, origin))
 
     def content_hash(self) -> str:
         h = hashlib.sha256(self.id.encode())

@@ -24,7 +24,7 @@ from __future__ import annotations
 import os
 
 
-from clgs.anatomy.hookspecs import hookimpl
+from clgs.anatomy import hookimpl
 
 __version__ = "0.1.0"
 
@@ -53,14 +53,15 @@ def params():
 
 
 def population_model():
-    """The femur's :class:`clgs.anatomy.phantom.SurfacePopulation` (created once)."""
+    """The femur's :class:`clgs.anatomy.population.SurfacePopulation` (created once)."""
     global _population
     if _population is None:
-        from clgs.anatomy.phantom import SurfacePopulation
+        from clgs.anatomy.population import SurfacePopulation
 
         _population = SurfacePopulation.centred(
             shape=SHAPE, spacing_mm=SPACING_MM, pixel_mm=3.0, name="femur",
-            summary="left femur (LLP26 real surfaces: 20 model subjects, 6 held out)", version=__version__, data_dir=DATA_DIR,
+            summary="left femur (LLP26 real surfaces: 20 model subjects, 6 held out)", version=__version__,
+            data_dir=DATA_DIR,
             file_pattern="femur_left_LLP26_subject{id}.npz", ids=SUBJECTS, test_ids=TEST_SUBJECTS, params=params(),
             frame_offset=FRAME_OFFSET)
     return _population

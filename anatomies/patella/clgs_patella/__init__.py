@@ -1,6 +1,6 @@
 """clgs anatomy plugin: the left patella (knee cap), from the 26 real surfaces of LLP26.
 
-It uses exactly the same generic code as the femur (:class:`clgs.anatomy.phantom.SurfacePopulation`,
+It uses exactly the same generic code as the femur (:class:`clgs.anatomy.population.SurfacePopulation`,
 the model builder, the CT simulator); only the data, the grid and the density parameters
 differ. Small, so it is also what the test suite builds a model from.
 
@@ -20,7 +20,7 @@ from __future__ import annotations
 import os
 
 
-from clgs.anatomy.hookspecs import hookimpl
+from clgs.anatomy import hookimpl
 
 __version__ = "0.1.0"
 
@@ -48,14 +48,15 @@ def params():
 
 
 def population_model():
-    """The patella's :class:`clgs.anatomy.phantom.SurfacePopulation` (created once)."""
+    """The patella's :class:`clgs.anatomy.population.SurfacePopulation` (created once)."""
     global _population
     if _population is None:
-        from clgs.anatomy.phantom import SurfacePopulation
+        from clgs.anatomy.population import SurfacePopulation
 
         _population = SurfacePopulation.centred(
             shape=SHAPE, spacing_mm=SPACING_MM, pixel_mm=2.0, name="patella",
-            summary="left patella (LLP26 real surfaces: 20 model subjects, 6 held out)", version=__version__, data_dir=DATA_DIR,
+            summary="left patella (LLP26 real surfaces: 20 model subjects, 6 held out)", version=__version__,
+            data_dir=DATA_DIR,
             file_pattern="patella_left_LLP26_subject{id}.npz", ids=SUBJECTS, test_ids=TEST_SUBJECTS, params=params(),
             frame_offset=FRAME_OFFSET)
     return _population

@@ -15,8 +15,7 @@ from __future__ import annotations
 import os
 import sys
 
-from clgs.anatomy import Anatomy
-from clgs.anatomy.hookspecs import hookimpl
+from clgs.anatomy import Anatomy, hookimpl
 
 __version__ = "0.1.0"
 
