@@ -167,7 +167,8 @@ def test_bad_shape_settings_in_the_femur_group(tiny_scan, tmp_path, setting, wor
 
 
 def test_good_settings_pass_and_are_converted():
-    from clgs.cli.anatomy_group import _get_method, check_settings
+    from clgs.cli.anatomy_group import _get_method
+    from clgs.cli.settings import check_settings
 
     m, run = _get_method("r2gs")
     opts = {"iterations": 3, "n_gaussians": 200, "progress": False, "backend": "torch", "scale_bounds": None,

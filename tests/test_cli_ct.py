@@ -178,8 +178,9 @@ def test_bad_inputs_give_clear_errors(scan_dir, tmp_path):
 
 def test_help_does_not_import_heavy_modules():
     """The three commands' help (and the method list) load neither NumPy nor torch nor OpenCL."""
-    code = ("import sys; from click.testing import CliRunner; from clgs.cli import ct; "
-            "outs = [CliRunner().invoke(c, ['--help']) for c in (ct.simulate, ct.reconstruct, ct.evaluate)]; "
+    code = ("import sys; from click.testing import CliRunner; from clgs.cli import evaluate, reconstruct, simulate; "
+            "commands = (simulate.simulate, reconstruct.reconstruct, evaluate.evaluate); "
+            "outs = [CliRunner().invoke(c, ['--help']) for c in commands]; "
             "assert all(r.exit_code == 0 for r in outs), [r.output for r in outs]; "
             "assert 'r2gs' in outs[1].output and 'sart' in outs[1].output; "
             "print(sorted(m for m in ('numpy', 'torch', 'pyopencl') if m in sys.modules))")

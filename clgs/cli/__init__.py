@@ -18,9 +18,9 @@ from clgs.errors import ClgsError
 COMMANDS = {
     "info": "clgs.cli.info:info",
     "bench": "clgs.cli.bench:bench",
-    "simulate": "clgs.cli.ct:simulate",
-    "reconstruct": "clgs.cli.ct:reconstruct",
-    "evaluate": "clgs.cli.ct:evaluate",
+    "simulate": "clgs.cli.simulate:simulate",
+    "reconstruct": "clgs.cli.reconstruct:reconstruct",
+    "evaluate": "clgs.cli.evaluate:evaluate",
     "anatomies": "clgs.cli.anatomies:anatomies",
 }
 
