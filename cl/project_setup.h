@@ -1,6 +1,6 @@
 /* Per-(Gaussian, view) set-up shared by the projector's forward and backward kernels.
  *
- * Compile-time switches (see clgs/projector.py for when each is built):
+ * Compile-time switches (see clgs/ops/projector.py for when each is built):
  *   CONE    cone beam (rays from the source); otherwise parallel beam.
  *   EXACT   closed-form line integral along each pixel's own ray; otherwise the local affine
  *           (R2-Gaussian) splat. Input matrices: EXACT -> packed precision, affine -> packed

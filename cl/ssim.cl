@@ -1,7 +1,7 @@
 /* L1 and SSIM of rendered projections a (B, H, W) against a fixed target b, with the gradient of
- * lambda_l1 * mean|a - b| + lambda_ssim * mean SSIM with respect to a (clgs/ssim_cl.py).
+ * lambda_l1 * mean|a - b| + lambda_ssim * mean SSIM with respect to a (clgs/ops/ssim.py).
  *
- * SSIM as clgs/losses.py: separable 11-tap Gaussian window, zero padding, constants C1, C2. The
+ * SSIM as clgs/fit/losses.py: separable 11-tap Gaussian window, zero padding, constants C1, C2. The
  * target's blurred mean mu_b and second moment bb are cached by the host (one per view).
  *
  * Host defines: REAL, WT0 (centre weight) .. WT5 (outermost), SC1, SC2 (the SSIM constants).

@@ -47,12 +47,12 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
 
         volume = np.asarray(fdk(scan.projections, scan.geometry), np.float32)
     elif method == "r2gs":
-        from clgs.r2gs import reconstruct_r2gs
+        from clgs.methods.r2gs import reconstruct_r2gs
 
         res = reconstruct_r2gs(scan, None, iterations, progress=progress, seed=seed, **settings.get("r2gs", {}))
         volume, history = res.volume, res.log.rows
     else:
-        from clgs.shape_guided import deformed_template_surface, reconstruct_shape_guided
+        from clgs.methods.shape_guided import deformed_template_surface, reconstruct_shape_guided
 
         flags = {"init": dict(shape_prior=False, density_prior=False),
                  "init+shape": dict(shape_prior=True, density_prior=False),
@@ -97,13 +97,13 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
                    ablation_views: int | None = 5, methods=("fdk", "r2gs", "shape"), seed: int = 0,
                    progress: bool = True, settings: dict | None = None, echo=print) -> dict:
     """Run (or resume) the experiment; returns the summary dict also written to ``summary.json``."""
-    from clgs.evaluation import bone_surface, evaluate_volume, surface_level
+    from clgs.anatomy.evaluation import bone_surface, evaluate_volume, surface_level
     from clgs.io import atomic
     from clgs.io.mesh import save_mesh
     from clgs.io.volume import save_volume
     from clgs.metrics import surface_distance
-    from clgs.shape_guided import load_anatomy_parts
-    from clgs.simulation import simulate_subject
+    from clgs.methods.shape_guided import load_anatomy_parts
+    from clgs.anatomy.simulation import simulate_subject
 
     out = Path(out_dir)
     (out / "runs").mkdir(parents=True, exist_ok=True)
@@ -156,7 +156,8 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
                 atomic.write_json(record_path, row)
                 rows.append(row)
                 write_reports(out, rows, summarise(rows, views, ablation_views), views, ablation_views)
-                echo(f"  {tag}: PSNR {row.get('psnr3d', float('nan')):.2f} dB, SSIM {row.get('ssim3d', float('nan')):.4f}, "
+                psnr, ssim = row.get("psnr3d", float("nan")), row.get("ssim3d", float("nan"))
+                echo(f"  {tag}: PSNR {psnr:.2f} dB, SSIM {ssim:.4f}, "
                      f"surface {row.get('surface_mean_mm', float('nan')):.2f} mm, {row['seconds']:.0f} s")
     summary = summarise(rows, views, ablation_views)
     write_reports(out, rows, summary, views, ablation_views)

@@ -23,13 +23,16 @@ step of one pixel along u, and the step of one pixel along v, in scene or world 
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
 
+from clgs.errors import ClgsError
 
-class GeometryError(ValueError):
+
+class GeometryError(ClgsError, ValueError):
     """A scanner geometry that cannot describe a real acquisition."""
 
 
@@ -65,6 +68,21 @@ def _scalar(name, value) -> float:
     if arr.size != 1:
         raise GeometryError(f"{name} must be one number, got {value!r}")
     return float(arr[0])
+
+def shadow_half_extents(size_zyx, DSO: float, DSD: float, mode: str = "cone") -> tuple:
+    """(half width u, half height v) in mm on the detector of the shadow of a box of ``size_zyx``
+    mm centred on the rotation axis, over every angle: what a detector must span to see the whole
+    volume. The in-plane half-diagonal sets the width; in cone beam the box's nearest approach to
+    the source sets the magnification of its height."""
+    size = np.asarray(size_zyx, np.float64)
+    r_xy = 0.5 * float(np.hypot(size[1], size[2]))  # in-plane half-diagonal: the widest shadow
+    if mode != "cone":
+        return r_xy, 0.5 * size[0]
+    if r_xy >= DSO:
+        raise GeometryError(f"the volume (in-plane half-diagonal {r_xy:.1f} mm) reaches the source orbit "
+                            f"DSO={DSO} mm; increase DSO")
+    return DSD * r_xy / math.sqrt(DSO ** 2 - r_xy ** 2), 0.5 * size[0] * DSD / (DSO - r_xy)
+
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ figures exactly (values divided by ``data_range``, no shift).
 * Projections (2-D, ``projection_psnr``/``projection_ssim``): as R2-Gaussian's ``metric_proj``,
   each view of the truth and of the prediction is divided by its *own* maximum, the 2-D PSNR
   (peak 1) or SSIM computed per view, views whose truth is all zero skipped, then averaged.
-* ``surface_distance`` (mm) lives in :mod:`clgs.surface` and is re-exported here.
+* ``surface_distance`` (mm) lives in :mod:`clgs.mesh.surface` and is re-exported here.
 """
 from __future__ import annotations
 
@@ -32,9 +32,11 @@ import math
 
 import numpy as np
 
+from clgs.errors import ClgsError
+
 __all__ = ["psnr3d", "ssim3d", "masked_psnr3d", "masked_ssim3d", "ssim_maps", "projection_psnr",
            "projection_ssim", "evaluate_volume", "surface_distance", "MetricError",
-           "SSIM_WINDOW", "SSIM_SIGMA", "SSIM_C1", "SSIM_C2"]
+           "SSIM_WINDOW", "SSIM_SIGMA", "SSIM_C1", "SSIM_C2", "gaussian_window"]
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
@@ -42,7 +44,7 @@ SSIM_C1 = 0.01 ** 2
 SSIM_C2 = 0.03 ** 2
 
 
-class MetricError(ValueError):
+class MetricError(ClgsError, ValueError):
     """Inputs a metric cannot be computed on (shapes differ, constant truth, empty mask, NaN)."""
 
 
@@ -102,9 +104,11 @@ def masked_psnr3d(pred, truth, mask) -> float:
     return psnr3d(pred, truth, mask=mask)
 
 
-def _gauss_window() -> np.ndarray:
-    x = np.arange(SSIM_WINDOW, dtype=np.float64) - SSIM_WINDOW // 2
-    w = np.exp(-(x ** 2) / (2.0 * SSIM_SIGMA ** 2))
+def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> np.ndarray:
+    """The normalised 1D Gaussian window (float64) of every SSIM in clgs: the metric here, the
+    training loss (:mod:`clgs.fit.losses`) and its OpenCL kernel (:mod:`clgs.ops.ssim`)."""
+    x = np.arange(size, dtype=np.float64) - (size - 1) / 2
+    w = np.exp(-(x ** 2) / (2.0 * sigma ** 2))
     return w / w.sum()
 
 
@@ -112,7 +116,7 @@ def _ssim_map_axis(p, t, axis: int) -> np.ndarray:
     """Per-voxel 2-D SSIM map of every slice along ``axis`` (R2-Gaussian's zero-padded window)."""
     from scipy.ndimage import correlate1d
 
-    w = _gauss_window()
+    w = gaussian_window()
     plane = [a for a in range(3) if a != axis]
 
     def blur(a):
@@ -224,8 +228,8 @@ def projection_ssim(pred, truth, per_view: bool = False):
 
 
 def surface_distance(mesh_a, mesh_b, **kwargs) -> dict:
-    """Symmetric surface distance in mm; see :func:`clgs.surface.surface_distance`."""
-    from clgs.surface import surface_distance as _sd
+    """Symmetric surface distance in mm; see :func:`clgs.mesh.surface.surface_distance`."""
+    from clgs.mesh.surface import surface_distance as _sd
 
     return _sd(mesh_a, mesh_b, **kwargs)
 

@@ -12,7 +12,8 @@ import os
 import sys
 
 LOG_SECONDS = 10.0
-LOG_FORMAT = "{desc}: {n_fmt}/{total_fmt} {unit} ({percentage:.0f}%), {elapsed} elapsed, {remaining} left, {rate_fmt}{postfix}"
+LOG_FORMAT = ("{desc}: {n_fmt}/{total_fmt} {unit} ({percentage:.0f}%), {elapsed} elapsed, {remaining} left, "
+              "{rate_fmt}{postfix}")
 
 
 class LogLines:

@@ -34,11 +34,8 @@ def main():
                     help="an R2-Gaussian option (R2GSConfig field), e.g. grad_threshold=3e-5; repeatable")
     args = ap.parse_args()
 
-    from clgs import metrics
-    from clgs.ct.fdk import fdk
-    from clgs.ct.sart import sart
+    from clgs import Scan, fdk, metrics, reconstruct_r2gs, sart
     from clgs.io import atomic
-    from clgs.r2gs import reconstruct_r2gs
 
     settings = {}
     for pair in args.settings:
@@ -52,8 +49,6 @@ def main():
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.scan:
-        from clgs.io.scan import Scan
-
         scan = Scan.load(args.scan)
         if scan.truth is None:
             raise SystemExit(f"{args.scan} has no truth volume: 3D PSNR needs one")

@@ -120,7 +120,7 @@ def main(argv=None):
                   else f"simulated CT, LLP26 femur {args.subject}")
     print(f"wrote {slices}")
     if os.path.exists(pop.model_path):  # the density atlas, when the model has been built
-        from clgs.shape_model import load_model
+        from clgs.shape.model import load_model
 
         _, atlas = load_model(pop.model_path, need_shape_model=False)
         path = os.path.join(args.out, "femur_atlas.png")
@@ -129,7 +129,7 @@ def main(argv=None):
     else:
         print(f"no femur model at {pop.model_path} yet (clgs femur build-model): atlas figure skipped")
     try:
-        from clgs.ct.projector import CTProjector
+        from clgs.ops.ct_projector import CTProjector
     except ImportError as exc:
         print(f"no CT projector ({exc}): projection figure skipped")
         return

@@ -10,8 +10,7 @@ import sys
 
 import numpy as np
 
-from clgs.io.scan import Scan
-from clgs.r2gs import reconstruct_r2gs
+from clgs import Scan, reconstruct_r2gs
 
 
 def phantom_scan(n_views: int = 10, arc: float = np.pi) -> Scan:
@@ -22,10 +21,8 @@ def phantom_scan(n_views: int = 10, arc: float = np.pi) -> Scan:
     ``clgs ct simulate``: reconstruction and truth then describe the same object. (The phantom's
     analytic line integrals would describe a sharper object than its voxel means: a perfect
     reconstruction sampled at the voxel centres scores only 25 dB against them.)"""
+    from clgs import CTProjector, Geometry, add_noise
     from clgs.ct import phantoms
-    from clgs.ct.noise import add_noise
-    from clgs.ct.projector import CTProjector
-    from clgs.geometry import Geometry
 
     geo = Geometry.default(n_views=n_views, arc=arc, n_voxel=64, n_detector=128, volume_mm=256.0)
     truth = phantoms.voxelize(phantoms.head_phantom(geo), geo)

@@ -112,7 +112,7 @@ def main():
     from clgs.io import atomic
     from clgs.io.raw import read_raw, scan_from_raw
     from clgs.io.scan import Scan
-    from clgs.r2gs import reconstruct_r2gs
+    from clgs.methods.r2gs import reconstruct_r2gs
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -127,8 +127,9 @@ def main():
     full_astra = _astra_runs(full.projections, full.geometry.angles, report["centre"]["column"], ref, 0)
     if full_astra is not None:
         astra_turn = _best_turn(full_astra[0][1], ref)
+        turned = _orient(full_astra[0][1], astra_turn)
         summary["astra"] = {"orientation (flip y, flip x, transpose)": list(astra_turn),
-                            "fbp_181_psnr_vs_reference": float(metrics.psnr3d(_orient(full_astra[0][1], astra_turn), ref))}
+                            "fbp_181_psnr_vs_reference": float(metrics.psnr3d(turned, ref))}
     for nv in args.views:
         keep = np.linspace(0, full.n_views, nv, endpoint=False).astype(int)
         with warnings.catch_warnings():

@@ -50,7 +50,8 @@ def _device_report():
     found = " ".join(lines).lower()
     for name, key in (("PoCL", "portable computing"), ("Intel's CPU runtime", "intel(r) opencl")):
         if key not in found:
-            lines.append(f"OpenCL: {name} is not installed here, so no kernel test runs on it (bash setup.sh installs it)")
+            lines.append(f"OpenCL: {name} is not installed here, so no kernel test runs on it "
+                         "(bash setup.sh installs it)")
     return lines
 
 

@@ -8,8 +8,9 @@ import trimesh
 clgs_femur = pytest.importorskip("clgs_femur", reason="install with: pip install -e anatomies/femur")
 clgs_patella = pytest.importorskip("clgs_patella", reason="install with: pip install -e anatomies/patella")
 
-from clgs import meshvol as mv  # noqa: E402
-from clgs import phantom as ph  # noqa: E402
+from clgs.mesh import voxels as mv  # noqa: E402
+from clgs.anatomy import phantom as ph  # noqa: E402
+from clgs.anatomy.alignment import align_rigid  # noqa: E402
 
 HELD_OUT = [f"{i:02d}" for i in range(20, 26)]
 MODEL_IDS = [f"{i:02d}" for i in range(20)]
@@ -41,7 +42,7 @@ def test_entry_points_register_both_anatomies():
 
 
 def test_plugin_manager_finds_them():
-    plugins = pytest.importorskip("clgs.plugins")
+    plugins = pytest.importorskip("clgs.anatomy.plugins")
     names = plugins.anatomy_names()
     assert "femur" in names and "patella" in names
 
@@ -66,7 +67,7 @@ def test_held_out_subjects_are_disjoint_from_the_population(femur, patella):
 
 
 def test_held_out_subjects_never_reach_the_model_builder(patella, monkeypatch, tmp_path):
-    from clgs import model_builder
+    from clgs.shape import builder as model_builder
 
     seen = {}
 
@@ -152,7 +153,7 @@ def test_right_femur_from_a_file_is_mirrored_and_aligned(femur, tmp_path):
     assert subject.volume.shape == tuple(femur.grid.shape)
     # the fit is as good as fitting the left femur in its own frame (RMS = shape difference to the
     # template, a few mm), and it lands where femur 22 sits, up to that difference
-    direct = ph.align_rigid(v, femur.template_mesh()[0], allow_mirror=False)
+    direct = align_rigid(v, femur.template_mesh()[0], allow_mirror=False)
     assert al.rms_mm == pytest.approx(direct.rms_mm, abs=0.05) and al.rms_mm < 5.0
     from scipy.spatial import cKDTree  # (an STL file does not keep the vertex order)
 
@@ -165,7 +166,7 @@ def test_patella_builds_a_small_model_and_simulates_a_scan(patella, tmp_path, mo
     """The generic path end to end on the small anatomy: builder -> model file -> loaders; and a
     held-out subject through the CT projector."""
     pytest.importorskip("torch")
-    from clgs.shape_model import read_metadata
+    from clgs.shape.model import read_metadata
 
     monkeypatch.setenv("CLGS_CACHE_DIR", str(tmp_path))
     ids = MODEL_IDS[:4]
@@ -177,7 +178,7 @@ def test_patella_builds_a_small_model_and_simulates_a_scan(patella, tmp_path, mo
     assert 1 <= meta["n_modes"] <= 3 and 0.9 <= meta["variance_kept"] <= 1.0
     for r in meta["residuals"].values():
         assert r["surface_mean_mm"] < 2.5 and r["dice"] > 0.85 and r["min_jacobian"] > 0
-    from clgs.shape_model import load_model
+    from clgs.shape.model import load_model
 
     sm, atlas = load_model(path)
     assert atlas.mean.shape == tuple(patella.grid.shape)
@@ -185,7 +186,7 @@ def test_patella_builds_a_small_model_and_simulates_a_scan(patella, tmp_path, mo
     tmpl = patella.load_template()
     assert atlas.mean[tmpl.sdf < -2].mean() > atlas.mean[(tmpl.sdf > 4) & (tmpl.sdf < 10)].mean() + 0.003
 
-    projector = pytest.importorskip("clgs.ct.projector")
+    projector = pytest.importorskip("clgs.ops.ct_projector")
     subject = patella.load_subject("24")
     geo = patella.geometry(n_views=4)
     proj = np.asarray(projector.CTProjector(geo).forward(subject.volume))

@@ -11,7 +11,7 @@ from click.testing import CliRunner
 from clgs import methods
 from clgs.anatomy import Anatomy
 from clgs.cli import main
-from clgs.commands.anatomy_group import make_group
+from clgs.cli.anatomy_group import make_group
 from clgs.geometry import Geometry
 from clgs.io.scan import Scan
 from clgs.io.volume import load_volume
@@ -22,7 +22,7 @@ N_VIEWS = 6
 
 def has_femur():
     try:
-        from clgs import plugins
+        from clgs.anatomy import plugins
 
         return "femur" in plugins.anatomy_names()
     except Exception:  # noqa: BLE001
@@ -35,7 +35,7 @@ needs_femur = pytest.mark.skipif(not has_femur(), reason="install with: pip inst
 @pytest.fixture(scope="module")
 def tiny_scan(tmp_path_factory):
     """A 6-view scan of a ball on a 16^3 grid, with its truth."""
-    from clgs.ct.projector import CTProjector
+    from clgs.ops.ct_projector import CTProjector
 
     geo = Geometry.default(n_views=N_VIEWS, n_voxel=N_VOX, n_detector=24, volume_mm=64.0)
     zz, yy, xx = np.mgrid[:N_VOX, :N_VOX, :N_VOX] - (N_VOX - 1) / 2
@@ -167,7 +167,8 @@ def test_bad_shape_settings_in_the_femur_group(tiny_scan, tmp_path, setting, wor
 
 
 def test_good_settings_pass_and_are_converted():
-    from clgs.commands.anatomy_group import _get_method, check_settings
+    from clgs.cli.anatomy_group import _get_method
+    from clgs.cli.settings import check_settings
 
     m, run = _get_method("r2gs")
     opts = {"iterations": 3, "n_gaussians": 200, "progress": False, "backend": "torch", "scale_bounds": None,

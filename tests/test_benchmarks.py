@@ -39,10 +39,10 @@ def test_stage_timing_waits_on_the_profiling_queue():
     (a read-back on another queue returned before the kernels ended: negative "outside" times)."""
     import numpy as np
 
-    from clgs.benchmarks.kernels import _scene, _stages
+    from clgs.bench.kernels import _scene, _stages
     from clgs.geometry import Geometry
-    from clgs.projector import GaussianProjector
-    from clgs.voxelizer import cov_prec
+    from clgs.ops.projector import GaussianProjector
+    from clgs.ops.voxelizer import cov_prec
 
     geo = Geometry.default(n_views=4, mode="cone", n_detector=128, n_voxel=32)
     m, s, q, r = _scene(3000)
@@ -65,7 +65,7 @@ def test_stage_timing_waits_on_the_profiling_queue():
 def test_deformation_rows_compare_both_paths():
     import math
 
-    from clgs.benchmarks import field_sample_rows
+    from clgs.bench import field_sample_rows
 
     rows = field_sample_rows.rows(quick=True)
     assert [r["case"] for r in rows] == ["exp(v) forward", "exp(v) forward+backward",

@@ -11,7 +11,7 @@ from clgs.cli import main
 from clgs.io.scan import Scan
 from clgs.io.volume import load_volume, save_volume
 
-pytest.importorskip("clgs.ct.projector")
+pytest.importorskip("clgs.ops.ct_projector")
 pytest.importorskip("clgs.ct.fdk")
 
 
@@ -39,7 +39,7 @@ def scan_dir(tmp_path_factory):
 
 
 def test_simulate_writes_a_complete_scan(scan_dir):
-    from clgs.ct.projector import CTProjector
+    from clgs.ops.ct_projector import CTProjector
 
     scan = Scan.load(scan_dir / "scan")
     g = scan.geometry
@@ -59,7 +59,7 @@ def test_simulate_writes_a_complete_scan(scan_dir):
 
 
 def test_simulate_no_noise_is_the_projector(scan_dir, tmp_path):
-    from clgs.ct.projector import CTProjector
+    from clgs.ops.ct_projector import CTProjector
 
     np.save(tmp_path / "ball.npy", ball_volume())
     run("simulate", tmp_path / "ball.npy", "--spacing", "2", "--views", 5, "--arc", 360, "--mode", "parallel",
@@ -178,8 +178,9 @@ def test_bad_inputs_give_clear_errors(scan_dir, tmp_path):
 
 def test_help_does_not_import_heavy_modules():
     """The three commands' help (and the method list) load neither NumPy nor torch nor OpenCL."""
-    code = ("import sys; from click.testing import CliRunner; from clgs.commands import ct; "
-            "outs = [CliRunner().invoke(c, ['--help']) for c in (ct.simulate, ct.reconstruct, ct.evaluate)]; "
+    code = ("import sys; from click.testing import CliRunner; from clgs.cli import evaluate, reconstruct, simulate; "
+            "commands = (simulate.simulate, reconstruct.reconstruct, evaluate.evaluate); "
+            "outs = [CliRunner().invoke(c, ['--help']) for c in commands]; "
             "assert all(r.exit_code == 0 for r in outs), [r.output for r in outs]; "
             "assert 'r2gs' in outs[1].output and 'sart' in outs[1].output; "
             "print(sorted(m for m in ('numpy', 'torch', 'pyopencl') if m in sys.modules))")
@@ -299,7 +300,6 @@ def test_output_may_not_replace_or_overwrite_the_input_scan(scan_dir, tmp_path):
 
 
 def test_non_finite_and_out_of_range_method_options_are_refused_at_parse_time(scan_dir, tmp_path):
-    from clgs import methods
 
     out = tmp_path / "run"
     for method, option, value in [("r2gs", "--tv", "nan"), ("r2gs", "--tv", "inf"), ("r2gs", "--dssim", "inf"),
@@ -311,13 +311,15 @@ def test_non_finite_and_out_of_range_method_options_are_refused_at_parse_time(sc
         assert not out.exists() and list(tmp_path.iterdir()) == []  # no stray log.csv, no folder
     res = run("reconstruct", scan_dir / "scan", "-m", "r2gs", "--tv", "nan", "--out", out, ok=False)
     assert "x>=0" in res.output  # the option's own range is named
-    # the type for method options (usable by any method's click_options)
-    ff = methods.FiniteFloat(min=0)
+    # the type for method options (usable by any method's click options)
+    from clgs.cli.options import FiniteFloat
+
+    ff = FiniteFloat(min=0)
     assert ff.convert("0.5", None, None) == 0.5
     for bad in ("nan", "inf", "-inf", "1e999", "-1", "x"):
         with pytest.raises(__import__("click").BadParameter):
             ff.convert(bad, None, None)
-    assert methods.FiniteFloat()._describe_range() == "" and methods.FiniteFloat().name == "float"
+    assert FiniteFloat()._describe_range() == "" and FiniteFloat().name == "float"
 
 
 def test_seeds_name_the_option_and_its_range(scan_dir, tmp_path):

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from clgs.ct import phantoms as ph
-from clgs.ct.fdk import FILTERS, backproject, fdk, ramp_filter, view_weights
+from clgs.ct.fdk import FILTERS, fdk, ramp_filter, view_weights
+from clgs.ops.fdk import backproject
 from clgs.geometry import Geometry
 
 BALL = [ph.ball((2.0, -1.0, 1.0), 12.0, 0.02)]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from clgs.ct import phantoms as ph
-from clgs.ct.projector import CTProjector
+from clgs.ops.ct_projector import CTProjector
 from clgs.geometry import Geometry
 
 

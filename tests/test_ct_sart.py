@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from clgs.ct import phantoms as ph
-from clgs.ct.projector import CTProjector
+from clgs.ops.ct_projector import CTProjector
 from clgs.ct.sart import sart, subsets_of
 from clgs.geometry import Geometry
 

@@ -1,7 +1,6 @@
 """Device choice by probe, clgs info, the ICD registration of Intel's runtime, and the kernels
 agreeing across OpenCL implementations (every working device against the first)."""
 import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -44,7 +43,8 @@ def test_every_listed_device_has_a_probe_result_on_one_line():
 def test_probe_kernel_results_are_checked(fresh_choice):
     # the probe compares 2^t with NumPy: a device giving wrong numbers fails it
     assert devices.probe(WORKING[0]) is None
-    assert devices._first_line("x\n  error: unknown target CPU 'generic'\nmore") == "error: unknown target CPU 'generic'"
+    log = "x\n  error: unknown target CPU 'generic'\nmore"
+    assert devices._first_line(log) == "error: unknown target CPU 'generic'"
     assert devices._first_line("") == "unknown failure"
 
 
@@ -179,11 +179,11 @@ def test_installed_intel_runtime_is_found_where_pip_put_it():
 # ------------------------------------------------------------------ agreement across drivers
 def _kernels_on(dev):
     """Every operator's float32 results on ``dev`` for one fixed scene."""
-    from clgs.ct.projector import CTProjector
+    from clgs.ops.ct_projector import CTProjector
     from clgs.geometry import Geometry
-    from clgs.projector import project
-    from clgs.ssim_cl import default_image_loss, l1_dssim
-    from clgs.voxelizer import voxelize
+    from clgs.ops.projector import project
+    from clgs.ops.ssim import default_image_loss, l1_dssim
+    from clgs.ops.voxelizer import voxelize
 
     runtime.use_device(dev)
     geo = Geometry.default(n_views=4, n_voxel=24, n_detector=40, volume_mm=64.0)

@@ -1,7 +1,7 @@
 """The outer-bone mask behind the surface distance of reconstructions."""
 import numpy as np
 
-from clgs.evaluation import bone_mask
+from clgs.anatomy.evaluation import bone_mask
 
 
 def test_bone_mask_keeps_every_fragment_fills_cavities_and_drops_speckles():

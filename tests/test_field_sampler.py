@@ -1,12 +1,11 @@
-"""cl/field_sample.cl against torch's grid_sample (border padding, align_corners=True), finite
+"""cl/field_sampler.cl against torch's grid_sample (border padding, align_corners=True), finite
 differences in float64, bits, degenerate input; and the deformation built on it."""
-import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
 
-from clgs.field_sampler import FieldSampler, sample
-from clgs.shape_model import exp_velocity, sample_field
+from clgs.ops.field_sampler import FieldSampler, sample
+from clgs.shape.model import exp_velocity, sample_field
 
 
 def reference(field, pts):

@@ -1,6 +1,5 @@
 """Volumes in the formats imaging people use (NIfTI, MetaImage, NRRD, DICOM series) keep their
 place in the world; Hounsfield units convert at a stated energy; meshes declare their frame."""
-import warnings
 
 import nibabel as nib
 import numpy as np

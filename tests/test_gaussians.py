@@ -4,7 +4,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from clgs.gaussians import (Densifier, GaussianSet, Schedule, init_from_volume, init_random, inverse_softplus,
+from clgs.fit.gaussians import (Densifier, GaussianSet, Schedule, init_from_volume, init_random, inverse_softplus,
                             r2gs_schedules)
 from clgs.geometry import Geometry, Grid
 
@@ -207,8 +207,8 @@ def test_view_space_gradient_matches_the_detector_coordinate_gradient(mode):
 
 def test_training_covariances_match_gaussian_math_values_and_gradients():
     """What training feeds the kernels (the OpenCL cov_prec) against the torch reference."""
-    from clgs import gaussian_math as gm
-    from clgs.voxelizer import cov_prec
+    from clgs.ops import gaussian_math as gm
+    from clgs.ops.voxelizer import cov_prec
 
     g = torch.Generator().manual_seed(0)
     s = (torch.rand(50, 3, generator=g, dtype=torch.float64) * 0.3 + 1e-3).requires_grad_(True)

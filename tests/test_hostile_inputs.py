@@ -35,7 +35,8 @@ def _clean(res):
 def _scan_folder(root, geometry, files=None):
     root.mkdir(parents=True, exist_ok=True)
     np.save(root / "projections.npy", np.ones((3, 16, 16), np.float32))
-    doc = {"format": "clgs-scan", "version": 1, "geometry": geometry, "files": files or {"projections": "projections.npy"}}
+    doc = {"format": "clgs-scan", "version": 1, "geometry": geometry,
+           "files": files or {"projections": "projections.npy"}}
     (root / "scan.json").write_text(json.dumps(doc, allow_nan=True))
     return root
 

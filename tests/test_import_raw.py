@@ -17,7 +17,7 @@ N, ROWS, COLS, AXIS = 36, 3, 48, 21.0  # the rotation axis projects to column 21
 
 def _counts(seed=0):
     """Raw counts of a small off-centre object, with flats and darks, and the true line integrals."""
-    from clgs.ct.projector import CTProjector
+    from clgs.ops.ct_projector import CTProjector
 
     off_u = ((COLS - 1) / 2 - AXIS) * 1.0
     geo = Geometry(mode="parallel", DSD=1500.0, DSO=1000.0, nDetector=(ROWS, COLS), dDetector=(1.0, 1.0),
@@ -120,7 +120,8 @@ def test_every_format_imports_to_the_same_scan(tmp_path, kind):
     assert "rotation axis at column 21.0" in res.output
     scan = Scan.load(tmp_path / "scan")
     assert np.abs(scan.projections - p).max() < 2e-4
-    assert np.allclose(scan.geometry.angles, geo.angles) and abs(scan.geometry.offDetector[1] - geo.offDetector[1]) < 0.05
+    assert np.allclose(scan.geometry.angles, geo.angles)
+    assert abs(scan.geometry.offDetector[1] - geo.offDetector[1]) < 0.05
 
 
 def test_bad_raw_input_is_named(tmp_path):

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from clgs.geometry import Geometry
-from clgs.io.r2gaussian import geometry_from_scanner, read_r2gaussian, to_r2gaussian_folder
+from clgs.io.r2gaussian import geometry_from_scanner, to_r2gaussian_folder
+from clgs.io.scan import read_r2gaussian
 from clgs.io.scan import Scan, ScanError
 
 

@@ -1,11 +1,11 @@
-"""The OpenCL L1 + D-SSIM (clgs.ssim_cl) against the torch reference (clgs.losses): values,
+"""The OpenCL L1 + D-SSIM (clgs.ops.ssim) against the torch reference (clgs.fit.losses): values,
 gradients, gradcheck, awkward sizes, extreme inputs, determinism, and its use in training."""
 import numpy as np
 import pytest
 import torch
 
-from clgs import losses as L
-from clgs.ssim_cl import ImageLoss, SSIMError, SSIMTarget, l1_dssim
+from clgs.fit import losses as L
+from clgs.ops.ssim import ImageLoss, SSIMError, SSIMTarget, l1_dssim
 
 
 @pytest.fixture(scope="module")
@@ -217,16 +217,17 @@ def test_image_terms_without_dssim_run_no_ssim_pass():
 
 
 def test_r2gs_with_dssim_off_builds_l1_only_terms():
-    from clgs.r2gs import R2GSConfig, r2gs_losses
+    from clgs.fit.assembly import projection_losses
+    from clgs.methods.r2gs import R2GSConfig
 
-    on, off = (r2gs_losses(R2GSConfig(lambda_dssim=w)) for w in (0.25, 0.0))
+    on, off = (projection_losses(R2GSConfig(lambda_dssim=w)) for w in (0.25, 0.0))
     assert on[0].fn.__self__.fused and not off[0].fn.__self__.fused
 
 
 def test_trainer_stops_on_a_nan_render():
     """A non-finite render makes the loss NaN and the trainer raises a clear FloatingPointError."""
     from clgs.geometry import Geometry
-    from clgs.r2gs import R2GSConfig, build_trainer
+    from clgs.methods.r2gs import R2GSConfig, build_trainer
     from clgs.io.scan import Scan
 
     geo = Geometry.default(n_views=4, n_voxel=8, n_detector=12, volume_mm=64.0)

@@ -3,14 +3,14 @@ import json
 import subprocess
 import sys
 
-from clgs.training_log import TrainingLog
+from clgs.fit.training_log import TrainingLog
 
 #: a 100k-Gaussian R2-Gaussian-mode run on a 512^2 detector stays under this (README: Speed)
 MEMORY_BOUND_MIB = 2048
 
 CHECK = r"""
 import json
-from clgs.benchmarks.train import peak_memory_mib, r2gs_trainer, synthetic_scene
+from clgs.bench.train import peak_memory_mib, r2gs_trainer, synthetic_scene
 geo, scan, gaussians = synthetic_scene(100_000, 512, 128, 4, "cone", 0)
 trainer = r2gs_trainer(scan, gaussians, "cl", 0)
 for _ in range(3):

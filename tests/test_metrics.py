@@ -8,7 +8,7 @@ import torch
 
 from clgs import metrics
 from clgs.metrics import MetricError
-from clgs.surface import (SurfaceError, point_to_mesh_distance, sample_surface, surface_distance,
+from clgs.mesh.surface import (SurfaceError, point_to_mesh_distance, sample_surface, surface_distance,
                           surface_from_volume)
 
 
@@ -98,7 +98,8 @@ def test_ssim_map_interior_equals_skimage(pair):
     sk, sk_axes = metrics.ssim3d(pred, truth, implementation="skimage", return_axes=True)
     p, t = pred.astype(float) / top, truth.astype(float) / top
     expected_y = np.mean([structural_similarity(t[:, j], p[:, j], data_range=1.0, gaussian_weights=True, sigma=1.5,
-                                                use_sample_covariance=False) for j in range(t.shape[1]) if t[:, j].max() > 0])
+                                                use_sample_covariance=False)
+                          for j in range(t.shape[1]) if t[:, j].max() > 0])
     assert sk_axes[1] == pytest.approx(expected_y, abs=1e-9)
     assert sk != pytest.approx(metrics.ssim3d(pred, truth), abs=1e-3)  # borders do differ
 

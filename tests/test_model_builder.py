@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import torch
 
-from clgs.model_builder import build_model, population_pca
-from clgs.shape_model import load_model, read_metadata
-from clgs.template import Subject, Template, box_grid, grid_points, mesh_from_sdf
+from clgs.shape.builder import build_model, population_pca
+from clgs.shape.model import load_model, read_metadata
+from clgs.shape.template import Subject, Template, box_grid, grid_points, mesh_from_sdf
 
 FAST = {"levels": [8, 0], "iterations": [15, 15]}
 MAX_CELLS = 14

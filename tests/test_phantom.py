@@ -1,10 +1,12 @@
-"""Surface -> label -> signed distance -> CT-like density (clgs.phantom), on analytic shapes."""
+"""Surface -> label -> signed distance -> CT-like density (clgs.anatomy.phantom), on analytic shapes."""
 import numpy as np
 import pytest
 import trimesh
 
-from clgs import meshvol as mv
-from clgs import phantom as ph
+from clgs.mesh import voxels as mv
+from clgs.anatomy import phantom as ph
+from clgs.anatomy.alignment import align_rigid
+from clgs.anatomy.population import scan_geometry_kwargs
 from clgs.geometry import Grid
 
 
@@ -221,12 +223,12 @@ def test_align_rigid_recovers_pose_and_mirror(rng):
     R = rotation(rng)
     t = np.array([120.0, -40.0, 900.0])
     moved = ref @ R.T + t
-    al = ph.align_rigid(moved, ref)
+    al = align_rigid(moved, ref)
     assert not al.mirrored and al.rms_mm < 0.05
     assert np.abs(al.apply(moved) - ref).max() < 0.05
     mirrored = (ref * np.array([-1.0, 1.0, 1.0])) @ R.T + t  # the other side's bone ...
     mirrored_faces = mesh.faces[:, ::-1]  # ... with its outward normals
-    al = ph.align_rigid(mirrored, ref)
+    al = align_rigid(mirrored, ref)
     assert al.mirrored and al.rms_mm < 0.05
     assert np.abs(al.apply(mirrored) - ref).max() < 0.05
     v, f = al.apply_mesh(mirrored, mirrored_faces)
@@ -235,14 +237,14 @@ def test_align_rigid_recovers_pose_and_mirror(rng):
 
 def test_load_mesh_formats(tmp_path):
     """The loader the phantom's mesh import uses gives closed meshes back (STL corners merged)."""
-    from clgs.io.mesh import MeshError, load_mesh
+    from clgs.io.mesh import MeshError, check_mesh, load_mesh
 
     mesh = trimesh.creation.icosphere(2, radius=7.0)
     mesh.export(tmp_path / "m.stl")
     np.savez(tmp_path / "m.npz", vertices=mesh.vertices, faces=mesh.faces)
     for name in ("m.stl", "m.npz"):
         v, f = load_mesh(tmp_path / name)
-        mv.check_mesh(v, f)  # watertight
+        check_mesh(v, f, closed=True)  # watertight
         assert abs(mv.mesh_volume(v, f) - mesh.volume) < 1e-3 * mesh.volume
     with pytest.raises(MeshError, match="no such file"):
         load_mesh(tmp_path / "missing.stl")
@@ -255,7 +257,7 @@ def test_scan_geometry_sees_the_whole_volume():
     from clgs.geometry import Geometry
 
     grid = centred_grid((160, 72, 80), 3.0)
-    kw = ph.scan_geometry_kwargs(grid)
+    kw = scan_geometry_kwargs(grid)
     geo = Geometry.from_dict(dict(kw, angles=np.linspace(0, np.pi, 8, endpoint=False)))
     nz, ny, nx = grid.shape
     corners = np.array([[sx * nx * 1.5, sy * ny * 1.5, sz * nz * 1.5] for sx in (-1, 1) for sy in (-1, 1)

@@ -12,7 +12,7 @@ import pytest
 from click.testing import CliRunner
 
 from clgs.anatomy import Anatomy
-from clgs.plugins import DuplicateAnatomyError, PluginWarning, Registry, UnknownAnatomyError
+from clgs.anatomy.plugins import DuplicateAnatomyError, PluginWarning, Registry, UnknownAnatomyError
 
 ROOT = Path(__file__).resolve().parents[1]
 TOY = ROOT / "examples" / "toy_plugin"
@@ -53,7 +53,7 @@ def _fake_dist(site: Path, dist: str, module: str, source: str, entry: str = Non
 
 PLUGIN = """
 from clgs.anatomy import Anatomy
-from clgs.hookspecs import hookimpl
+from clgs.anatomy.hookspecs import hookimpl
 
 @hookimpl
 def clgs_anatomies():
@@ -87,7 +87,7 @@ def test_installed_example_plugin_is_discovered_by_the_cli(toy_target, tmp_path)
 
 
 def test_listing_plugins_imports_no_torch_or_opencl(toy_target):
-    code = ("import sys; from clgs import plugins; names = plugins.anatomy_names(); "
+    code = ("import sys; from clgs.anatomy import plugins; names = plugins.anatomy_names(); "
             "print(','.join(names)); print([m for m in ('torch', 'pyopencl') if m in sys.modules])")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(toy_target), timeout=120)
     assert r.returncode == 0, r.stderr
@@ -103,7 +103,7 @@ def test_two_distributions_with_the_same_anatomy_name(on_path):
     reg.load_entry_points()
     with pytest.raises(DuplicateAnatomyError) as err:
         reg.anatomies()
-    msg = str(err.value.message)
+    msg = str(err.value)
     assert "'bone'" in msg and "dup-alpha" in msg and "dup-beta" in msg
     # the command line reports it as an error naming both packages, without a traceback
     r = _clgs(["anatomies"], _env(on_path))
@@ -144,7 +144,7 @@ def test_registry_checks_what_plugins_return():
             return [Anatomy(name="Knee Joint", summary="x"), Anatomy(name="info", summary="x"),
                     Anatomy(name="hip", summary="h")]
 
-    from clgs.hookspecs import hookimpl
+    from clgs.anatomy.hookspecs import hookimpl
 
     for cls in (Good, Raises, WrongType, BadNames):
         cls.clgs_anatomies = hookimpl(cls.clgs_anatomies)
@@ -191,7 +191,7 @@ def toy(toy_target, tmp_path, monkeypatch):
 def test_group_info_build_and_extra_command(toy, tmp_path, monkeypatch):
     import clgs_toy
 
-    from clgs.commands.anatomy_group import make_group
+    from clgs.cli.anatomy_group import make_group
 
     # the wiring is under test here, not the registration: keep it short
     monkeypatch.setattr(clgs_toy, "BUILD_SETTINGS", {"registration": {"levels": [0], "iterations": [5]}})
@@ -215,8 +215,8 @@ def test_group_info_build_and_extra_command(toy, tmp_path, monkeypatch):
 
 
 def test_group_simulate_reconstruct_evaluate(toy, tmp_path):
-    pytest.importorskip("clgs.ct.projector")
-    from clgs.commands.anatomy_group import make_group
+    pytest.importorskip("clgs.ops.ct_projector")
+    from clgs.cli.anatomy_group import make_group
 
     group = make_group(toy)
     runner = CliRunner()
@@ -255,9 +255,9 @@ def test_generic_build_model_without_a_plugin_builder(tmp_path):
     """An anatomy that gives only a template, a population and subjects gets the generic builder."""
     import numpy as np
 
-    from clgs.commands.anatomy_group import make_group
-    from clgs.shape_model import read_metadata
-    from clgs.template import Subject, Template, box_grid, grid_points, mesh_from_sdf
+    from clgs.cli.anatomy_group import make_group
+    from clgs.shape.model import read_metadata
+    from clgs.shape.template import Subject, Template, box_grid, grid_points, mesh_from_sdf
 
     def blob(axes, sid):
         a = np.asarray(axes, float)

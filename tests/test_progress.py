@@ -5,7 +5,7 @@ import time
 import pytest
 
 from clgs.progress import LogLines, log_seconds, on_terminal, progress_bar
-from clgs.training_log import Progress
+from clgs.fit.training_log import Progress
 
 
 class _Terminal(io.StringIO):

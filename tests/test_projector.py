@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from clgs.gaussian_math import covariance, precision, unpack_sym
+from clgs.ops.gaussian_math import covariance, precision, unpack_sym
 from clgs.geometry import Geometry
-from clgs.projector import WIDE, WIDTH_ENV, GaussianProjector, ProjectorError, project, project_packed, tile_width
+from clgs.ops.projector import WIDE, WIDTH_ENV, GaussianProjector, ProjectorError, project, project_packed, tile_width
 from clgs.reference.projection import exact_quadrature, project_dense
 
 BEAMS = ("cone", "parallel")

@@ -4,15 +4,15 @@ import pytest
 import torch
 
 from clgs.geometry import Geometry
-from clgs.shape_init import initialise, quaternion_from_z_to, sample_reference_centres
-from clgs.gaussian_math import quaternion_to_rotation
+from clgs.shape.initialise import initialise, quaternion_from_z_to, sample_reference_centres
+from clgs.ops.gaussian_math import quaternion_to_rotation
 
 
 @pytest.fixture(scope="module")
 def template():
     import trimesh
 
-    from clgs.template import Template
+    from clgs.shape.template import Template
 
     m = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
     v = m.vertices * np.array([14.0, 10.0, 22.0])
@@ -22,8 +22,8 @@ def template():
 @pytest.fixture(scope="module")
 def shape_model(template):
     """Two smooth modes: a stretch along z and a shift along x (mm velocities on a coarse grid)."""
-    from clgs.shape_model import ShapeModel
-    from clgs.template import grid_points
+    from clgs.shape.model import ShapeModel
+    from clgs.shape.template import grid_points
 
     shape, spacing, origin = template.model_grid(max_cells=12)
     pts = grid_points(shape, spacing, origin)  # (Z, Y, X, 3)
@@ -39,7 +39,7 @@ def shape_model(template):
 
 @pytest.fixture(scope="module")
 def atlas(template):
-    from clgs.shape_model import DensityAtlas
+    from clgs.shape.model import DensityAtlas
 
     mean = np.where(template.label, 0.05, 0.0).astype(np.float32)
     return DensityAtlas(mean, np.full_like(mean, 1e-4), template.spacing, template.origin)
@@ -48,7 +48,7 @@ def atlas(template):
 @pytest.fixture(scope="module")
 def tissue_atlas(template):
     """The atlas of a bone (0.05/mm) in soft tissue (0.01/mm within 28 mm of the z axis), as _scan's truth."""
-    from clgs.shape_model import DensityAtlas
+    from clgs.shape.model import DensityAtlas
 
     pts = template.grid().points()
     r = np.linalg.norm(pts[..., :2], axis=-1)
@@ -105,7 +105,7 @@ def test_overlap_backends_agree(template, atlas):
 
 def _scan(template, n_views=8, det=48, alpha=(0.8, -0.6), shape_model=None, I0=None, shift_mm=0.0):
     """A scan of the ellipsoid deformed by ``alpha`` (truth: 0.05/mm inside, soft tissue 0.01)."""
-    from clgs.ct.projector import CTProjector
+    from clgs.ops.ct_projector import CTProjector
     from clgs.io.scan import Scan
 
     geo = geometry(n_views, det)
@@ -137,7 +137,7 @@ def _small(**kw):
 
 def test_shape_guided_fits_alpha_and_beats_its_start(template, shape_model, atlas):
     from clgs.metrics import psnr3d
-    from clgs.shape_guided import reconstruct_shape_guided
+    from clgs.methods.shape_guided import reconstruct_shape_guided
 
     scan = _scan(template, alpha=(1.0, -0.8), shape_model=shape_model)
     res0 = reconstruct_shape_guided(scan, (template, shape_model, atlas), iterations=1, **_small())
@@ -150,7 +150,8 @@ def test_shape_guided_fits_alpha_and_beats_its_start(template, shape_model, atla
 
 def test_stability_extreme_alpha_few_views_noise_and_offset(template, shape_model, atlas):
     """|alpha| = 10, 1 and 2 views, I0 = 1e3, a subject partly outside the template grid: finite, fold-free."""
-    from clgs.shape_guided import ShapeGuidedSet, reconstruct_shape_guided
+    from clgs.methods.shape_guided import reconstruct_shape_guided
+    from clgs.shape.gaussian_set import ShapeGuidedSet
 
     parts = (template, shape_model, atlas)
     for kw in (dict(n_views=1), dict(n_views=2), dict(I0=1e3), dict(shift_mm=30.0)):
@@ -168,7 +169,8 @@ def test_stability_extreme_alpha_few_views_noise_and_offset(template, shape_mode
 
 
 def test_ablation_switches_change_the_model(template, shape_model, atlas):
-    from clgs.shape_guided import ShapeGuidedSet, build_trainer, ShapeGuidedConfig
+    from clgs.methods.shape_guided import ShapeGuidedConfig, build_trainer
+    from clgs.shape.gaussian_set import ShapeGuidedSet
 
     scan = _scan(template)
     parts = (template, shape_model, atlas)
@@ -187,7 +189,7 @@ def test_ablation_switches_change_the_model(template, shape_model, atlas):
 
 
 def test_resume_is_bitwise(template, shape_model, atlas, tmp_path):
-    from clgs.shape_guided import reconstruct_shape_guided
+    from clgs.methods.shape_guided import reconstruct_shape_guided
 
     scan = _scan(template, shape_model=shape_model)
     parts = (template, shape_model, atlas)
@@ -210,7 +212,7 @@ def test_bone_surface_is_the_outer_surface_of_the_solid_bone():
     object with its hollow interior filled and small bright specks dropped; None without bone."""
     import trimesh
 
-    from clgs.shape_guided import bone_surface
+    from clgs.methods.shape_guided import bone_surface
 
     geo = Geometry.default(n_views=4, n_voxel=40, volume_mm=80.0)  # 2 mm voxels, centred on 0
     z, y, x = (np.mgrid[:40, :40, :40] - 19.5) * 2.0
@@ -229,7 +231,7 @@ def test_bone_surface_is_the_outer_surface_of_the_solid_bone():
 def _tiny_anatomy(template, shape_model, atlas):
     """An Anatomy whose subjects are the ellipsoid deformed by known alphas (ids 'a', 'b' held out)."""
     from clgs.anatomy import Anatomy
-    from clgs.template import Subject
+    from clgs.shape.template import Subject
 
     geo = geometry()
     grid = geo.volume_grid(scene=False)
@@ -292,7 +294,7 @@ def test_experiment_writes_tables_curves_and_resumes(template, shape_model, atla
 
 
 def test_surroundings_share_the_atlas_with_the_bone(template, atlas, tissue_atlas):
-    from clgs.shape_init import initialise_surroundings
+    from clgs.shape.initialise import initialise_surroundings
 
     geo = geometry()
     inside = initialise(template, tissue_atlas, geo, 1500, seed=1)
@@ -317,8 +319,8 @@ def test_surroundings_share_the_atlas_with_the_bone(template, atlas, tissue_atla
 
 
 def _start_volume(scan, parts, **kw):
-    from clgs.r2gs import voxelize_volume
-    from clgs.shape_guided import ShapeGuidedConfig, build_trainer
+    from clgs.fit.outputs import voxelize_volume
+    from clgs.methods.shape_guided import ShapeGuidedConfig, build_trainer
 
     cfg = ShapeGuidedConfig(**{k: v for k, v in _small(iterations=1, **kw).items() if k != "progress"})
     t = build_trainer(scan, parts, cfg)
@@ -341,7 +343,7 @@ def test_atlas_start_beats_the_fdk_start_at_few_views(template, shape_model, tis
 
 
 def test_alpha_registration_moves_towards_the_subject(template, shape_model, tissue_atlas):
-    from clgs.shape_guided import ShapeGuidedConfig, build_trainer
+    from clgs.methods.shape_guided import ShapeGuidedConfig, build_trainer
 
     truth = np.array([1.0, -0.8])
     scan = _scan(template, alpha=truth, shape_model=shape_model)
@@ -359,8 +361,8 @@ def test_alpha_registration_moves_towards_the_subject(template, shape_model, tis
 def test_density_prior_field(template, shape_model, atlas, tissue_atlas):
     """"all" holds the whole model to the atlas (the free set gets gradients); "shape" only the
     shape set inside the bone; an atlas of the bone alone falls back to "shape"."""
-    from clgs.shape_guided import ShapeGuidedConfig, build_trainer
-    from clgs.trainer import Context
+    from clgs.methods.shape_guided import ShapeGuidedConfig, build_trainer
+    from clgs.fit.trainer import Context
 
     scan = _scan(template)
 

@@ -6,10 +6,10 @@ import pytest
 import torch
 from scipy.ndimage import map_coordinates
 
-from clgs.shape_model import (MIN_SQUARINGS, DensityAtlas, ModelFileError, ShapeModel, exp_velocity,
+from clgs.shape.model import (MIN_SQUARINGS, DensityAtlas, ModelFileError, ShapeModel, exp_velocity,
                               jacobian_determinant, load_model, read_metadata, sample_field, save_model,
                               squarings_for)
-from clgs.template import grid_points
+from clgs.shape.template import grid_points
 
 SHAPE, SP, ORG = (20, 22, 24), (2.0, 2.0, 2.0), (-19.0, -21.0, -23.0)
 SMALL = (12, 13, 14)
@@ -269,8 +269,8 @@ def test_anatomies_lists_an_unreadable_model_as_such(tmp_path, monkeypatch):
 
     from click.testing import CliRunner
 
-    from clgs import plugins
-    from clgs.commands.anatomies import anatomies
+    from clgs.anatomy import plugins
+    from clgs.cli.anatomies import anatomies
 
     bad = tmp_path / "model.npz"
     bad.write_bytes(b"PK\x03\x04 not really a zip")

@@ -7,18 +7,19 @@ import numpy as np
 import pytest
 import torch
 
-from clgs import checkpoint as ckpt
+from clgs.fit import checkpoint as ckpt
 from clgs.geometry import Geometry
 from clgs.io.scan import Scan
-from clgs.r2gs import R2GSConfig, build_trainer, reconstruct_r2gs, value_scale_from
-from clgs.trainer import LossTerm
+from clgs.fit.assembly import value_scale_from
+from clgs.methods.r2gs import R2GSConfig, build_trainer, reconstruct_r2gs
+from clgs.fit.trainer import LossTerm
 
 
 @pytest.fixture(scope="module")
 def scene():
     """6 anisotropic Gaussians (attenuation ~0.01-0.02 /mm) in a 64 mm cube, 8 cone-beam views."""
-    from clgs.projector import project
-    from clgs.voxelizer import voxelize
+    from clgs.ops.projector import project
+    from clgs.ops.voxelizer import voxelize
 
     geo = Geometry.default(n_views=8, n_voxel=16, n_detector=24, volume_mm=64.0)
     rng = np.random.default_rng(0)
@@ -84,7 +85,7 @@ def test_resume_is_bit_for_bit(scene, tmp_path, backend):
     state = ckpt.load(tmp_path / "checkpoint.pt")
     assert state["iteration"] == k
     if kw.get("log_every", 10):  # the log file follows the run, not only its end
-        from clgs.training_log import TrainingLog
+        from clgs.fit.training_log import TrainingLog
 
         assert [r["iteration"] for r in TrainingLog.read_csv(tmp_path / "log.csv").rows] == [0, 10, k]
     resumed = _trainer(scene, n, tmp_path, backend=backend, **kw)
@@ -175,14 +176,14 @@ def test_densification_statistics_see_the_projection_gradient_only(scene):
 
 
 def test_zero_weight_terms_are_never_computed(scene, monkeypatch):
-    import clgs.tv_patch
+    import clgs.fit.tv_patch
 
     def boom(ctx):
         raise AssertionError("a zero-weight term was evaluated")
 
     calls = []
-    tv = clgs.tv_patch.patch_tv
-    monkeypatch.setattr(clgs.tv_patch, "patch_tv", lambda backend, tensors, grid: calls.append(grid.shape)
+    tv = clgs.fit.tv_patch.patch_tv
+    monkeypatch.setattr(clgs.fit.tv_patch, "patch_tv", lambda backend, tensors, grid: calls.append(grid.shape)
                         or tv(backend, tensors, grid))
     t = _trainer(scene, 5, lambda_tv=0.0)
     t.losses.append(LossTerm("boom", 0.0, boom))
@@ -197,7 +198,7 @@ def test_zero_weight_terms_are_never_computed(scene, monkeypatch):
 
 
 def test_frozen_parameters_do_not_move(scene):
-    from clgs.gaussians import Schedule
+    from clgs.fit.gaussians import Schedule
 
     t = _trainer(scene, 5)
     s = t.sets[0]
@@ -234,7 +235,7 @@ def test_reconstruct_r2gs_writes_outputs_and_resumes(scene, tmp_path):
     assert 0.3 < res.volume.max() / scene.truth.max() < 3
     from clgs.io.volume import load_volume
     assert np.allclose(load_volume(out / "volume.nii.gz").volume, res.volume, rtol=1e-6, atol=1e-9)
-    from clgs.training_log import TrainingLog
+    from clgs.fit.training_log import TrainingLog
     log = TrainingLog.read_csv(out / "log.csv")
     assert [r["iteration"] for r in log.rows] == [0, 10, 20]
     assert {"psnr3d", "ssim3d", "proj_psnr", "l1", "dssim", "tv", "n_gaussians", "seconds"} <= set(log.columns)
@@ -251,7 +252,7 @@ def test_reconstruct_r2gs_writes_outputs_and_resumes(scene, tmp_path):
 def test_resume_without_iterations_finishes_the_interrupted_run(scene, tmp_path, monkeypatch):
     """An interrupted run resumed with no iterations given ends where it was planned to end, not at
     the 30 000 default; given iterations extend it."""
-    from clgs import trainer as T
+    from clgs.fit import trainer as T
 
     out = tmp_path / "run"
     kw = dict(progress=False, fdk=scene.truth, **{**SMALL, "n_gaussians": 100})
@@ -285,7 +286,7 @@ def test_variants_train(scene, kw):
 def test_two_sets_only_the_free_one_densifies(scene, tmp_path):
     """The shape-guided method's layout: a second, non-densified set with its own schedules
     (one parameter frozen), rendered together with the free set; checkpoints hold both."""
-    from clgs.gaussians import GaussianSet, Schedule, r2gs_schedules
+    from clgs.fit.gaussians import GaussianSet, Schedule, r2gs_schedules
 
     t = _trainer(scene, 30, tmp_path, densify_start=5, densify_interval=5)
     rng = np.random.default_rng(1)
@@ -314,8 +315,8 @@ def test_cl_backend_voxelizes_only_the_gaussians_that_reach_a_block():
     block is bitwise the same region of the full grid, and field and gradients match the op fed
     every Gaussian (float64)."""
     from clgs.geometry import Grid
-    from clgs.trainer import Backend
-    from clgs.voxelizer import _GridField, cov_prec, default_voxelizer
+    from clgs.fit.trainer import Backend
+    from clgs.ops.voxelizer import _GridField, cov_prec, default_voxelizer
 
     g = torch.Generator().manual_seed(3)
     n = 400
@@ -348,7 +349,7 @@ def test_cl_backend_shares_the_projections_matrices_with_the_tv_patch():
     built from scratch, the gradients through both paths agree (float64), and the kept matrices
     are dropped by ``forget`` (or ignored once the tensors change)."""
     from clgs.geometry import Geometry
-    from clgs.trainer import Backend
+    from clgs.fit.trainer import Backend
 
     geo = Geometry.default(n_views=4, n_voxel=24, n_detector=32, volume_mm=64.0)
     g = torch.Generator().manual_seed(5)
@@ -387,7 +388,7 @@ def test_iterations_leave_no_context_behind(scene):
     """Each iteration's context (render, gradient hook) is freed: nothing piles up over a run."""
     import gc
 
-    from clgs.trainer import Context
+    from clgs.fit.trainer import Context
 
     t = _trainer(scene, 5)
     t.fit()
@@ -398,7 +399,7 @@ def test_iterations_leave_no_context_behind(scene):
 def test_scale_floor_follows_the_scans_resolution():
     """The smallest scale is 0.4 x the finer of voxel and axis-pixel size, never below the extent's
     0.05 %; a floor above the largest scale is a clear error."""
-    from clgs.r2gs import scale_bounds_for
+    from clgs.fit.assembly import scale_bounds_for
 
     geo = Geometry.default(n_views=4, n_voxel=64, n_detector=128, volume_mm=256.0)
     pixel_at_axis = geo.dDetector[0] * geo.DSO / geo.DSD
@@ -414,7 +415,7 @@ def test_scale_floor_follows_the_scans_resolution():
 
 
 def test_trained_scales_respect_the_floor(scene):
-    from clgs.r2gs import scale_bounds_for
+    from clgs.fit.assembly import scale_bounds_for
 
     t = _trainer(scene, 30, scale_floor=0.4)
     t.fit()
@@ -425,7 +426,7 @@ def test_trained_scales_respect_the_floor(scene):
 
 def test_resume_of_a_checkpoint_without_a_floor_keeps_its_bounds(scene, tmp_path):
     """Checkpoints written before ``scale_floor`` existed resume with the bounds they trained with."""
-    from clgs.r2gs import run_config
+    from clgs.fit.config import run_config
 
     t = _trainer(scene, 12, tmp_path, scale_floor=None)
     t.fit()
@@ -441,7 +442,7 @@ def test_resume_of_a_checkpoint_without_a_floor_keeps_its_bounds(scene, tmp_path
 def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(scene, tmp_path):
     """The kernels skip NaN Gaussians, so the loss can stay finite while the model breaks: the
     trainer checks the parameters and never writes a broken checkpoint."""
-    from clgs import trainer as T
+    from clgs.fit import trainer as T
 
     class Poison:
         def on_iteration(self, trainer):
@@ -497,7 +498,7 @@ def test_settings_of_the_wrong_kind_or_range_are_refused(setting, message):
 
 
 def test_shape_guided_settings_are_checked_too():
-    from clgs.shape_guided import ShapeGuidedConfig
+    from clgs.methods.shape_guided import ShapeGuidedConfig
 
     with pytest.raises(ValueError, match="shape_prior must be true or false"):
         ShapeGuidedConfig.from_json({"shape_prior": "yes"})

@@ -7,10 +7,11 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from clgs import checkpoint as ckpt
-from clgs import losses as L
+from clgs.fit import checkpoint as ckpt
+from clgs.fit import losses as L
+from clgs.ops import ssim as ssim_op
 from clgs.geometry import Grid
-from clgs.training_log import TrainingLog
+from clgs.fit.training_log import TrainingLog
 
 
 def _ssim_direct(a, b):
@@ -67,16 +68,16 @@ def test_blur_is_the_zero_padded_window_and_its_gradient(shape):
     smaller than the window included. Its backward is the filter itself (self-adjoint)."""
     g = torch.Generator().manual_seed(1)
     x = torch.rand(shape, generator=g, dtype=torch.float64, requires_grad=True)
-    w1 = L._window(11, 1.5, torch.float64)
+    w1 = ssim_op.window(11, 1.5, torch.float64)
     w2 = (w1[:, None] * w1[None, :])[None, None]
     ref = F.conv2d(x, w2, padding=5)
-    got = L._blur(x, w1)
+    got = ssim_op.blur(x, w1)
     torch.testing.assert_close(got, ref, rtol=1e-12, atol=1e-15)
     v = torch.rand(shape, generator=g, dtype=torch.float64)
     ga, = torch.autograd.grad((got * v).sum(), x)
     gb, = torch.autograd.grad((ref * v).sum(), x)
     torch.testing.assert_close(ga, gb, rtol=1e-12, atol=1e-15)
-    assert torch.autograd.gradcheck(lambda t: L._blur(t, w1), (x[:1, :, :6, :5].detach().requires_grad_(True),))
+    assert torch.autograd.gradcheck(lambda t: ssim_op.blur(t, w1), (x[:1, :, :6, :5].detach().requires_grad_(True),))
 
 
 def test_l1_and_tv():
@@ -158,8 +159,8 @@ def test_cli_reconstruct_r2gs(tmp_path):
     from clgs.cli import main
     from clgs.geometry import Geometry
     from clgs.io.scan import Scan
-    from clgs.projector import project
-    from clgs.voxelizer import voxelize
+    from clgs.ops.projector import project
+    from clgs.ops.voxelizer import voxelize
 
     geo = Geometry.default(n_views=6, n_voxel=16, n_detector=20, volume_mm=64.0)
     t = [torch.tensor(v, dtype=torch.float32) for v in
@@ -189,7 +190,7 @@ def test_a_hostile_checkpoint_is_refused_without_unsafe_advice(tmp_path):
     delete it or start without --resume, and never passes on torch's advice to load it unsafely."""
     import pickle
 
-    from clgs import checkpoint as ckpt
+    from clgs.fit import checkpoint as ckpt
 
     class Payload:
         def __reduce__(self):

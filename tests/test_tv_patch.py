@@ -1,14 +1,14 @@
-"""The fused TV patch (clgs.tv_patch, cl/voxelize.cl patch_* kernels) against tv3d of the voxelizer's
+"""The fused TV patch (clgs.fit.tv_patch, cl/voxelizer.cl patch_* kernels) against tv3d of the voxelizer's
 field (the unfused path), the plain torch reference, finite differences, and itself."""
 import pytest
 import torch
 
-import clgs.tv_patch as tp
-from clgs import losses as L
+import clgs.fit.tv_patch as tp
+from clgs.fit import losses as L
 from clgs.geometry import Grid
 from clgs.reference import voxelization as ref
-from clgs.tv_patch import patch_field, patch_tv, tv_patch
-from clgs.voxelizer import cov_prec, voxelize_precision
+from clgs.fit.tv_patch import patch_field, patch_tv, tv_patch
+from clgs.ops.voxelizer import cov_prec, voxelize_precision
 from test_voxelizer import scene as voxelizer_scene
 
 GRID = Grid((40, 37, 45), (-0.98, -0.96, -0.99), (0.05, 0.052, 0.045))
@@ -186,7 +186,7 @@ def test_bad_inputs_are_clear_errors():
 def test_loss_term_entry_on_both_backends():
     """patch_tv: the OpenCL backend with the projection's kept matrices, without them, and the
     torch backend (tv3d of its voxelizer) give the same TV and gradients (float64)."""
-    from clgs.trainer import Backend
+    from clgs.fit.trainer import Backend
 
     params = [p.requires_grad_() for p in scene(300, dtype=torch.float64, seed=10)]
     block = GRID.block((10, 12, 14), (10, 9, 11))

@@ -1,12 +1,12 @@
-"""Gaussian voxelizer (cl/voxelize.cl) against the plain torch reference, finite differences,
+"""Gaussian voxelizer (cl/voxelizer.cl) against the plain torch reference, finite differences,
 and itself (blocks vs full grid, points vs grid, float32 vs float64, run vs run)."""
 import pytest
 import torch
 
-from clgs.gaussian_math import axis_extent, precision
+from clgs.ops.gaussian_math import axis_extent, precision
 from clgs.geometry import Grid
 from clgs.reference import voxelization as ref
-from clgs.voxelizer import Voxelizer, voxelize, voxelize_points, voxelize_precision
+from clgs.ops.voxelizer import Voxelizer, voxelize, voxelize_points, voxelize_precision
 
 GRID = Grid((17, 19, 23), (-0.93, -0.97, -1.01), (0.085, 0.1, 0.09))
 
@@ -41,7 +41,8 @@ def test_grid_matches_reference():
 
 def test_fast_references_match_the_dense_reference():
     params = scene(300, dtype=torch.float64)
-    torch.testing.assert_close(ref.voxelize_windowed(*params, GRID), ref.voxelize(*params, GRID), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(ref.voxelize_windowed(*params, GRID), ref.voxelize(*params, GRID),
+                               rtol=1e-12, atol=1e-12)
     pts = torch.rand(2000, 3, generator=torch.Generator().manual_seed(13), dtype=torch.float64) * 2.4 - 1.2
     expected = ref.voxelize_points(*params, pts)
     assert expected.max() > 0
@@ -235,7 +236,8 @@ def test_no_gaussians_and_a_single_voxel_grid():
     torch.testing.assert_close(out, ref.voxelize(*params, one), rtol=1e-12, atol=0)
     pt = voxelize_points(*params, torch.tensor([[0.05, -0.02, 0.01]], dtype=torch.float64))
     torch.testing.assert_close(pt, out.reshape(1), rtol=1e-12, atol=0)
-    assert torch.autograd.gradcheck(lambda *a: voxelize(*a, one), params, eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
+    assert torch.autograd.gradcheck(lambda *a: voxelize(*a, one), params, eps=1e-6, atol=1e-6, rtol=1e-4,
+                                    fast_mode=True)
     assert voxelize_points(*params, torch.zeros(0, 3, dtype=torch.float64)).shape == (0,)
 
 
@@ -267,7 +269,7 @@ def test_bad_grid_and_points_are_clear_errors():
 
 
 def test_precision_entry_point_matches_and_differentiates():
-    from clgs.voxelizer import cov_prec
+    from clgs.ops.voxelizer import cov_prec
 
     params = _requires_grad(scene(200, dtype=torch.float64))
     _, prec, extent = cov_prec(params[1], params[2], cov=False, extent=True)  # what voxelize builds
@@ -275,7 +277,8 @@ def test_precision_entry_point_matches_and_differentiates():
     a = voxelize_precision(params[0], prec, params[3], extent, block)
     assert torch.equal(a, voxelize(*params, block))
     # and the torch formulas give the same field to rounding
-    b = voxelize_precision(params[0], precision(params[1], params[2]), params[3], axis_extent(params[1], params[2]), block)
+    b = voxelize_precision(params[0], precision(params[1], params[2]), params[3], axis_extent(params[1], params[2]),
+                           block)
     torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
     pts = torch.rand(50, 3, dtype=torch.float64) - 0.5
     assert torch.equal(voxelize_precision(params[0], prec, params[3], extent, pts), voxelize_points(*params, pts))
@@ -291,7 +294,7 @@ def test_grid_candidates_keep_every_gaussian_that_reaches_the_block_and_change_n
     """The culling before packing: every Gaussian with a non-zero value on the block is kept (each
     checked alone), at least one is dropped, and the field and gradients through the culled op
     equal, bitwise, those of the op fed all Gaussians."""
-    from clgs.voxelizer import _GridField, default_voxelizer, grid_candidates
+    from clgs.ops.voxelizer import _GridField, default_voxelizer, grid_candidates
 
     params = _requires_grad(scene(300, dtype=torch.float64))
     prec, extent = precision(params[1], params[2]), axis_extent(params[1], params[2])
@@ -321,7 +324,7 @@ def test_grid_candidates_keep_every_gaussian_that_reaches_the_block_and_change_n
 def test_small_grid_and_binned_paths_give_the_same_bits(monkeypatch):
     """Small grids (a TV patch) are binned by one work-item and their backward runs unsorted; the
     large-grid path (chunked counting sort, sorted backward) must give the very same bits."""
-    import clgs.voxelizer as vz
+    import clgs.ops.voxelizer as vz
 
     params = _requires_grad(scene(900, seed=4))
     w = torch.randn(GRID.shape, generator=torch.Generator().manual_seed(5))
@@ -333,7 +336,7 @@ def test_small_grid_and_binned_paths_give_the_same_bits(monkeypatch):
         return [out, part, *torch.autograd.grad((out * w).sum() + (part * wb).sum(), params)]
 
     small = run()
-    monkeypatch.setattr(vz, "_SMALL_CELLS", 0)
+    monkeypatch.setattr(vz, "SMALL_CELLS", 0)
     monkeypatch.setattr(vz, "_UNSORTED_BYTES", 0)
     binned = run()
     assert float(small[0].detach().abs().max()) > 0 and all(float(g.abs().max()) > 0 for g in small[2:])
@@ -342,11 +345,11 @@ def test_small_grid_and_binned_paths_give_the_same_bits(monkeypatch):
 
 
 def test_cov_prec_matches_gaussian_math_and_differentiates():
-    """The OpenCL covariance / precision / half-widths kernel against clgs.gaussian_math (float32,
+    """The OpenCL covariance / precision / half-widths kernel against clgs.ops.gaussian_math (float32,
     N not a multiple of 8 so the last group has idle lanes), gradcheck of its closed-form backward
     (float64) for each output alone and for both together."""
-    from clgs.gaussian_math import covariance
-    from clgs.voxelizer import cov_prec
+    from clgs.ops.gaussian_math import covariance
+    from clgs.ops.voxelizer import cov_prec
 
     _, scales, quats, _ = scene(1003, seed=6)
     quats[5] *= 1e-3  # any norm
@@ -373,7 +376,7 @@ def test_cov_prec_matches_gaussian_math_and_differentiates():
 def test_cov_prec_degenerate_inputs():
     """A zero quaternion gives finite matrices (the identity rotation's limit is not defined, but
     nothing becomes NaN), no Gaussians give empty outputs, bad shapes are clear errors."""
-    from clgs.voxelizer import cov_prec
+    from clgs.ops.voxelizer import cov_prec
 
     s = torch.full((3, 3), 0.1, requires_grad=True)
     q = torch.tensor([[0.0, 0, 0, 0], [1, 0, 0, 0], [0, 0, 0, 2]], requires_grad=True)
@@ -392,8 +395,8 @@ def test_gpu_configuration_gives_the_same_bits():
     """The voxelizer as on a GPU (inputs copied to device buffers, outputs copied back, not
     wrapped host memory), run here: grid, points and their gradients, and the fused TV patch,
     bit for bit as the CPU configuration."""
-    from clgs.tv_patch import tv_patch
-    from clgs.voxelizer import cov_prec
+    from clgs.fit.tv_patch import tv_patch
+    from clgs.ops.voxelizer import cov_prec
 
     gpu = Voxelizer()
     gpu.io.host_memory = False

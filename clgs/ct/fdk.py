@@ -34,9 +34,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from clgs.ct import check_projections
-
+from clgs.io.validate import check_projections
 from clgs.geometry import Geometry
+from clgs.ops.fdk import backproject
 
 FILTERS = ("ram-lak", "shepp-logan", "cosine", "hamming", "hann")
 
@@ -160,53 +160,6 @@ def filter_projections(projections, geometry: Geometry, filter="ram-lak", short_
     return q * step[:, None, None]
 
 
-def backproject(filtered, geometry: Geometry) -> np.ndarray:
-    """Voxel-driven FDK/FBP backprojection (OpenCL) of already filtered, weighted projections.
-
-    float64 input runs the double-precision build; otherwise float32. Returns (Z, Y, X). Work-items
-    own eight voxels along z, or along x for volumes thinner than eight slices.
-    """
-    import pyopencl as cl
-
-    from clgs.runtime import get_context, get_program, get_queue
-
-    g = geometry
-    q = np.asarray(filtered)
-    dtype = np.float64 if q.dtype == np.float64 else np.float32
-    n = g.n_views
-    nv, nu = g.nDetector
-    nz, ny, nx = g.nVoxel
-    nzp = (nz + 7) // 8 * 8
-    padded = np.zeros((n, nu + 3, nv + 3), dtype)
-    padded[:, 1:nu + 1, 1:nv + 1] = q.transpose(0, 2, 1)
-    trig = np.stack([np.cos(g.angles), np.sin(g.angles)], 1).astype(dtype).ravel()
-    sp = np.asarray(g.dVoxel[::-1], np.float64)
-    c0 = np.asarray(g.offOrigin[::-1], np.float64) - 0.5 * (np.array([nx, ny, nz]) - 1) * sp
-    geo = np.array([*c0, *sp, g.DSO, g.DSD, g.dDetector[1], g.dDetector[0], g.offDetector[1],
-                    g.offDetector[0], 0.5 * (nu - 1), 0.5 * (nv - 1)], dtype)
-    ctx, queue = get_context(), get_queue()
-    mf = cl.mem_flags
-    q_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=padded)
-    t_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=trig)
-    g_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=geo)
-    real = "double" if dtype == np.float64 else "float"
-    prog = get_program("fdk.cl", {"REAL": real, "CONE": g.mode == "cone"})
-    if nz >= 8:  # eight z voxels per work-item
-        out = np.empty((nx, ny, nzp), dtype)
-        o_buf = cl.Buffer(ctx, mf.WRITE_ONLY, size=out.nbytes)
-        prog.kernel("fdk_backproject")(queue, (nzp // 8, ny, nx), None, q_buf, t_buf, o_buf, g_buf, np.int32(n),
-                                       np.int32(nx), np.int32(ny), np.int32(nzp), np.int32(nu), np.int32(nv))
-        cl.enqueue_copy(queue, out, o_buf)
-        return np.ascontiguousarray(out[:, :, :nz].transpose(2, 1, 0))
-    nxp = (nx + 7) // 8 * 8  # thin volumes (a single slice): eight x voxels per work-item
-    out = np.empty((nz, ny, nxp), dtype)
-    o_buf = cl.Buffer(ctx, mf.WRITE_ONLY, size=out.nbytes)
-    prog.kernel("fdk_backproject_x")(queue, (nxp // 8, ny, nz), None, q_buf, t_buf, o_buf, g_buf, np.int32(n),
-                                     np.int32(nxp), np.int32(ny), np.int32(nu), np.int32(nv))
-    cl.enqueue_copy(queue, out, o_buf)
-    return np.ascontiguousarray(out[:, :, :nx])
-
-
 def fdk(projections, geometry: Geometry, filter: str = "ram-lak", short_scan="auto", dtype=np.float32) -> np.ndarray:
     """FDK reconstruction (FBP when ``geometry.mode == "parallel"``): (Z, Y, X) volume, values per mm.
 
@@ -215,7 +168,7 @@ def fdk(projections, geometry: Geometry, filter: str = "ram-lak", short_scan="au
     (redundancy weights when the angles do not cover a full circle), ``True`` or ``False``.
     ``dtype=np.float64`` backprojects in double precision.
     """
-    p = check_projections(projections, geometry, "fdk")
+    p = check_projections(projections, geometry, neg_tolerance=None, source="fdk")
     name = str(filter).lower()
     if name not in FILTERS:
         raise ValueError(f"unknown filter {filter!r}; choose one of {', '.join(FILTERS)}")

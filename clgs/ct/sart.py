@@ -4,7 +4,7 @@ Update for one subset ``S`` of views (all views when ``subsets == 1``, which is 
 
     x <- x + relaxation * (A_S^T ((b_S - A_S x) / (A_S 1))) / (A_S^T 1)
 
-with ``A`` the forward projector of :class:`clgs.ct.projector.CTProjector` and ``A^T`` its exact
+with ``A`` the forward projector of :class:`clgs.ops.ct_projector.CTProjector` and ``A^T`` its exact
 transpose: ``A 1`` are the ray lengths through the volume (row sums), ``A_S^T 1`` the column sums
 of the subset. Rays that barely touch the volume (row sum below 1e-6 of the largest) and voxels no
 ray of the subset reaches are left out, so nothing divides by zero. ``nonneg`` clamps the volume
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from clgs.ct import check_projections
+from clgs.io.validate import check_projections
 
 from clgs.geometry import Geometry
 
@@ -43,10 +43,12 @@ def sart(projections, geometry: Geometry, n_iter: int = 10, subsets: int = 1, re
     ``callback(iteration, volume)`` runs after each iteration (``iteration`` counts from 1;
     ``volume`` is a fresh (Z, Y, X) copy of the current estimate). ``verbose`` shows a tqdm bar.
     ``projector``: an existing :class:`CTProjector` for this geometry, to reuse its buffers.
+    One function: the iteration loop keeps its ray and voxel normalisations and buffers in locals,
+    so each update is a few array operations.
     """
-    from clgs.ct.projector import CTProjector
+    from clgs.ops.ct_projector import CTProjector
 
-    b = check_projections(projections, geometry, "sart")
+    b = check_projections(projections, geometry, neg_tolerance=None, source="sart")
     if int(n_iter) < 0:
         raise ValueError(f"n_iter must be at least 0, got {n_iter}")
     if not np.isfinite(relaxation) or not 0 < relaxation < 2:
@@ -98,7 +100,7 @@ def sart(projections, geometry: Geometry, n_iter: int = 10, subsets: int = 1, re
 
     bar = None
     if verbose:
-        from ..progress import progress_bar
+        from clgs.progress import progress_bar
 
         bar = progress_bar(total=int(n_iter), desc="SART" if len(groups) == 1 else f"OS-SART ({len(groups)} subsets)")
     try:

@@ -18,13 +18,15 @@ import shutil
 import uuid
 from pathlib import Path
 
+from clgs.errors import ClgsError
+
 __all__ = [
     "atomic_path", "atomic_dir", "write_bytes", "write_text", "write_json", "save_npy", "save_npz",
     "json_safe", "DiskFullError",
 ]
 
 
-class DiskFullError(OSError):
+class DiskFullError(ClgsError, OSError):
     """The disk filled up while an output was being written; nothing was replaced."""
 
 

@@ -16,15 +16,16 @@ from typing import NamedTuple
 
 import numpy as np
 
+from clgs.errors import ClgsError
 from clgs.io import atomic
 
-__all__ = ["Mesh", "MeshError", "save_mesh", "load_mesh", "mesh_space", "MESH_SUFFIXES"]
+__all__ = ["Mesh", "MeshError", "check_mesh", "save_mesh", "load_mesh", "mesh_space", "MESH_SUFFIXES"]
 
 MESH_SUFFIXES = (".stl", ".ply", ".obj", ".npz")
 RAS_TO_LPS = np.array([-1.0, -1.0, 1.0])  # the flip is its own inverse
 
 
-class MeshError(ValueError):
+class MeshError(ClgsError, ValueError):
     """A mesh file that cannot be read or written as asked."""
 
 
@@ -35,18 +36,31 @@ class Mesh(NamedTuple):
     faces: np.ndarray
 
 
-def _check(vertices, faces) -> Mesh:
+def check_mesh(vertices, faces, closed: bool = False) -> Mesh:
+    """The one check of a triangle mesh (files, templates, phantoms, surfaces): (N, 3) finite
+    vertices, (M, 3) integer faces indexing them; returns float64 vertices and int64 faces. With
+    ``closed``, every edge must be shared by exactly two faces (a watertight surface has an inside,
+    which voxelising needs)."""
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces)
     if v.ndim != 2 or v.shape[1] != 3:
-        raise MeshError(f"vertices must be (N, 3), got {v.shape}")
+        raise MeshError(f"mesh vertices must be (N, 3) in mm, got {v.shape}")
     if f.ndim != 2 or f.shape[1] != 3 or (f.size and not np.issubdtype(f.dtype, np.integer)):
-        raise MeshError(f"faces must be (M, 3) integer vertex indices, got {f.shape} {f.dtype}")
+        raise MeshError(f"mesh faces must be (M, 3) integer vertex indices, got {f.shape} {f.dtype}")
     f = f.astype(np.int64)
     if f.size and (f.min() < 0 or f.max() >= len(v)):
-        raise MeshError(f"faces index vertices out of range [0, {len(v)})")
+        raise MeshError(f"mesh faces index vertices out of range [0, {len(v)})")
     if not np.all(np.isfinite(v)):
-        raise MeshError("vertices contain NaN or Inf")
+        raise MeshError("mesh vertices contain NaN or Inf")
+    if closed:
+        if len(v) < 4 or len(f) < 4:
+            raise MeshError(f"a closed mesh needs at least 4 vertices and 4 faces, got {len(v)} and {len(f)}")
+        e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        _, counts = np.unique(e, axis=0, return_counts=True)
+        bad = int(np.sum(counts != 2))
+        if bad:
+            raise MeshError(f"the mesh is not watertight: {bad} edges are not shared by exactly two faces; "
+                            "repair it (e.g. trimesh.repair.fill_holes) before voxelising")
     return Mesh(v, f)
 
 
@@ -63,7 +77,7 @@ def save_mesh(path, vertices, faces=None, overwrite: bool = True) -> Path:
         vertices, faces = vertices
     path = Path(path)
     suf = _suffix(path)
-    mesh = _check(vertices, faces)
+    mesh = check_mesh(vertices, faces)
     if len(mesh.faces) == 0:
         raise MeshError("the mesh has no faces; nothing to write")
     if suf == ".npz":
@@ -127,7 +141,7 @@ def load_mesh(path) -> Mesh:
             with np.load(path, allow_pickle=False) as z:
                 if "vertices" not in z or "faces" not in z:
                     raise MeshError(f"{path}: an npz mesh needs arrays 'vertices' and 'faces', has {list(z.keys())}")
-                return _check(z["vertices"], z["faces"])
+                return check_mesh(z["vertices"], z["faces"])
         except MeshError:
             raise
         except Exception as exc:  # noqa: BLE001
@@ -145,4 +159,4 @@ def load_mesh(path) -> Mesh:
     vertices = np.asarray(tm.vertices, dtype=np.float64)
     if mesh_space(path) == "LPS":
         vertices = vertices * RAS_TO_LPS
-    return _check(vertices, tm.faces)
+    return check_mesh(vertices, tm.faces)

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from clgs.errors import ClgsError
 
-class OutsideFolderError(ValueError):
+
+class OutsideFolderError(ClgsError, ValueError):
     """A description names a file outside its own folder."""
 
 
@@ -21,7 +23,8 @@ def inside(folder, name, what: str, described_in: str) -> Path:
         resolved = path.resolve()
         root = folder.resolve()
     except (OSError, RuntimeError) as exc:  # link loops
-        raise OutsideFolderError(f"{folder / described_in}: the {what} file {name!r} cannot be resolved ({exc})") from None
+        raise OutsideFolderError(f"{folder / described_in}: the {what} file {name!r} cannot be resolved "
+                                 f"({exc})") from None
     if not (resolved == root or root in resolved.parents):
         raise OutsideFolderError(
             f"{folder / described_in}: the {what} file {name!r} lies outside the scan folder ({resolved}); a scan "

@@ -41,9 +41,9 @@ import numpy as np
 
 from clgs.geometry import Geometry, GeometryError
 from clgs.io import atomic
-from clgs.io.scan import NEG_TOLERANCE, Scan, ScanError, check_projections, read_json, read_npy
+from clgs.io.validate import NEG_TOLERANCE, ScanError, check_projections, inside_folder, read_json, read_npy
 
-__all__ = ["is_r2gaussian_folder", "read_r2gaussian", "to_r2gaussian_folder", "geometry_from_scanner",
+__all__ = ["is_r2gaussian_folder", "to_r2gaussian_folder", "geometry_from_scanner",
            "scanner_from_geometry", "META_DATA"]
 
 META_DATA = "meta_data.json"
@@ -138,8 +138,10 @@ def _read_meta(folder: Path) -> dict:
     return meta
 
 
-def read_r2gaussian(folder, split: str = "train", neg_tolerance: float = NEG_TOLERANCE) -> Scan:
-    """Read an R2-Gaussian dataset folder as a :class:`Scan` (views of ``split``: train or test).
+def read_parts(folder, split: str = "train", neg_tolerance: float = NEG_TOLERANCE) -> tuple:
+    """Read an R2-Gaussian dataset folder: (geometry, projections, truth, meta) of a
+    :class:`clgs.io.scan.Scan` (``Scan.load`` and :func:`clgs.io.scan.read_r2gaussian` make it)
+    of the views of ``split`` (train or test).
 
     The truth (``vol`` or ``ct`` key) is transposed to (Z, Y, X); each projection is flipped
     vertically (see the module doc).
@@ -162,7 +164,7 @@ def read_r2gaussian(folder, split: str = "train", neg_tolerance: float = NEG_TOL
     geometry = geometry_from_scanner(scanner, angles)
     views = []
     for f in files:
-        p = read_npy(_inside(folder, f, "projection"), "projection", META_DATA)
+        p = read_npy(inside_folder(folder, f, "projection", META_DATA), "projection", META_DATA)
         if p.ndim != 2 or tuple(p.shape) != tuple(geometry.nDetector):
             raise ScanError(f"{folder / f}: projection of shape {p.shape} does not match the scanner's "
                             f"nDetector [V, U] = {list(geometry.nDetector)}")
@@ -171,7 +173,7 @@ def read_r2gaussian(folder, split: str = "train", neg_tolerance: float = NEG_TOL
     truth = None
     vol_key = "vol" if "vol" in meta else ("ct" if "ct" in meta else None)
     if vol_key is not None and meta[vol_key]:
-        vol = read_npy(_inside(folder, str(meta[vol_key]), "volume"), "volume", META_DATA)
+        vol = read_npy(inside_folder(folder, str(meta[vol_key]), "volume", META_DATA), "volume", META_DATA)
         expected = tuple(geometry.nVoxel[::-1])
         if vol.ndim != 3 or tuple(vol.shape) != expected:
             raise ScanError(f"{folder / str(meta[vol_key])}: volume of shape {vol.shape} does not match the "
@@ -186,22 +188,14 @@ def read_r2gaussian(folder, split: str = "train", neg_tolerance: float = NEG_TOL
         "acquisition": acquisition,
         "provenance": {"source": "r2gaussian", "folder": str(folder), "split": split, "scanner": scanner},
     }
-    return Scan(geometry, proj, truth, scan_meta)
+    return geometry, proj, truth, scan_meta
 
 
-def _inside(folder, name, what):
-    from clgs.io.paths import OutsideFolderError, inside
-
-    try:
-        return inside(folder, name, what, META_DATA)
-    except OutsideFolderError as exc:
-        raise ScanError(str(exc)) from None
-
-
-def to_r2gaussian_folder(scan: Scan, folder, test: Scan | None = None, overwrite: bool = False) -> Path:
-    """Write ``scan`` as an R2-Gaussian dataset folder (atomically): its views become ``proj_train``,
-    those of ``test`` (same scanner, other angles) ``proj_test``. The truth, if any, goes to
-    ``vol_gt.npy`` in [x, y, z] order; every projection is flipped to image rows."""
+def to_r2gaussian_folder(scan, folder, test=None, overwrite: bool = False) -> Path:
+    """Write ``scan`` (a :class:`clgs.io.scan.Scan`) as an R2-Gaussian dataset folder (atomically):
+    its views become ``proj_train``, those of ``test`` (same scanner, other angles) ``proj_test``.
+    The truth, if any, goes to ``vol_gt.npy`` in [x, y, z] order; every projection is flipped to
+    image rows."""
     folder = Path(folder)
     if test is not None:
         gt, gs = test.geometry.to_dict(), scan.geometry.to_dict()

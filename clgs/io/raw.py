@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from clgs.errors import ClgsError
+
 __all__ = ["RawError", "RawProjections", "read_raw", "read_images", "line_integrals", "crop_and_bin",
            "find_centre", "RAW_SUFFIXES"]
 
@@ -36,7 +38,7 @@ RAW_SUFFIXES = (".h5", ".hdf5", ".hdf", ".nxs", ".cxi", ".tif", ".tiff", ".dcm",
 DEFAULT_FLOOR = 1e-6
 
 
-class RawError(ValueError):
+class RawError(ClgsError, ValueError):
     """Raw images that cannot be turned into line integrals as asked."""
 
 

@@ -28,7 +28,6 @@ renamed, so a reader never sees a half-written scan.
 """
 from __future__ import annotations
 
-import json
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,7 +36,9 @@ from typing import Optional, Sequence
 import numpy as np
 
 from clgs.geometry import Geometry, GeometryError
-from clgs.io import atomic
+from clgs.io import atomic, r2gaussian
+from clgs.io.validate import (NEG_TOLERANCE, ScanError, ScanWarning, check_projections,  # noqa: F401 - public here
+                              inside_folder, read_json, read_npy)
 
 __all__ = ["Scan", "ScanError", "ScanWarning", "FORMAT", "VERSION", "UNITS", "NEG_TOLERANCE",
            "check_projections", "is_scan_folder"]
@@ -45,64 +46,11 @@ __all__ = ["Scan", "ScanError", "ScanWarning", "FORMAT", "VERSION", "UNITS", "NE
 FORMAT = "clgs-scan"
 VERSION = 1
 UNITS = "line integral of mu (1/mm) x mm"
-NEG_TOLERANCE = 0.05
 SCAN_JSON = "scan.json"
 PROJECTIONS = "projections.npy"
 TRUTH = "truth.npy"
 TRUTH_NIFTI = "truth.nii.gz"
 TRUTH_SURFACE = "truth_surface.stl"
-
-
-class ScanError(ValueError):
-    """A scan that cannot be used: missing files, mismatched shapes, impossible values."""
-
-
-class ScanWarning(UserWarning):
-    """Something was repaired while reading a scan (e.g. tiny negative line integrals set to 0)."""
-
-
-def check_projections(projections, geometry: Geometry, neg_tolerance: float = NEG_TOLERANCE,
-                      source: str = "projections") -> np.ndarray:
-    """Validate line integrals against a geometry; return them as float32 (tiny negatives -> 0).
-
-    Errors name what is wrong and what to do: wrong rank, zero views, shape not matching
-    (n_views, nDetector), NaN/Inf, line integrals below ``-neg_tolerance * max``.
-    """
-    p = np.asarray(projections)
-    if p.dtype == object or not np.issubdtype(p.dtype, np.number) or np.issubdtype(p.dtype, np.complexfloating):
-        raise ScanError(f"{source}: not an array of real numbers (dtype {p.dtype}); line integrals are real")
-    if p.ndim != 3:
-        raise ScanError(f"{source}: expected (n_views, V, U) line integrals, got an array of shape {p.shape}")
-    if p.shape[0] == 0:
-        raise ScanError(f"{source}: the scan has zero views; a reconstruction needs at least one projection")
-    expected = (geometry.n_views, *geometry.nDetector)
-    if tuple(p.shape) != expected:
-        raise ScanError(
-            f"{source}: shape {tuple(p.shape)} does not match the geometry (n_views, V, U) = {expected}; "
-            "check nDetector (V, U order) and the number of angles")
-    p = p.astype(np.float32, copy=True)
-    bad = ~np.isfinite(p)
-    if bad.any():
-        views = np.unique(np.nonzero(bad)[0])
-        raise ScanError(f"{source}: {int(bad.sum())} values are NaN or Inf (views {views[:10].tolist()}"
-                        f"{'...' if views.size > 10 else ''}); the projections are corrupted")
-    lo = float(p.min())
-    if lo < 0:
-        top = float(p.max())
-        tol = neg_tolerance * top if top > 0 else 0.0
-        if top <= 0:
-            raise ScanError(f"{source}: every line integral is <= 0 (down to {lo:.4g}); projections must be "
-                            "-log(I/I0) >= 0: were intensities or their logarithm stored with the sign flipped?")
-        if lo < -tol:
-            raise ScanError(
-                f"{source}: line integrals go down to {lo:.4g}, below the tolerance -{tol:.4g} "
-                f"({neg_tolerance:.0%} of the largest, {top:.4g}); projections must be -log(I/I0) >= 0: "
-                "were intensities stored instead, or the sign flipped?")
-        n = int((p < 0).sum())
-        warnings.warn(f"{source}: {n} slightly negative line integrals (down to {lo:.3g}, noise) set to 0",
-                      ScanWarning, stacklevel=3)
-        np.maximum(p, 0.0, out=p)
-    return p
 
 
 def _check_truth(truth, geometry: Geometry, source: str = "truth") -> Optional[np.ndarray]:
@@ -140,10 +88,10 @@ class Scan:
         self.truth = _check_truth(self.truth, self.geometry)
         self.meta = dict(self.meta or {})
         if self.surface is not None:
-            from clgs.io.mesh import Mesh, _check
+            from clgs.io.mesh import check_mesh
 
             v, f = self.surface
-            self.surface = Mesh(*_check(v, f))
+            self.surface = check_mesh(v, f)
 
     @property
     def n_views(self) -> int:
@@ -215,10 +163,8 @@ class Scan:
             raise ScanError(f"{folder}: a scan is a folder (with scan.json), not a file")
         if (folder / SCAN_JSON).is_file():
             return cls._load_clgs(folder, neg_tolerance)
-        from clgs.io import r2gaussian
-
         if r2gaussian.is_r2gaussian_folder(folder):
-            return r2gaussian.read_r2gaussian(folder, split=split, neg_tolerance=neg_tolerance)
+            return read_r2gaussian(folder, split=split, neg_tolerance=neg_tolerance)
         raise ScanError(f"{folder}: not a scan folder: it has neither {SCAN_JSON} (clgs) nor meta_data.json "
                         "(R2-Gaussian)")
 
@@ -243,54 +189,27 @@ class Scan:
         meta = doc.get("meta") or {}
         if not isinstance(meta, dict):
             raise ScanError(f"{folder / SCAN_JSON}: 'meta' must be an object (key: value), got {meta!r}")
-        proj = read_npy(_inside(folder, files.get("projections") or PROJECTIONS, "projections"), "projections")
+        proj = read_npy(inside_folder(folder, files.get("projections") or PROJECTIONS, "projections", SCAN_JSON),
+                        "projections")
         with warnings.catch_warnings():
             warnings.simplefilter("always", ScanWarning)
             proj = check_projections(proj, geometry, neg_tolerance, source=str(folder / PROJECTIONS))
         truth = None
         if files.get("truth"):
-            truth = _check_truth(read_npy(_inside(folder, files["truth"], "truth"), "truth"), geometry,
+            truth = _check_truth(read_npy(inside_folder(folder, files["truth"], "truth", SCAN_JSON), "truth"), geometry,
                                  str(folder / files["truth"]))
         surface = None
         if files.get("truth_surface"):
             from clgs.io.mesh import MeshError, load_mesh
 
             try:
-                surface = load_mesh(_inside(folder, files["truth_surface"], "truth surface"))
+                surface = load_mesh(inside_folder(folder, files["truth_surface"], "truth surface", SCAN_JSON))
             except MeshError as exc:
                 raise ScanError(str(exc)) from exc
         return cls(geometry, proj, truth, meta, surface)
 
 
-def _inside(folder: Path, name, what: str) -> Path:
-    from clgs.io.paths import OutsideFolderError, inside
-
-    try:
-        return inside(folder, name, what, SCAN_JSON)
-    except OutsideFolderError as exc:
-        raise ScanError(str(exc)) from None
-
-
-def read_json(path: Path):
-    """A JSON file, or a ScanError saying it is missing or unreadable."""
-    try:
-        with open(path, "r", encoding="utf-8") as fh:
-            return json.load(fh)
-    except FileNotFoundError:
-        raise ScanError(f"{path}: missing") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ScanError(f"{path}: unreadable JSON ({exc})") from exc
-
-
-def read_npy(path: Path, what: str, named_in: str = "the scan description") -> np.ndarray:
-    """An ``.npy`` array (no pickles), or a ScanError saying it is missing or unreadable."""
-    if not path.is_file():
-        raise ScanError(f"{path}: missing ({what} file named in {named_in})")
-    try:
-        return np.load(path, allow_pickle=False)
-    except Exception as exc:  # noqa: BLE001 - any failure means an unreadable array
-        reason = str(exc)
-        if "pickle" in reason:  # numpy's advice to load it unsafely is never passed on
-            reason = "it holds pickled Python objects, which clgs never loads"
-        raise ScanError(f"{path}: unreadable {what} array ({reason}); a scan's arrays are plain .npy "
-                        "files") from None
+def read_r2gaussian(folder, split: str = "train", neg_tolerance: float = NEG_TOLERANCE) -> Scan:
+    """An R2-Gaussian dataset folder as a :class:`Scan` (views of ``split``: train or test); see
+    :func:`clgs.io.r2gaussian.read_parts`."""
+    return Scan(*r2gaussian.read_parts(folder, split=split, neg_tolerance=neg_tolerance))

@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from clgs.errors import ClgsError
+
 #: keV -> water's linear attenuation in 1/mm (NIST XCOM, total with coherent scattering)
 WATER_MU_PER_MM = {40: 0.02683, 50: 0.02269, 60: 0.02059, 80: 0.01837, 100: 0.01707, 150: 0.01505}
 DEFAULT_KEV = 70.0
 
 
-class UnitsError(ValueError):
+class UnitsError(ClgsError, ValueError):
     """An energy outside the table, or values that cannot be Hounsfield units."""
 
 

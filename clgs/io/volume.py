@@ -31,6 +31,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
+from clgs.errors import ClgsError
 from clgs.io import atomic
 
 __all__ = ["VolumeError", "LoadedVolume", "save_volume", "load_volume", "volume_affine",
@@ -40,7 +41,7 @@ from clgs.io.suffixes import ITK_SUFFIXES, VOLUME_SUFFIXES  # noqa: E402
 LPS = np.array([-1.0, -1.0, 1.0])  # RAS <-> LPS (its own inverse)
 
 
-class VolumeError(ValueError):
+class VolumeError(ClgsError, ValueError):
     """A volume file that cannot be read or written as asked."""
 
 

@@ -1,4 +1,4 @@
-"""Plain torch references of the Gaussian projector (``cl/gaussian_project.cl``).
+"""Plain torch references of the Gaussian projector (``cl/projector.cl``).
 
 ``project_dense`` evaluates every (pixel, Gaussian) pair from first principles, with the rays of
 ``Geometry.rays`` and, for the affine mode, the Jacobian of the projection map obtained by
@@ -21,7 +21,7 @@ import math
 import numpy as np
 import torch
 
-from ..gaussian_math import unpack_sym
+from clgs.ops.gaussian_math import unpack_sym
 
 NEAR_PLANE = 0.2
 QCUT = 9.0
@@ -54,7 +54,7 @@ def _pixel_map(geometry, view, dtype):
     return phi
 
 
-def _affine_params(means, cov, geometry, view):
+def affine_params(means, cov, geometry, view):
     """Per Gaussian: centre (u, v), 2D covariance S2 (N,2,2), mu (N,), visible (N,) bool."""
     from torch.func import jacrev, vmap
 
@@ -95,7 +95,7 @@ def project_dense(means, mats, densities, geometry, views, mode="affine", chunk=
         img = torch.zeros(pix.shape[0], dtype=dtype)
         near = torch.zeros(pix.shape[0], dtype=torch.bool)
         if mode == "affine":
-            centre, S2, mu, vis = _affine_params(means, mats, geometry, view)
+            centre, S2, mu, vis = affine_params(means, mats, geometry, view)
             C = torch.linalg.inv(torch.where(vis[:, None, None], S2, torch.eye(2, dtype=dtype)))
             for s in range(0, n, step):
                 d = pix[:, None, :] - centre[None, s:s + step]  # (P, n, 2)
@@ -164,7 +164,7 @@ def project_patches(means, mats, densities, geometry, view, mode="affine", radiu
     nv, nu = geometry.nDetector
     first, det0, gu, gv = _frame(geometry, view, dtype)
     if mode == "affine":
-        centre, S2, mu, vis = _affine_params(means, mats, geometry, view)
+        centre, S2, mu, vis = affine_params(means, mats, geometry, view)
         det2 = S2[:, 0, 0] * S2[:, 1, 1] - S2[:, 0, 1] ** 2
         k0, k1, k2 = S2[:, 1, 1] / det2, -S2[:, 0, 1] / det2, S2[:, 0, 0] / det2
         amp = densities * mu * vis

@@ -1,8 +1,8 @@
-"""Plain torch reference of the voxelizer (``cl/voxelize.cl``), for tests and benchmarks.
+"""Plain torch reference of the voxelizer (``cl/voxelizer.cl``), for tests and benchmarks.
 
 Same field and the same cut as the kernels: Gaussian i contributes
 ``rho_i exp(-d^T P_i d / 2)``, ``d = x - p_i``, only where ``-e_i <= d <= e_i`` on every axis
-(``e_i`` its 3-sigma half-widths, ``clgs.gaussian_math.axis_extent``), with ``d`` computed in the
+(``e_i`` its 3-sigma half-widths, ``clgs.ops.gaussian_math.axis_extent``), with ``d`` computed in the
 input dtype exactly as the kernels compute it; autograd gives the gradients.
 
 ``field_at_points``/``voxelize``/``voxelize_points`` are dense over (points x Gaussians): slow but
@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..gaussian_math import axis_extent, precision
+from clgs.ops.gaussian_math import axis_extent, precision
 
 
 def field_at_points(means, prec, densities, extent, points, chunk: int = 1 << 22) -> torch.Tensor:
@@ -46,7 +46,7 @@ def grid_points(grid, dtype=torch.float32) -> torch.Tensor:
 
 
 def voxelize(means, scales, quats, densities, grid) -> torch.Tensor:
-    """Reference of ``clgs.voxelizer.voxelize``: (Z, Y, X)."""
+    """Reference of ``clgs.ops.voxelizer.voxelize``: (Z, Y, X)."""
     prec = precision(scales, quats)
     extent = axis_extent(scales, quats).to(means.dtype)
     pts = grid_points(grid, means.dtype)
@@ -54,7 +54,7 @@ def voxelize(means, scales, quats, densities, grid) -> torch.Tensor:
 
 
 def voxelize_points(means, scales, quats, densities, points) -> torch.Tensor:
-    """Reference of ``clgs.voxelizer.voxelize_points``: (M,)."""
+    """Reference of ``clgs.ops.voxelizer.voxelize_points``: (M,)."""
     prec = precision(scales, quats)
     extent = axis_extent(scales, quats).to(means.dtype)
     return field_at_points(means, prec, densities, extent, torch.as_tensor(points, dtype=means.dtype))

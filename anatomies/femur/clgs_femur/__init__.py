@@ -24,7 +24,7 @@ from __future__ import annotations
 import os
 
 
-from clgs.hookspecs import hookimpl
+from clgs.anatomy import hookimpl
 
 __version__ = "0.1.0"
 
@@ -39,12 +39,12 @@ _population = None
 
 
 def params():
-    """Density parameters of the femur (see :mod:`clgs.phantom` for the values' sources).
+    """Density parameters of the femur (see :mod:`clgs.anatomy.phantom` for the values' sources).
 
     Cortex 5.5 mm at mid-shaft thinning to 1.5 mm at the epiphyses (adult femoral diaphysis
     4-7 mm); medullary canal over the central half of the length; cancellous bone in the head,
     neck, trochanters and condyles; a thigh of muscle, 10 mm of subcutaneous fat and 2 mm skin."""
-    from clgs.phantom import DensityParams, SoftTissue
+    from clgs.anatomy.phantom import DensityParams, SoftTissue
 
     return DensityParams(cortex_mid_mm=5.5, cortex_end_mm=1.5, cortex_plateau=0.22, canal_plateau=0.25,
                          canal_lining_mm=2.0, trabecular=0.027,
@@ -53,14 +53,15 @@ def params():
 
 
 def population_model():
-    """The femur's :class:`clgs.phantom.SurfacePopulation` (created once)."""
+    """The femur's :class:`clgs.anatomy.population.SurfacePopulation` (created once)."""
     global _population
     if _population is None:
-        from clgs.phantom import SurfacePopulation
+        from clgs.anatomy.population import SurfacePopulation
 
         _population = SurfacePopulation.centred(
             shape=SHAPE, spacing_mm=SPACING_MM, pixel_mm=3.0, name="femur",
-            summary="left femur (LLP26 real surfaces: 20 model subjects, 6 held out)", version=__version__, data_dir=DATA_DIR,
+            summary="left femur (LLP26 real surfaces: 20 model subjects, 6 held out)", version=__version__,
+            data_dir=DATA_DIR,
             file_pattern="femur_left_LLP26_subject{id}.npz", ids=SUBJECTS, test_ids=TEST_SUBJECTS, params=params(),
             frame_offset=FRAME_OFFSET)
     return _population

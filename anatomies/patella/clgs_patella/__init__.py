@@ -1,6 +1,6 @@
 """clgs anatomy plugin: the left patella (knee cap), from the 26 real surfaces of LLP26.
 
-It uses exactly the same generic code as the femur (:class:`clgs.phantom.SurfacePopulation`,
+It uses exactly the same generic code as the femur (:class:`clgs.anatomy.population.SurfacePopulation`,
 the model builder, the CT simulator); only the data, the grid and the density parameters
 differ. Small, so it is also what the test suite builds a model from.
 
@@ -20,7 +20,7 @@ from __future__ import annotations
 import os
 
 
-from clgs.hookspecs import hookimpl
+from clgs.anatomy import hookimpl
 
 __version__ = "0.1.0"
 
@@ -39,7 +39,7 @@ def params():
     in reality) around cancellous bone, no medullary canal; the knee as an ellipse of about
     110 x 120 mm centred behind the patella (offset 38 mm posterior, 15 mm lateral), with the
     thin anterior cover of the knee cap (3 mm muscle/tendon, 4 mm fat, 2 mm skin)."""
-    from clgs.phantom import DensityParams, SoftTissue
+    from clgs.anatomy.phantom import DensityParams, SoftTissue
 
     return DensityParams(cortex_mid_mm=1.0, cortex_end_mm=1.0, cortex_plateau=0.0, canal_plateau=0.0,
                          trabecular=0.026, subchondral_boost=0.12, texture_scale_mm=1.5,
@@ -48,14 +48,15 @@ def params():
 
 
 def population_model():
-    """The patella's :class:`clgs.phantom.SurfacePopulation` (created once)."""
+    """The patella's :class:`clgs.anatomy.population.SurfacePopulation` (created once)."""
     global _population
     if _population is None:
-        from clgs.phantom import SurfacePopulation
+        from clgs.anatomy.population import SurfacePopulation
 
         _population = SurfacePopulation.centred(
             shape=SHAPE, spacing_mm=SPACING_MM, pixel_mm=2.0, name="patella",
-            summary="left patella (LLP26 real surfaces: 20 model subjects, 6 held out)", version=__version__, data_dir=DATA_DIR,
+            summary="left patella (LLP26 real surfaces: 20 model subjects, 6 held out)", version=__version__,
+            data_dir=DATA_DIR,
             file_pattern="patella_left_LLP26_subject{id}.npz", ids=SUBJECTS, test_ids=TEST_SUBJECTS, params=params(),
             frame_offset=FRAME_OFFSET)
     return _population

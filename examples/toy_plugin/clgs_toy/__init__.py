@@ -15,8 +15,7 @@ from __future__ import annotations
 import os
 import sys
 
-from clgs.anatomy import Anatomy
-from clgs.hookspecs import hookimpl
+from clgs.anatomy import Anatomy, hookimpl
 
 __version__ = "0.1.0"
 
@@ -80,7 +79,7 @@ def _implicit(points, p):
 
 def surface(sid):
     """(vertices (x, y, z) mm, faces) of subject ``sid`` (the mean shape for None)."""
-    from clgs.template import box_grid, grid_points, mesh_from_sdf
+    from clgs.shape.template import box_grid, grid_points, mesh_from_sdf
 
     p = parameters(sid)
     a = max(p["semi_axes_mm"]) + 6.0
@@ -89,10 +88,10 @@ def surface(sid):
 
 
 def load_subject(sid):
-    """A :class:`clgs.template.Subject`: surface plus CT (cortex, cancellous bone, soft tissue)."""
+    """A :class:`clgs.shape.template.Subject`: surface plus CT (cortex, cancellous bone, soft tissue)."""
     import numpy as np
 
-    from clgs.template import Subject, grid_points, mesh_to_sdf
+    from clgs.shape.template import Subject, grid_points, mesh_to_sdf
 
     sid = str(sid)
     if sid not in SUBJECTS:
@@ -116,7 +115,7 @@ def load_template():
     """The mean shape on the CT grid."""
     global _template
     if _template is None:
-        from clgs.template import Template
+        from clgs.shape.template import Template
 
         v, f = surface(None)
         _template = Template.from_mesh(v, f, spacing=SPACING, shape=SHAPE, origin=ORIGIN, name=NAME,
@@ -137,7 +136,7 @@ def build_model(out_path=None, force: bool = False, **settings) -> str:
     """Register the 8 model subjects to the template, PCA, density atlas (a few seconds)."""
     from functools import partial
 
-    from clgs.model_builder import build_model as build
+    from clgs.shape.builder import build_model as build
 
     kwargs = dict(BUILD_SETTINGS)
     kwargs.update(settings)
@@ -155,13 +154,13 @@ def _ensure_model() -> str:
 
 
 def load_shape_model():
-    from clgs.shape_model import load_model
+    from clgs.shape.model import load_model
 
     return load_model(_ensure_model())[0]
 
 
 def load_atlas():
-    from clgs.shape_model import load_model
+    from clgs.shape.model import load_model
 
     return load_model(_ensure_model(), need_shape_model=False)[1]
 

@@ -1,0 +1,104 @@
+"""The ``clgs`` command line: a click group whose commands are imported only when run.
+
+Commands live in the modules beside this one; anatomy plugins add one group each (see ``clgs.anatomy.plugins``).
+Nothing heavy (torch, pyopencl) is imported to print ``clgs --help``.
+"""
+from __future__ import annotations
+
+import contextlib
+import importlib
+import importlib.util
+import os
+
+import click
+
+from clgs.errors import ClgsError
+
+# name -> "module:attribute" of a click command, imported on first use
+COMMANDS = {
+    "info": "clgs.cli.info:info",
+    "bench": "clgs.cli.bench:bench",
+    "simulate": "clgs.cli.simulate:simulate",
+    "reconstruct": "clgs.cli.reconstruct:reconstruct",
+    "evaluate": "clgs.cli.evaluate:evaluate",
+    "anatomies": "clgs.cli.anatomies:anatomies",
+    "import": "clgs.cli.import_raw:import_raw",
+}
+
+
+def _load(target: str) -> click.Command:
+    module, attr = target.split(":")
+    return getattr(importlib.import_module(module), attr)
+
+
+@contextlib.contextmanager
+def clgs_errors_as_messages():
+    """The one place where the library's errors (:class:`clgs.errors.ClgsError`) become click
+    errors: the message, no traceback, exit status 1."""
+    try:
+        yield
+    except ClgsError as exc:
+        raise click.ClickException(str(exc) or type(exc).__name__) from exc
+
+
+class LazyGroup(click.Group):
+    """Lists built-in commands and one group per installed anatomy plugin, importing lazily.
+    Every command runs under :func:`clgs_errors_as_messages`, listing the plugins (for
+    ``--help``) included."""
+
+    def make_context(self, info_name, args, parent=None, **extra):
+        with clgs_errors_as_messages():
+            return super().make_context(info_name, args, parent=parent, **extra)
+
+    def invoke(self, ctx):
+        with clgs_errors_as_messages():
+            return super().invoke(ctx)
+
+    def _anatomy_names(self):
+        try:
+            from clgs.anatomy import plugins
+        except ImportError:
+            return []
+        return plugins.anatomy_names()
+
+    def list_commands(self, ctx):
+        names = {n for n, t in COMMANDS.items() if importlib.util.find_spec(t.split(":")[0])}
+        names |= set(super().list_commands(ctx))
+        names |= set(self._anatomy_names())
+        return sorted(names)
+
+    def get_command(self, ctx, name):
+        if name in COMMANDS:
+            return _load(COMMANDS[name])
+        cmd = super().get_command(ctx, name)
+        if cmd is not None:
+            return cmd
+        if name in self._anatomy_names():
+            from clgs.anatomy import plugins
+            from clgs.cli.anatomy_group import make_group
+
+            return make_group(plugins.get_anatomy(name))
+        return None
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="clgs")
+@click.option("--device", "device", metavar="SPEC", default=None,
+              help="OpenCL device to run on: P:D indices or a piece of its name (pocl, intel, nvidia), "
+                   "as 'clgs info' lists them. Default: the first device that passes the probe "
+                   "(CLGS_DEVICE or PYOPENCL_CTX set it too).")
+def main(device):
+    """clgs: sparse-view X-ray 3D reconstruction with Gaussian splatting and shape priors.
+
+    Kernels run in OpenCL (PoCL or Intel's runtime on the CPU, or any OpenCL GPU). Each
+    installed anatomy plugin adds a command group (e.g. ``clgs femur demo``).
+    """
+    if device is not None:
+        if not device.strip():
+            raise click.BadParameter("give a device index (P:D) or a piece of its name", param_hint="--device")
+        # an environment variable, so that subprocesses and cluster workers use the same device
+        os.environ["CLGS_DEVICE"] = device.strip()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,4 @@
+"""``python -m clgs.cli``: the ``clgs`` command."""
+from clgs.cli import main
+
+main()

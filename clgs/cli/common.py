@@ -1,0 +1,220 @@
+"""What the CT commands (``clgs simulate``, ``clgs reconstruct``, ``clgs evaluate``) share:
+their outputs' checks (never over the input, writable, ``--force`` to replace, empty folders
+removed after a failure), reading volumes and scans with their errors as click errors, and the
+way figures are printed. Only click and the standard library at module level."""
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import click
+
+from clgs.io.suffixes import VOLUME_SUFFIXES
+
+
+def is_volume_path(path: Path) -> bool:
+    name = path.name.lower()
+    return any(name.endswith(s) for s in VOLUME_SUFFIXES)
+
+
+def is_dicom_folder(path: Path) -> bool:
+    """A folder holding DICOM slices (read as one series)."""
+    return path.is_dir() and any(f.suffix.lower() == ".dcm" or f.name.upper().startswith(("IM", "CT"))
+                                 for f in list(path.iterdir())[:50])
+
+
+def click_error(exc: Exception, what: str = "") -> click.ClickException:
+    msg = str(exc) if not what else f"{what}: {exc}"
+    return click.ClickException(msg)
+
+
+def check_output(path: Path, force: bool, param: str = "--out") -> None:
+    if path.exists() and not force:
+        raise click.ClickException(f"{path} already exists; pass --force to overwrite it (or choose another {param})")
+    if path.exists() and path.is_dir() != (not is_volume_path(path)):
+        kind = "a folder" if path.is_dir() else "a file"
+        raise click.ClickException(f"{path} exists and is {kind}; remove it or choose another {param}")
+
+
+def nearest_existing(path: Path) -> Path:
+    """``path`` or its closest ancestor that exists."""
+    path = Path(os.path.abspath(path))
+    while not os.path.lexists(path) and path.parent != path:
+        path = path.parent
+    return path
+
+
+def check_writable(path: Path, param: str = "--out", into: bool = False) -> None:
+    """Fail now, before any work, if ``path`` cannot be written: its folder (``into``: the folder
+    ``path`` itself, written into) must exist or be creatable, be a folder, and accept new files.
+    Tested by creating and removing an empty folder there (permission bits say nothing to root,
+    nor on read-only or virtual file systems such as /proc)."""
+    import tempfile
+
+    where = Path(path) if into else Path(os.path.abspath(path)).parent
+    base = nearest_existing(where)
+    if not base.is_dir():
+        raise click.ClickException(f"cannot write {param} {path}: {base} is a file, not a folder; "
+                                   f"choose another {param}")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".clgs-write-test-", dir=base))
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        raise click.ClickException(f"cannot write {param} {path}: files cannot be created in {base} ({reason}); "
+                                   f"choose another {param}") from None
+
+
+def new_folders(folder: Path) -> list:
+    """The folders, innermost first, that writing into ``folder`` would create (none if it exists)."""
+    folder = Path(os.path.abspath(folder))
+    made = []
+    while not os.path.lexists(folder) and folder.parent != folder:
+        made.append(folder)
+        folder = folder.parent
+    return made
+
+
+def remove_empty(folders) -> None:
+    """Remove those of ``folders`` (innermost first) this command created and left empty; a folder
+    holding anything (a checkpoint, a log, another program's files) is kept, and so are its parents."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
+
+
+def scan_root(scan: Path):
+    """The folder of the input scan (``scan`` may name its scan.json / meta_data.json), resolved."""
+    scan = Path(scan)
+    if scan.is_file() and scan.name in ("scan.json", "meta_data.json"):
+        scan = scan.parent
+    return scan.resolve() if scan.is_dir() else None
+
+
+def scan_files(root: Path) -> list:
+    """Every file and folder the scan in ``root`` is made of (resolved). A scan description that
+    cannot be read protects everything in the folder."""
+    import json
+
+    found = []
+    try:
+        if (root / "scan.json").is_file():
+            found += [root / "scan.json", root / "projections.npy", root / "truth.npy", root / "truth.nii.gz",
+                      root / "truth_surface.stl"]
+            doc = json.loads((root / "scan.json").read_text(encoding="utf-8"))
+            found += [root / v for v in (doc.get("files") or {}).values() if isinstance(v, str)]
+        if (root / "meta_data.json").is_file():
+            found.append(root / "meta_data.json")
+            doc = json.loads((root / "meta_data.json").read_text(encoding="utf-8"))
+            found += [root / doc[k] for k in ("vol", "ct") if isinstance(doc.get(k), str)]
+            for split in ("proj_train", "proj_test"):
+                found += [root / str(e["file_path"]) for e in doc.get(split) or [] if isinstance(e, dict)
+                          and "file_path" in e]
+                found.append(root / split)
+        if not found:
+            found = list(root.iterdir())
+    except (OSError, ValueError, TypeError, AttributeError):
+        found = list(root.iterdir())
+    return [f.resolve() for f in found]
+
+
+def check_not_input(path: Path, inputs, param: str = "--out") -> None:
+    """Refuse an output that is, contains, or would overwrite an input: ``inputs`` are
+    (label, path, is_scan) -- a scan folder is protected as a whole and file by file."""
+    target = Path(path).resolve()
+    for label, given, is_scan in inputs:
+        if given is None:
+            continue
+        if is_scan:
+            root = scan_root(given)
+            if root is None:
+                continue
+            if target == root:
+                raise click.ClickException(f"{param} {path} is the input scan folder {given}; writing there would "
+                                           f"replace the scan. Choose another {param}")
+            if target in root.parents:
+                raise click.ClickException(f"{param} {path} contains the input scan {given}; writing there would "
+                                           f"delete the scan. Choose another {param}")
+            for f in scan_files(root):
+                if f == target or target in f.parents:
+                    raise click.ClickException(f"{param} {path} would overwrite {f.name} of the input scan {given}. "
+                                               f"Choose another {param}")
+        else:
+            src = Path(given).resolve()
+            if target == src or target in src.parents:
+                what = "is" if target == src else "contains"
+                raise click.ClickException(f"{param} {path} {what} the input {label} {given}; writing there would "
+                                           f"destroy it. Choose another {param}")
+
+
+def out_of_memory(what: str, shape=None) -> click.ClickException:
+    if shape is None:
+        return click.ClickException(f"not enough memory {what}")
+    n = math.prod(int(s) for s in shape)
+    return click.ClickException(
+        f"not enough memory {what}: the volume is {'x'.join(str(int(s)) for s in shape)} voxels "
+        f"({n * 4 / 2 ** 30:.1f} GiB per float32 copy, and a method needs several); use a coarser grid "
+        "(fewer voxels in the geometry's nVoxel) or a machine with more memory")
+
+
+def is_out_of_memory(exc: BaseException) -> bool:
+    """MemoryError, or torch's allocation failure (a RuntimeError)."""
+    return isinstance(exc, MemoryError) or (isinstance(exc, RuntimeError) and "can't allocate memory" in str(exc))
+
+
+def load_volume_file(path: Path, spacing=None, label="volume"):
+    from clgs.io.volume import VolumeError, load_volume
+
+    if not (is_volume_path(path) or is_dicom_folder(path)):
+        raise click.BadParameter(f"{path}: a {label} must be {', '.join(VOLUME_SUFFIXES)} or a folder of DICOM "
+                                 "slices", param_hint=label.upper())
+    try:
+        loaded = load_volume(path)
+    except VolumeError as exc:
+        raise click_error(exc) from None
+    vol, sp, org = loaded
+    if spacing is not None:
+        sp = tuple(float(s) for s in spacing)
+    return vol, sp, org
+
+
+def parse_spacing(value):
+    if value is None:
+        return None
+    parts = [p for p in value.replace(",", " ").split() if p]
+    try:
+        nums = [float(p) for p in parts]
+    except ValueError:
+        raise click.BadParameter(f"{value!r}: give one number or three (dZ,dY,dX) in mm", param_hint="--spacing")
+    if len(nums) == 1:
+        nums *= 3
+    if len(nums) != 3 or min(nums) <= 0 or not all(math.isfinite(n) for n in nums):
+        raise click.BadParameter(f"{value!r}: give one positive number or three (dZ,dY,dX) in mm",
+                                 param_hint="--spacing")
+    return tuple(nums)
+
+
+def fmt_number(value) -> str:
+    return "inf" if isinstance(value, float) and math.isinf(value) else f"{value:.4f}"
+
+
+def load_scan(path: Path, split: str = "train"):
+    """Scan.load with its errors as click errors and its repairs (ScanWarning) as messages."""
+    import warnings
+
+    from clgs.io.scan import Scan, ScanError, ScanWarning
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", ScanWarning)
+        try:
+            sc = Scan.load(path, split=split)
+        except ScanError as exc:
+            raise click_error(exc) from None
+    for w in caught:
+        if issubclass(w.category, ScanWarning):
+            click.echo(f"warning: {w.message}", err=True)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return sc

@@ -1,0 +1,139 @@
+"""``clgs evaluate``: a volume against a truth (3D PSNR / SSIM, surface distance). Heavy modules
+load when it runs."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from clgs.cli.common import (
+    check_not_input,
+    check_output,
+    check_writable,
+    click_error,
+    fmt_number,
+    load_scan,
+    load_volume_file,
+    parse_spacing,
+)
+from clgs.cli.options import FiniteFloat
+
+
+def _truth_from(path: Path, spacing):
+    """A truth volume from a volume file or from a scan folder's truth."""
+    if path.is_dir():
+        from clgs.io.volume import grid_spacing_origin
+
+        sc = load_scan(path)
+        if sc.truth is None:
+            raise click.BadParameter(f"{path}: this scan has no ground truth", param_hint="--truth")
+        sp, org = grid_spacing_origin(sc.geometry)
+        return sc.truth, sp, org, (sc.surface, sc.meta.get("truth_surface_level"))
+    vol, sp, org = load_volume_file(path, spacing, "truth")
+    return vol, sp, org, (None, None)
+
+
+@click.command()
+@click.argument("volume", type=click.Path(path_type=Path))
+@click.option("--truth", "-t", type=click.Path(path_type=Path), required=True,
+              help="the true volume (.npy/.nii/.nii.gz) or a scan folder holding it")
+@click.option("--mask", "mask_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="a label volume; metrics are also computed over its non-zero voxels")
+@click.option("--mask-level", type=FiniteFloat(), default=None,
+              help="mask = truth above this value (e.g. a bone threshold, 1/mm)")
+@click.option("--dilate", type=click.IntRange(min=0), default=0, show_default=True,
+              help="grow the mask by this many voxels")
+@click.option("--level", type=FiniteFloat(), default=None,
+              help="iso-level for the surface distance (mm) between VOLUME's and the truth's surfaces")
+@click.option("--surface", "surface_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="true surface mesh (STL/PLY/OBJ/npz) to compare with instead of the truth's iso-surface")
+@click.option("--spacing", default=None, help="voxel size in mm for .npy inputs, 'd' or 'dZ,dY,dX'")
+@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="write the figures to this JSON file (an infinite PSNR is written as null)")
+@click.option("--force", is_flag=True, help="overwrite an existing --json")
+def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, spacing, json_out, force):
+    """Compare VOLUME with the truth: 3D PSNR / SSIM (as R2-Gaussian), masked variants, and the
+    surface distance in mm when --level is given. VOLUME may also be a reconstruct output folder.
+
+    \f
+    (One function: the truth, the mask, the metrics and the optional surface distance use the
+    same loaded arrays.)
+    """
+    import numpy as np
+
+    from clgs import metrics
+    from clgs.io import atomic
+
+    if json_out is not None:
+        check_not_input(json_out, [("volume", volume, False), ("truth", truth, truth.is_dir()),
+                                    ("mask", mask_path, False), ("surface", surface_path, False)], "--json")
+        check_output(json_out, force, "--json")
+        check_writable(json_out, "--json")
+    if mask_path is not None and mask_level is not None:
+        raise click.UsageError("give either --mask or --mask-level, not both")
+    if volume.is_dir():
+        if not (volume / "volume.nii.gz").is_file():
+            raise click.BadParameter(f"{volume}: a folder without volume.nii.gz", param_hint="VOLUME")
+        volume = volume / "volume.nii.gz"
+    sp = parse_spacing(spacing)
+    pred, psp, porg = load_volume_file(volume, sp)
+    tvol, tsp, torg, tsurf = _truth_from(truth, sp)
+    if pred.shape != tvol.shape:
+        raise click.UsageError(f"VOLUME {pred.shape} and --truth {tvol.shape} have different shapes (Z, Y, X)")
+    if psp is not None and tsp is not None and not np.allclose(psp, tsp, rtol=1e-4):
+        click.echo(f"warning: voxel sizes differ (volume {psp}, truth {tsp} mm); using the truth's", err=True)
+    mask = None
+    if mask_path is not None:
+        mvol, _, _ = load_volume_file(mask_path, sp, "mask")
+        if mvol.shape != tvol.shape:
+            raise click.UsageError(f"--mask {mvol.shape} does not match the volumes' shape {tvol.shape}")
+        mask = mvol != 0
+    elif mask_level is not None:
+        mask = tvol > mask_level
+    if mask is not None:
+        if dilate:
+            from scipy.ndimage import binary_dilation
+
+            mask = binary_dilation(mask, iterations=dilate)
+        if not mask.any():
+            raise click.UsageError("the mask is empty (no voxel inside); check --mask / --mask-level")
+    try:
+        res = metrics.evaluate_volume(pred, tvol, mask)
+    except metrics.MetricError as exc:
+        raise click_error(exc) from None
+    res.update(volume=str(volume), truth=str(truth))
+    if mask is not None:
+        res["mask_voxels"] = int(mask.sum())
+    if level is not None or surface_path is not None:
+        from clgs.io.mesh import MeshError, load_mesh
+        from clgs.mesh.surface import SurfaceError, surface_distance, surface_from_volume
+
+        if level is None:
+            raise click.UsageError("--surface needs --level (the iso-level of VOLUME's surface)")
+        sp_mm = tsp if tsp is not None else (psp if psp is not None else None)
+        if sp_mm is None:
+            raise click.UsageError("surface distances need voxel sizes: give --spacing for .npy volumes")
+        org = torg if torg is not None else porg
+        try:
+            ours = surface_from_volume(pred, level, spacing=sp_mm, origin=org)
+            if surface_path is not None:
+                ref = load_mesh(surface_path)
+            elif tsurf[0] is not None and tsurf[1] == level:
+                ref = tsurf[0]  # the scan's stored true surface, made at this level
+            else:
+                ref = surface_from_volume(tvol, level, spacing=sp_mm, origin=org)
+            res["surface"] = surface_distance(ours, ref)
+        except (SurfaceError, MeshError) as exc:
+            raise click_error(exc, "surface distance") from None
+        res["surface"]["level"] = level
+    click.echo(f"PSNR {fmt_number(res['psnr3d'])} dB   SSIM {res['ssim3d']:.4f}   "
+               f"(SSIM z/y/x {' '.join(f'{a:.4f}' for a in res['ssim3d_axes'])})")
+    if mask is not None:
+        click.echo(f"masked ({res['mask_voxels']} voxels): PSNR {fmt_number(res['psnr3d_masked'])} dB   "
+                   f"SSIM {res['ssim3d_masked']:.4f}")
+    if "surface" in res:
+        s = res["surface"]
+        click.echo(f"surface distance (mm): mean {s['mean']:.3f}   p95 {s['p95']:.3f}   Hausdorff {s['hausdorff']:.3f}")
+    if json_out is not None:
+        atomic.write_json(json_out, res, overwrite=True)
+        click.echo(f"wrote {json_out}")

@@ -1,0 +1,240 @@
+"""``clgs reconstruct``: any registered method on a scan folder, with its options after SCAN. Heavy
+modules load when it runs."""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import click
+
+from clgs.cli.common import (
+    check_not_input,
+    check_output,
+    check_writable,
+    click_error,
+    fmt_number,
+    is_out_of_memory,
+    is_volume_path,
+    load_scan,
+    new_folders,
+    out_of_memory,
+    remove_empty,
+)
+from clgs.cli.options import check_option_values, method_params
+
+
+class _ReconstructCommand(click.Command):
+    """Method options are parsed in a second stage, by the chosen method's own options."""
+
+    def format_epilog(self, ctx, formatter):
+        from clgs import methods
+
+        with formatter.section("Methods"):
+            formatter.write_dl(sorted(methods.describe().items()))
+        formatter.write_paragraph()
+        formatter.write_text("Method options (after SCAN): see 'clgs reconstruct --method NAME --help'.")
+
+
+def _method_command(method) -> click.Command:
+    return click.Command(f"reconstruct --method {method.name}", params=method_params(method),
+                         help=method.help, add_help_option=False)
+
+
+def _show_method_help(ctx, method, mcmd) -> None:
+    """``clgs reconstruct --method NAME --help``: the command's help, then the method's options."""
+    click.echo(ctx.get_help())
+    mctx = click.Context(mcmd, info_name=mcmd.name, parent=ctx)
+    formatter = mctx.make_formatter()
+    formatter.write_paragraph()
+    with formatter.section(f"Options of --method {method.name}"):
+        formatter.write_dl([p.get_help_record(mctx) for p in mcmd.params if p.get_help_record(mctx)] or
+                           [("(none)", "")])
+    click.echo(formatter.getvalue().rstrip())
+    ctx.exit(0)
+
+
+def _method_options(ctx, method, mcmd) -> tuple:
+    """(options given, keyword arguments of the run) from the words after SCAN, checked."""
+    try:
+        mctx = mcmd.make_context(mcmd.name, list(ctx.args), parent=ctx)
+    except click.BadParameter as exc:  # a known option with a bad value: the message says it all
+        raise click.UsageError(exc.format_message(), ctx) from None
+    except click.UsageError as exc:
+        known = ", ".join(o for p in mcmd.params for o in p.opts) or "none"
+        raise click.UsageError(f"{exc.format_message()} (options of --method {method.name}: {known}; "
+                               "they go after SCAN)", ctx) from None
+    try:  # NaN / inf floats and impossible seeds are refused now, whatever type the method's options declared
+        check_option_values(mcmd.params, mctx.params, mctx)
+    except click.UsageError as exc:
+        raise click.UsageError(exc.format_message(), ctx) from None
+    options = {k: v for k, v in mctx.params.items() if v is not None}
+    kwargs = dict(options)
+    if options.get("resume") and "iterations" in mctx.params and "iterations" not in options:
+        kwargs["iterations"] = None  # a resumed run goes on to the iterations it was started with
+    return options, kwargs
+
+
+def _prepare_outputs(scan, out, json_out, force, into_folder: bool, resuming: bool) -> tuple:
+    """Check every output location before the run, so no result is lost at the end; returns the
+    folders this command creates (removed again if the run fails before writing in them)."""
+    check_not_input(out, [("scan", scan, True)])
+    if json_out is not None:
+        check_not_input(json_out, [("scan", scan, True)], "--json")
+        if Path(json_out).resolve() == Path(out).resolve():
+            raise click.UsageError("--json and --out name the same file; give the report another name")
+    if not resuming:
+        check_output(out, force)
+    if json_out is not None:
+        check_output(json_out, force, "--json")
+    check_writable(out, into=into_folder and out.is_dir())
+    if json_out is not None:
+        check_writable(json_out, "--json")
+    created = new_folders(out if into_folder else Path(os.path.abspath(out)).parent)
+    created_json = new_folders(Path(os.path.abspath(json_out)).parent) if json_out is not None else []
+    return created, created_json
+
+
+@click.command(cls=_ReconstructCommand, add_help_option=False,
+               context_settings={"ignore_unknown_options": True, "allow_extra_args": True})
+@click.argument("scan", type=click.Path(path_type=Path), required=False)
+@click.option("--method", "-m", "method_name", default="fdk", show_default=True, help="reconstruction method")
+@click.option("--out", "-o", "out", type=click.Path(path_type=Path), default=None,
+              help="a volume file (.nii.gz, .nii, .npy) or a folder (volume.nii.gz, volume.npy, report.json, "
+                   "method extras)")
+@click.option("--split", type=click.Choice(["train", "test"]), default="train", show_default=True,
+              help="which views of an R2-Gaussian dataset folder to use")
+@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="also write the report (method, options, time, metrics) to this JSON file")
+@click.option("--force", is_flag=True, help="overwrite an existing --out")
+@click.option("--help", "-h", "show_help", is_flag=True, help="show this message (with --method: its options)")
+@click.pass_context
+def reconstruct(ctx, scan, method_name, out, split, json_out, force, show_help):
+    """Reconstruct a volume from SCAN (a clgs scan folder or an R2-Gaussian dataset folder).
+
+    With a ground truth in the scan, prints 3D PSNR / SSIM (as R2-Gaussian computes them) and
+    the wall time.
+    \f
+
+    (Long because the run's outputs are cleaned up on any failure: the try blocks hold the steps
+    between checking the outputs and writing the report; parsing and checks are helpers.)
+    """
+    from clgs import methods
+
+    try:
+        method = methods.get(method_name)
+    except methods.MethodError as exc:
+        raise click.BadParameter(str(exc), param_hint="--method") from None
+    except ImportError as exc:
+        raise click.ClickException(f"method {method_name!r} could not be loaded: {exc}") from None
+    mcmd = _method_command(method)
+    if show_help:
+        _show_method_help(ctx, method, mcmd)
+    if scan is None:
+        raise click.UsageError("missing argument SCAN (a scan folder)")
+    if out is None:
+        raise click.UsageError("missing option --out (a volume file or a folder)")
+    options, kwargs = _method_options(ctx, method, mcmd)
+    into_folder = not is_volume_path(out) and not method.atomic_dir
+    resuming = bool(options.get("resume")) and into_folder and out.is_dir()
+    created, created_json = _prepare_outputs(scan, out, json_out, force, into_folder, resuming)
+
+    import numpy as np
+
+    from clgs.io import atomic
+    from clgs.io.volume import save_volume
+
+    def files_report(files) -> dict:
+        """A method's ``files``: a dict name -> path, or a list of paths (keyed by file name)."""
+        if isinstance(files, dict):
+            return {str(k): str(v) for k, v in files.items()}
+        if isinstance(files, (str, os.PathLike)):
+            files = [files]
+        out_files = {}
+        for f in files:
+            name = Path(f).name if isinstance(f, (str, os.PathLike)) else str(f)
+            out_files[name if name not in out_files else str(f)] = str(f)
+        return out_files
+
+    def finish(result, t0, folder):
+        if not isinstance(result, dict) or "volume" not in result:
+            raise click.ClickException(f"method {method.name} returned no volume")
+        vol = np.asarray(result["volume"], np.float32)
+        report["seconds"] = time.perf_counter() - t0
+        if vol.shape != tuple(sc.geometry.nVoxel):
+            raise click.ClickException(f"method {method.name} returned a volume of shape {vol.shape}, "
+                                       f"expected {sc.geometry.nVoxel}")
+        if not np.all(np.isfinite(vol)):
+            raise click.ClickException(f"method {method.name} produced NaN or Inf voxels")
+        if result.get("info"):
+            report["info"] = result["info"]
+        if result.get("files"):
+            try:
+                report["files"] = files_report(result["files"])
+            except TypeError:
+                report["files"] = str(result["files"])
+        if sc.truth is not None:
+            from clgs import metrics
+
+            figures = metrics.volume_figures(vol, sc.truth)
+            if figures["psnr3d"] is not None:
+                s, axes = metrics.ssim3d(vol, sc.truth, return_axes=True)
+                figures.update(ssim3d=s, ssim3d_axes=axes)
+            report["metrics"] = figures
+        if folder is None:
+            save_volume(out, vol, sc.geometry)
+        else:
+            save_volume(folder / "volume.nii.gz", vol, sc.geometry)
+            atomic.save_npy(folder / "volume.npy", vol)
+            atomic.write_json(folder / "report.json", report)
+
+    sc = None
+    report = {"method": method.name, "options": options, "scan": str(scan)}
+    try:
+        try:
+            sc = load_scan(scan, split)
+            report["n_views"] = sc.n_views
+            click.echo(f"{method.name}: {sc.n_views} views, {'x'.join(map(str, sc.geometry.nVoxel))} voxels",
+                       err=True)
+            try:
+                run = method.callable()
+            except (ImportError, AttributeError) as exc:
+                raise click.ClickException(f"method {method.name!r} could not be loaded: {exc}") from None
+            if is_volume_path(out):
+                t0 = time.perf_counter()
+                finish(run(sc, None, **kwargs), t0, None)
+            elif method.atomic_dir:
+                with atomic.atomic_dir(out, overwrite=force) as tmp:
+                    t0 = time.perf_counter()
+                    finish(run(sc, tmp, **kwargs), t0, tmp)
+            else:
+                out.mkdir(parents=True, exist_ok=True)
+                t0 = time.perf_counter()
+                finish(run(sc, out, **kwargs), t0, out)
+        except (MemoryError, RuntimeError) as exc:
+            if not is_out_of_memory(exc):
+                raise
+            if sc is None:
+                raise out_of_memory(f"to load the scan {scan}") from None
+            raise out_of_memory(f"for {method.name}", sc.geometry.nVoxel) from None
+        except (ValueError, OSError, FloatingPointError) as exc:
+            raise click_error(exc, f"{method.name} failed") from None
+    except BaseException:  # errors and Ctrl-C alike: no empty output folder stays behind
+        remove_empty(created)
+        remove_empty(created_json)
+        raise
+    if json_out is not None:
+        try:
+            atomic.write_json(json_out, report)
+        except OSError as exc:
+            raise click.ClickException(f"wrote {out}, but the report could not be written to --json {json_out}: "
+                                       f"{exc}") from None
+    line = f"{method.name}: {report['seconds']:.2f} s"
+    if "metrics" in report:
+        m = report["metrics"]
+        if m.get("psnr3d") is None:
+            line += f"; metrics undefined ({m.get('metrics_undefined')}); the volume is written"
+        else:
+            line += f", PSNR {fmt_number(m['psnr3d'])} dB, SSIM {m['ssim3d']:.4f}"
+    click.echo(line)
+    click.echo(f"wrote {out}")

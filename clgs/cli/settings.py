@@ -1,0 +1,166 @@
+"""``--set KEY=VALUE``: a method's settings given by name on ``clgs <anatomy> reconstruct | demo``.
+
+Settings are checked before a run starts: the keys against the method's settings (its config
+dataclass's fields for the Gaussian methods, else its callable's parameters), the values against
+the fields' types, the method's options (ranges, choices, :mod:`clgs.cli.options`), the config's
+own checks (kinds, ranges: JsonConfig) and, for methods without a config, the ranges below.
+"""
+from __future__ import annotations
+
+import json
+
+import click
+
+from clgs.cli.options import method_params
+
+_EXTRA_KEYWORDS = {  # method -> keyword arguments its run passes on beside its config's fields
+    "shape": {"level": float | None},
+}
+_NOT_SETTINGS = {"scan", "out_dir", "out", "anatomy"}  # given by the command itself
+_RANGES = [  # for methods without a config dataclass (FDK, SART): the configs check their own ranges
+    (("iterations", "subsets"), lambda v: v >= 1, "at least 1"),
+]
+
+
+def _range_rule(key: str):
+    for names, test, words in _RANGES:
+        if any(key == n or (n.endswith("_") and key.startswith(n)) for n in names):
+            return test, words
+    return None
+
+
+def _type_hints(obj) -> dict:
+    import typing
+
+    try:
+        return typing.get_type_hints(obj)
+    except Exception:  # noqa: BLE001 - unresolvable annotations: no type check for them
+        return {}
+
+
+def method_settings(method: str, m, run) -> tuple:
+    """(key -> type hint or None, key -> click option, open, config dataclass or None): the settings
+    ``--set`` may give the method; ``open`` when the method takes keywords this cannot list (any
+    key is then passed on)."""
+    import dataclasses
+    import inspect
+
+    hints: dict = {}
+    params = inspect.signature(run).parameters
+    run_hints = _type_hints(run)
+    takes_kwargs = False
+    for i, (k, p) in enumerate(params.items()):
+        if p.kind == p.VAR_KEYWORD:
+            takes_kwargs = True
+        elif p.kind != p.VAR_POSITIONAL and i > 0 and k not in _NOT_SETTINGS:
+            hints[k] = run_hints.get(k)
+    extra = _EXTRA_KEYWORDS.get(method, {})
+    cls = None
+    if m.config is not None and takes_kwargs:
+        cls = m.config_class()
+        cls_hints = _type_hints(cls)
+        for f in dataclasses.fields(cls):
+            hints.setdefault(f.name, cls_hints.get(f.name))
+        for k, h in extra.items():
+            hints.setdefault(k, h)
+    try:
+        options = {o.name: o for o in method_params(m) if o.name and o.name not in _NOT_SETTINGS}
+    except Exception:  # noqa: BLE001 - a method without usable options: its parameters still count
+        options = {}
+    for k in options:
+        hints.setdefault(k, None)
+    return hints, options, takes_kwargs and cls is None, cls
+
+
+def _accepts(hint, value) -> bool:
+    """Whether ``value`` (parsed from JSON) fits the type ``hint`` (True for types not handled)."""
+    import types
+    import typing
+
+    if hint is None or hint is typing.Any:
+        return True
+    origin = typing.get_origin(hint)
+    if origin is typing.Union or origin is types.UnionType:
+        return any(_accepts(h, value) for h in typing.get_args(hint))
+    if hint is type(None):
+        return value is None
+    if hint is bool:
+        return isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is str:
+        return isinstance(value, str)
+    if hint in (tuple, list) or origin in (tuple, list):
+        return isinstance(value, (list, tuple))
+    return True
+
+
+def _describe(hint) -> str:
+    import types
+    import typing
+
+    origin = typing.get_origin(hint)
+    if origin is typing.Union or origin is types.UnionType:
+        return " or ".join(_describe(h) for h in typing.get_args(hint))
+    names = {type(None): "null", bool: "true/false", int: "an integer", float: "a number", str: "a string",
+             tuple: "a list like [a, b]", list: "a list like [a, b]"}
+    return names.get(origin or hint, getattr(hint, "__name__", str(hint)))
+
+
+def check_settings(method: str, m, run, opts: dict, raw: dict | None = None) -> dict:
+    """``opts`` checked against the method's settings (see above): returns them, converted where a
+    click option says how (e.g. choices); an unknown key or a bad value is a ``--set`` usage error."""
+    import dataclasses
+    import math
+
+    hints, options, open_, cls = method_settings(method, m, run)
+    raw = raw or {}
+    out = {}
+    for key, value in opts.items():
+        shown = f"{key}={raw.get(key, json.dumps(value))}"
+        if key not in hints and not open_:
+            raise click.BadParameter(f"unknown setting {key!r} for the {method} method; valid keys: "
+                                     f"{', '.join(sorted(hints))}", param_hint="--set")
+        hint = hints.get(key)
+        if not _accepts(hint, value):
+            raise click.BadParameter(f"{shown}: {key} must be {_describe(hint)}", param_hint="--set")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise click.BadParameter(f"{shown}: {key} must be a finite number", param_hint="--set")
+        if key in options and value is not None:
+            try:
+                value = options[key].type.convert(value, options[key], None)
+            except click.BadParameter as exc:
+                raise click.BadParameter(f"{shown}: {exc.message}", param_hint="--set") from None
+        rule = _range_rule(key)
+        if rule and isinstance(value, (int, float)) and not isinstance(value, bool) and not rule[0](value):
+            raise click.BadParameter(f"{shown}: {key} must be {rule[1]}", param_hint="--set")
+        out[key] = value
+    if cls is not None:  # the config's own checks (e.g. ranges), on the defaults plus these settings
+        names = {f.name for f in dataclasses.fields(cls)}
+        given = {k: v for k, v in out.items() if k in names and not (k == "iterations" and v is None)}
+        try:
+            cls.from_json({**cls().to_json(), **given})
+        except ValueError as exc:
+            raise click.BadParameter(str(exc), param_hint="--set") from None
+    return out
+
+
+def parse_settings(pairs, raw: dict | None = None):
+    """``KEY=VALUE`` pairs -> {key: JSON value, else the string}; ``raw`` gets the strings as typed."""
+    opts = {}
+    for p in pairs:
+        if "=" not in p:
+            raise click.BadParameter(f"expected KEY=VALUE, got {p!r}", param_hint="--set")
+        k, v = p.split("=", 1)
+        k = k.strip().replace("-", "_")
+        if not k:
+            raise click.BadParameter(f"expected KEY=VALUE, got {p!r}", param_hint="--set")
+        if raw is not None:
+            raw[k] = v
+        try:
+            opts[k] = json.loads(v)
+        except json.JSONDecodeError:
+            opts[k] = v
+    return opts

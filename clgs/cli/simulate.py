@@ -1,0 +1,176 @@
+"""``clgs simulate``: a sparse-view scan of any CT volume. Heavy modules load when it runs."""
+from __future__ import annotations
+
+import math
+import sys
+import time
+from pathlib import Path
+
+import click
+
+from clgs.cli.common import (
+    check_not_input,
+    check_output,
+    check_writable,
+    click_error,
+    load_volume_file,
+    out_of_memory,
+    parse_spacing,
+)
+from clgs.cli.options import FiniteFloat, Seed
+
+
+def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, pixel):
+    """A scanner centred on the volume whose square detector sees all of it (5 % margin)."""
+    import numpy as np
+
+    from clgs.geometry import Geometry, GeometryError, shadow_half_extents
+
+    base = Geometry.default(n_views=views, arc=math.radians(arc_deg), mode=mode, n_voxel=max(shape),
+                            n_detector=detector, volume_mm=float(max(np.multiply(shape, spacing))))
+    DSO = base.DSO if DSO is None else DSO
+    DSD = base.DSD if DSD is None else DSD
+    try:
+        half_u, half_v = shadow_half_extents(np.multiply(shape, spacing), DSO, DSD, mode)
+    except GeometryError as exc:
+        raise click.UsageError(f"{exc} (--DSO)") from None
+    if pixel is None:
+        pixel = 2.0 * max(half_u, half_v) * 1.05 / detector
+    d = base.to_dict()
+    d.update(DSD=DSD, DSO=DSO, nVoxel=list(shape), dVoxel=list(spacing), dDetector=[pixel, pixel],
+             nDetector=[detector, detector])
+    return Geometry.from_dict(d)
+
+
+@click.command()
+@click.argument("volume", type=click.Path(path_type=Path))
+@click.option("--out", "-o", "out", type=click.Path(path_type=Path), required=True, help="scan folder to write")
+@click.option("--hu", is_flag=True, help="the volume holds Hounsfield units (a CT, DICOM): convert them to "
+                                         "attenuation, mu = mu_water (1 + HU / 1000), at --kev")
+@click.option("--kev", type=FiniteFloat(min=40, max=150), default=70.0, show_default=True,
+              help="X-ray energy for --hu (water's attenuation from NIST XCOM, 40-150 keV)")
+@click.option("--views", type=click.IntRange(min=1), default=50, show_default=True, help="number of projections")
+@click.option("--arc", type=FiniteFloat(min=0, min_open=True, max=360), default=180.0, show_default=True,
+              help="angular range in degrees, views evenly spaced, last one short of the end")
+@click.option("--mode", type=click.Choice(["cone", "parallel"]), default="cone", show_default=True)
+@click.option("--DSD", "DSD", type=FiniteFloat(min=0, min_open=True), default=None,
+              help="source-detector distance, mm [default: 1500]")
+@click.option("--DSO", "DSO", type=FiniteFloat(min=0, min_open=True), default=None,
+              help="source-rotation axis distance, mm [default: 1000]")
+@click.option("--detector", type=click.IntRange(min=1), default=256, show_default=True,
+              help="detector pixels per side (square detector)")
+@click.option("--pixel", type=FiniteFloat(min=0, min_open=True), default=None,
+              help="detector pixel size, mm [default: the detector just sees the whole volume]")
+@click.option("--spacing", default=None, help="voxel size in mm, 'd' or 'dZ,dY,dX' (needed for .npy; overrides NIfTI)")
+@click.option("--I0", "I0", type=FiniteFloat(min=1, min_open=True, hint="photons per pixel of an unattenuated ray; "
+                                                 "counts are floored at 1, so at I0 <= 1 every projection is 0"),
+              default=1e5, show_default=True,
+              help="photons per pixel of the flat field (Poisson noise); more than 1")
+@click.option("--sigma", type=FiniteFloat(min=0), default=10.0, show_default=True,
+              help="electronic (Gaussian) noise, in photon counts")
+@click.option("--scatter", type=FiniteFloat(min=0), default=0.0, show_default=True,
+              help="scatter as a fraction of the primary signal")
+@click.option("--seed", type=Seed(), default=0, show_default=True, help="noise seed, 0 to 2**64 - 1")
+@click.option("--no-noise", is_flag=True, help="noiseless line integrals")
+@click.option("--surface-level", type=FiniteFloat(), default=None,
+              help="also store the truth's iso-surface at this value as truth_surface.stl")
+@click.option("--force", is_flag=True, help="overwrite an existing --out")
+def simulate(volume, out, hu, kev, views, arc, mode, DSD, DSO, detector, pixel, spacing, I0, sigma, scatter, seed,
+             no_noise, surface_level, force):
+    """Simulate a sparse-view X-ray scan of VOLUME (attenuation in 1/mm, or Hounsfield units with
+    --hu): .npy, NIfTI, MetaImage (.mha/.mhd), NRRD, or a DICOM series (its folder or a .dcm file).
+
+    The volume is centred on the rotation axis; the scan folder stores the projections, the
+    geometry, the acquisition settings and the volume itself as ground truth.
+    \f
+
+    (One function: the options' checks, the scanner, the projection and the writing share the
+    parsed values; the heavier parts are helpers.)
+    """
+    import numpy as np
+
+    from clgs.geometry import GeometryError
+    from clgs.io.scan import Scan, ScanError
+
+    check_not_input(out, [("volume", volume, False)])
+    check_output(out, force)
+    check_writable(out)
+    sp_override = parse_spacing(spacing)
+    vol, sp, org = load_volume_file(volume, sp_override)
+    if sp is None:
+        raise click.UsageError(f"{volume} is a .npy array without voxel size; give --spacing (mm)")
+    if not np.all(np.isfinite(vol)):
+        raise click.ClickException(f"{volume}: the volume contains NaN or Inf")
+    if hu:
+        from clgs.io.units import hu_to_mu
+
+        vol = hu_to_mu(vol, kev)
+    if float(vol.min()) < 0:
+        raise click.ClickException(
+            f"{volume}: negative values (min {float(vol.min()):.4g}); simulate expects attenuation (1/mm, >= 0); "
+            "for Hounsfield units (a CT) add --hu (and --kev for the energy)")
+    try:
+        geo = _scanner_geometry(vol.shape, sp, views, arc, mode, DSD, DSO, detector, pixel)
+    except GeometryError as exc:
+        raise click_error(exc, "invalid scanner") from None
+    try:
+        from clgs.ops.ct_projector import CTProjector
+    except ImportError as exc:  # pragma: no cover - the CT module ships with clgs
+        raise click.ClickException(f"the CT projector is unavailable ({exc})") from None
+
+    click.echo(f"projecting {views} {mode}-beam views of a {'x'.join(map(str, vol.shape))} volume "
+               f"onto {detector}x{detector} pixels of {geo.dDetector[0]:.3g} mm ...", err=True)
+    t0 = time.perf_counter()
+    projector = CTProjector(geo)
+    volume32 = np.ascontiguousarray(vol, np.float32)
+    step = max(1, -(-views // 20))
+    chunks = [list(range(s, min(s + step, views))) for s in range(0, views, step)]
+    from clgs.progress import progress_bar
+
+    try:
+        with progress_bar(total=views, desc="simulate", unit="view", leave=False, disable=None) as bar:
+            parts = []
+            for chunk in chunks:
+                parts.append(np.asarray(projector.forward(volume32, views=chunk), np.float32))
+                bar.update(len(chunk))
+        proj = np.concatenate(parts, axis=0)
+    except MemoryError:
+        raise out_of_memory(f"to project {views} views of {detector}x{detector} pixels", vol.shape) from None
+    acquisition = {"noise": not no_noise, "I0": I0, "sigma": sigma, "scatter": scatter, "seed": seed}
+    if not no_noise:
+        from clgs.ct.noise import add_noise
+
+        max_p = float(proj.max()) if float(proj.max()) > 0 else 1.0  # add_noise's normalisation
+        proj = np.asarray(add_noise(proj, I0=I0, sigma=sigma, scatter=scatter, seed=seed), np.float32)
+        # a pixel whose count fell to the floor of 1 photon reads log(I0) * max_p: saturated
+        saturated = int((proj >= np.float32(math.log(I0) * max_p) * np.float32(1 - 1e-5)).sum())
+        acquisition["saturated"] = saturated
+        if saturated > 0.01 * proj.size:
+            click.echo(f"warning: {100.0 * saturated / proj.size:.1f} % of the detector pixels fell to the floor of "
+                       f"1 photon count (at --I0 {I0:g} with --sigma {sigma:g}): their line integrals saturate and "
+                       "carry no information; raise --I0", err=True)
+        neg = proj < 0
+        acquisition["clamped_negative"] = int(neg.sum())
+        proj[neg] = 0.0  # photon counts above the flat field: clamp as R2-Gaussian's generator does
+    elapsed = time.perf_counter() - t0
+    meta = {
+        "acquisition": acquisition,
+        "provenance": {"command": "clgs simulate", "argv": sys.argv[1:], "volume": str(volume),
+                       "volume_origin_xyz": None if org is None else list(org),
+                       "clgs_version": __import__("clgs").__version__,
+                       "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())},
+    }
+    surface = None
+    if surface_level is not None:
+        meta["truth_surface_level"] = surface_level
+        from clgs.mesh.surface import SurfaceError, surface_from_volume
+
+        try:
+            surface = surface_from_volume(vol, surface_level, geometry=geo)
+        except SurfaceError as exc:
+            raise click_error(exc, "--surface-level") from None
+    try:
+        Scan(geo, proj, vol, meta, surface).save(out, overwrite=force)
+    except (ScanError, FileExistsError) as exc:
+        raise click_error(exc) from None
+    click.echo(f"wrote {out}: {views} views, {elapsed:.1f} s")

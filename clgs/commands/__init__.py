@@ -1,1 +1,0 @@
-"""Click commands of the ``clgs`` CLI, one module per topic, imported lazily by ``clgs.cli``."""

@@ -1,0 +1,180 @@
+"""The settings every Gaussian reconstruction shares, and how a run gets them.
+
+:class:`JsonConfig` gives a method's settings (a dataclass) a checked JSON round trip;
+:class:`GaussianFitConfig` holds R2-Gaussian's defaults for what every Gaussian method has (loss
+weights, FDK-based initialisation, densification, scale bounds, projector, logging);
+:func:`run_config` gives a new run its settings or a resumed run its checkpoint's.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from clgs.fit import checkpoint as ckpt
+
+CHECKPOINT = "checkpoint.pt"  # the file name of a run's checkpoint in its folder
+
+
+def setting(default, flag: str | None = None, help: str = "", **cli):
+    """A settings field with its default; ``flag`` (e.g. ``"--tv"``) and ``help`` make it a
+    command-line option (:mod:`clgs.cli.options`), ``cli`` may add ``min``, ``max``, ``max_open``
+    beyond what the config's own checks say."""
+    meta = {} if flag is None else {"flag": flag, "help": help, **cli}
+    return field(default=default, metadata=meta)
+
+
+class JsonConfig:
+    """JSON round trip of a method's settings (a dataclass); unknown keys and values of the wrong
+    kind or out of range are a clear error (checked when the settings are made)."""
+
+    KIND = "method"
+    CLI: tuple = ()  # the fields offered on the command line (each has a flag in its metadata)
+    CHOICES: dict = {}  # setting -> allowed strings
+    POSITIVE: frozenset = frozenset()  # numbers that must be > 0 (every number must be >= 0)
+    AT_LEAST: dict = {}  # setting -> smallest allowed value
+
+    def __post_init__(self):
+        for f in fields(self):
+            setattr(self, f.name, self._checked(f.name, str(f.type), getattr(self, f.name)))
+
+    def _checked(self, name: str, kind: str, value):
+        where = f"{self.KIND} setting {name}"
+        if value is None:
+            if "None" in kind:
+                return None
+            raise ValueError(f"{where} must be given (got null)")
+        base = kind.split("|")[0].strip()
+        if base == "bool":
+            if not isinstance(value, (bool, np.bool_)):
+                raise ValueError(f"{where} must be true or false, got {value!r}")
+            return bool(value)
+        if base == "str":
+            if not isinstance(value, str):
+                raise ValueError(f"{where} must be a string, got {value!r}")
+            allowed = self.CHOICES.get(name)
+            if allowed and value not in allowed:
+                raise ValueError(f"{where} must be one of {', '.join(allowed)}, got {value!r}")
+            return value
+        if base == "tuple":
+            return value
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+            raise ValueError(f"{where} must be a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ValueError(f"{where} must be finite, got {value!r}")
+        if base == "int":
+            if value != int(value):
+                raise ValueError(f"{where} must be a whole number, got {value!r}")
+            value = int(value)
+        else:
+            value = float(value)
+        low = self.AT_LEAST.get(name, 0)
+        if value < low or (name in self.POSITIVE and value <= 0):
+            need = "> 0" if name in self.POSITIVE else f">= {low:g}"
+            raise ValueError(f"{where} must be {need}, got {value!r}")
+        return value
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        if d.get("scale_bounds") is not None:
+            d["scale_bounds"] = list(d["scale_bounds"])
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict):
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"unknown {cls.KIND} settings: {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+        d = dict(d)
+        if d.get("scale_bounds") is not None:
+            d["scale_bounds"] = tuple(d["scale_bounds"])
+        return cls(**d)
+
+
+@dataclass
+class GaussianFitConfig(JsonConfig):
+    """Settings every Gaussian reconstruction shares (R2-Gaussian's defaults): loss weights,
+    FDK-based initialisation, densification, scale bounds, the projector and the run's logging."""
+
+    iterations: int = setting(30_000, "--iterations", "training iterations (one view each)")
+    init_threshold: float = 0.05  # of the FDK range
+    density_factor: float = 0.15
+    lambda_dssim: float = setting(0.25, "--dssim", "weight of the D-SSIM term")
+    lambda_tv: float = setting(0.05, "--tv", "weight of the TV term (0 disables it)")
+    tv_size: int = 32
+    densify_start: int = 500
+    densify_until: int = 15_000
+    densify_interval: int = 100
+    grad_threshold: float = 5e-5
+    densify_scale_threshold: float = 0.1  # of the volume extent: at most this -> clone, else split
+    min_density: float = 1e-5
+    max_gaussians: int = setting(500_000, "--max-gaussians", "cap on the number of Gaussians while densifying")
+    scale_bounds: tuple | None = (0.0005, 0.5)  # of the volume extent; None -> exp scales
+    # smallest scale >= this x the scan's resolution (None: off)
+    scale_floor: float | None = setting(0.4, "--scale-floor",
+                                        "smallest Gaussian scale as a fraction of the scan's resolution (voxel or "
+                                        "detector pixel at the axis); 0 keeps only R2-Gaussian's 0.05 % of the volume")
+    # "affine" (R2-Gaussian) | "exact"
+    projector_mode: str = setting("affine", "--projector",
+                                  "R2-Gaussian's affine splat or the exact ray integral")
+    backend: str = setting("cl", "--backend", "OpenCL kernels or the plain torch reference")
+    seed: int = setting(0, "--seed", "random seed")
+    value_scale: float | None = None  # None -> 1 / p99.9 of the FDK volume
+    log_every: int = setting(500, "--log-every", "evaluate and log every N iterations")
+    checkpoint_every: int = setting(1000, "--checkpoint-every",
+                                    "write a checkpoint every N iterations (0: only at the end / on Ctrl-C)")
+    schedule_iterations: int | None = None  # length of the lr decays (default: iterations)
+
+    CHOICES = {"projector_mode": ("affine", "exact"), "backend": ("cl", "torch")}
+    POSITIVE = frozenset({"value_scale"})
+    AT_LEAST = {"iterations": 1, "densify_interval": 1, "max_gaussians": 1, "tv_size": 2, "schedule_iterations": 1}
+
+    def __post_init__(self):
+        super().__post_init__()
+        b = self.scale_bounds
+        if b is not None:
+            try:
+                lo, hi = (float(x) for x in b)
+            except (TypeError, ValueError):
+                raise ValueError(f"{self.KIND} setting scale_bounds must be two numbers (or null), got {b!r}") from None
+            if not (0 < lo < hi and math.isfinite(hi)):
+                raise ValueError(f"{self.KIND} setting scale_bounds must satisfy 0 < low < high, got {b!r}")
+            self.scale_bounds = (lo, hi)
+
+
+def run_config(config_cls, iterations: int | None, settings: dict, resume: bool, out_dir):
+    """(settings, checkpoint or None) of a new run, or of a run resumed from ``out_dir``: a resumed
+    run keeps its checkpoint's settings (only ``iterations`` may grow and ``backend`` change).
+
+    ``iterations=None``: the default (30 000) for a new run; for a resumed one, the iterations it
+    was started with (an interrupted run is finished, not extended)."""
+    if iterations is not None and int(iterations) < 1:
+        raise ValueError(f"iterations must be at least 1, got {iterations}")
+    settings = dict(settings)
+    if not resume:
+        n = config_cls().iterations if iterations is None else int(iterations)
+        return config_cls.from_json({**config_cls().to_json(), **settings, "iterations": n}), None
+    if out_dir is None:
+        raise ValueError("resume needs out_dir (the folder holding checkpoint.pt)")
+    state = ckpt.load(Path(out_dir) / CHECKPOINT)
+    try:
+        saved = ckpt.loads(state["config"])
+        if not isinstance(saved, dict):
+            raise TypeError(type(saved).__name__)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ckpt.CheckpointError(f"{Path(out_dir) / CHECKPOINT} holds no readable run settings ({exc}): it "
+                                   "cannot be resumed; start a new run") from None
+    if "scale_floor" not in saved and any(f.name == "scale_floor" for f in fields(config_cls)):
+        saved["scale_floor"] = None  # written before the floor existed: keep the bounds it trained with
+    cfg = config_cls.from_json(saved)
+    cfg.schedule_iterations = cfg.schedule_iterations or cfg.iterations
+    planned = cfg.iterations if iterations is None else int(iterations)
+    cfg.iterations = max(planned, int(state["iteration"]))
+    if "backend" in settings:  # where to compute does not change the run's meaning
+        cfg.backend = settings.pop("backend")
+    if settings:
+        raise ValueError(f"resume continues with the checkpoint's settings; drop {', '.join(sorted(settings))}")
+    return cfg, state

@@ -1,0 +1,25 @@
+"""What the Gaussian methods (:mod:`.r2gs`, :mod:`.shape_guided`) share as methods: the options
+of a run that are not settings, and the dictionary a run hands back to the command line."""
+from __future__ import annotations
+
+import sys
+
+from clgs.methods import Option
+
+RUN_OPTIONS = [
+    Option("--resume", "resume", "flag", "continue the run in --out from its checkpoint (bit for bit)"),
+    Option("--progress", "progress", "switch", "show a progress bar"),
+]
+
+
+def method_output(result, out_dir, files: dict, **extra) -> dict:
+    """``{"volume", "files", "info"}`` of a finished (or interrupted) run; its summary, and how to
+    continue an interrupted one, go to stderr. ``extra``: more figures for the report."""
+    print(result.summary, file=sys.stderr)
+    if result.interrupted:
+        where = f"; continue with --resume --out {out_dir}" if out_dir is not None else ""
+        print(f"interrupted at iteration {result.trainer.iteration}: outputs so far written{where}", file=sys.stderr)
+    info = {"iterations": result.trainer.iteration, "n_gaussians": result.trainer.n_gaussians,
+            "training_seconds": result.trainer.seconds, "value_scale": result.value_scale,
+            "interrupted": result.interrupted, **extra}
+    return {"volume": result.volume, "files": files, "info": info}

@@ -1,0 +1,220 @@
+"""Build a shape model and density atlas from a population: register, PCA, atlas, one file.
+
+1. Each subject's surface is turned into a signed distance and registered to the template
+   (:func:`clgs.shape.registration.register`), giving a velocity field v_i on the model grid.
+2. PCA (SVD) of the velocity fields, keeping the fewest modes that explain ``variance`` of the
+   total (or exactly ``n_modes``).
+3. Density atlas: each subject's CT pulled back into template space, ``CT_i(exp(v_i)(x))`` (the
+   CT pushed forward by the inverse map exp(-v_i)), then the per-voxel mean and (population)
+   variance over subjects, on the template grid.
+4. One versioned npz (see :mod:`clgs.shape.model`) with the population ids, settings and
+   their hash, variance kept and residuals.
+
+Caching: if ``out_path`` exists with the same settings hash the build is skipped. Resuming:
+each subject's registration (and warped CT) is saved atomically in ``<out_path>.cache/``
+as soon as it is done, keyed by the subject's content and the registration settings; a
+build that was interrupted picks up where it stopped. The cache is removed after a
+successful build unless ``keep_cache``.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from collections.abc import Mapping
+from typing import Callable, Iterable, Optional, Union
+
+import numpy as np
+
+from clgs.shape.template import (Subject, Template, save_npz_atomic, json_array, json_from_array, box_grid, grid_points,
+                           mesh_to_sdf)
+
+BUILDER_VERSION = 2  # 2: the atlas samples a CT with its border value past its grid (was air)
+
+
+def _hash(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _subject_items(subjects):
+    """(id, loader) pairs from a sequence of Subjects or a mapping id -> Subject | loader."""
+    if isinstance(subjects, Mapping):
+        items = []
+        for sid, s in subjects.items():
+            items.append((str(sid), s if callable(s) else (lambda s=s: s)))
+        return items
+    items = []
+    for s in subjects:
+        if not isinstance(s, Subject):
+            raise TypeError("subjects must be clgs.shape.template.Subject objects (or a mapping id -> loader), "
+                            f"got {type(s)}")
+        items.append((s.id, lambda s=s: s))
+    return items
+
+
+def population_pca(velocities: np.ndarray, variance: Optional[float] = 0.95, n_modes: Optional[int] = None):
+    """PCA of flattened fields (n, D): (mean (D,), modes (M, D) orthonormal, sigma (M,), explained
+    fraction of the total variance kept, all singular variances).
+
+    sigma is the standard deviation of the scores (divisor n - 1), so alpha ~ N(0, I)."""
+    X = np.asarray(velocities, np.float64)
+    n = X.shape[0]
+    if n < 2:
+        raise ValueError(f"PCA needs at least 2 subjects, got {n}")
+    mean = X.mean(0)
+    _, s, vt = np.linalg.svd(X - mean, full_matrices=False)
+    var = s ** 2 / (n - 1)
+    total = var.sum()
+    keep = var > max(total, 1e-30) * 1e-12
+    var, vt = var[keep], vt[keep]
+    if n_modes is not None:
+        if n_modes < 1:
+            raise ValueError(f"n_modes must be >= 1, got {n_modes}")
+        m = min(int(n_modes), len(var))
+    else:
+        if variance is None or not (0 < variance <= 1):
+            raise ValueError(f"variance must be in (0, 1], got {variance}")
+        if len(var) == 0:
+            m = 0
+        else:
+            frac = np.cumsum(var) / total
+            m = int(np.searchsorted(frac, variance - 1e-12) + 1)
+            m = min(m, len(var))
+    if m == 0:  # identical subjects: a model with no variation
+        return mean, np.zeros((0, X.shape[1])), np.zeros(0), 1.0, var
+    kept = float(var[:m].sum() / total) if total > 0 else 1.0
+    return mean, vt[:m], np.sqrt(var[:m]), kept, var
+
+
+def build_model(template: Template, subjects: Union[Iterable[Subject], Mapping], out_path,
+                variance: float = 0.95, n_modes: Optional[int] = None, max_cells: int = 64,
+                registration: Optional[dict] = None, atlas: bool = True, force: bool = False,
+                keep_cache: bool = False, progress: bool = True, extra_meta: Optional[dict] = None,
+                on_subject: Optional[Callable] = None, threads: Optional[int] = 1) -> str:
+    """Register every subject to the template, PCA the velocities, average the CTs; write one file.
+
+    template: the reference :class:`Template`. subjects: Subjects, or a mapping id -> Subject or
+    zero-argument loader (loaded one at a time; only loaded when not cached).
+    out_path: the model file (.npz). variance / n_modes: modes to keep (n_modes wins).
+    max_cells: model grid cells along the template box's longest side. registration: keyword
+    settings of :class:`clgs.shape.registration.RegistrationSettings`. atlas: build the density atlas
+    from subjects' CT volumes (skipped with a note when no subject has one). force: rebuild even
+    if an up-to-date file exists. on_subject(i, id): called after each subject (tests use it).
+    threads: torch threads per registration (1: small fields, and a shared machine). Returns out_path.
+
+    Long because it is the pipeline's script: cache check, registration of every subject,
+    PCA, atlas and metadata, each a call to a helper, with progress and caching around them.
+    """
+    import torch
+    from clgs.progress import progress_bar
+
+    from clgs.shape.registration import RegistrationSettings, register
+    from clgs.shape.model import (ModelFileError, ShapeModel, DensityAtlas, exp_velocity, read_metadata,
+                                  sample_field, save_model)
+
+    out_path = os.fspath(out_path)
+    items = _subject_items(subjects)
+    ids = [sid for sid, _ in items]
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"subject ids must be unique, got {ids}")
+    if len(items) < 2:
+        raise ValueError(f"a shape model needs at least 2 subjects, got {len(items)}")
+    reg = RegistrationSettings.from_dict(registration)
+    mshape, msp, morg = template.model_grid(max_cells)
+    reg_key = {"builder": BUILDER_VERSION, "template": template.content_hash(), "max_cells": int(max_cells),
+               "registration": reg.to_dict(), "atlas": bool(atlas)}
+    settings = dict(reg_key, population=ids, variance=None if n_modes is not None else float(variance),
+                    n_modes=None if n_modes is None else int(n_modes))
+    settings_hash = _hash(settings)
+
+    if not force and os.path.exists(out_path):  # up to date: nothing to do
+        try:
+            if read_metadata(out_path).get("settings_hash") == settings_hash:
+                return out_path
+        except ModelFileError:
+            pass  # unreadable or another format: rebuild
+
+    cache = out_path + ".cache"
+    os.makedirs(cache, exist_ok=True)
+    reg_hash = _hash(reg_key)
+    # the template's distance from its own surface, computed on the model grid exactly as the
+    # subjects' are (resampling template.sdf would add interpolation differences)
+    fixed = mesh_to_sdf(template.vertices, template.faces, mshape, msp, morg)
+    tpoints = grid_points(template.shape, template.spacing, template.origin).reshape(-1, 3)
+    velocities, residuals, warped_sum, warped_sq, n_ct = [], {}, None, None, 0
+    bar = progress_bar(items, desc=f"registering to {template.name or 'template'}", unit="subject",
+                       disable=not progress)
+    for i, (sid, loader) in enumerate(bar):
+        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in sid)
+        path = os.path.join(cache, f"{safe}-{reg_hash}.npz")
+        record = None
+        if os.path.exists(path):
+            try:
+                with np.load(path, allow_pickle=False) as z:
+                    record = {k: z[k] for k in z.files}
+                meta = json_from_array(record["metadata"])
+                if meta.get("id") != sid or tuple(record["velocity"].shape) != (3,) + tuple(mshape):
+                    record = None
+            except Exception:  # a damaged cache entry is simply redone
+                record = None
+        if record is None:
+            subject = loader()
+            if subject.id != sid:
+                raise ValueError(f"loader for {sid!r} returned subject {subject.id!r}")
+            lo = np.minimum(subject.vertices.min(0), template.bounds()[0]) - 4 * msp[0]
+            hi = np.maximum(subject.vertices.max(0), template.bounds()[1]) + 4 * msp[0]
+            gshape, gsp, gorg = box_grid(lo, hi, spacing=msp[0])
+            moving = subject.sdf_on(gshape, gsp, gorg)
+            result = register(fixed, msp, morg, moving, gsp, gorg, settings=reg, surface_points=template.vertices,
+                              threads=threads)
+            record = {"velocity": result.velocity}
+            if atlas and subject.volume is not None:
+                with torch.no_grad():
+                    u = exp_velocity(torch.as_tensor(result.velocity), msp)
+                    p = torch.as_tensor(tpoints, dtype=torch.float32)
+                    mapped = (p + sample_field(u, p, msp, morg)).numpy()
+                # a CT grid ends where the scan did, not where the body does: points warped past
+                # its border take the border value (clamped), not air, which would inflate the
+                # atlas variance in the template's first and last slices
+                record["warped_ct"] = subject.volume_at(mapped, fill=None).reshape(template.shape)
+            record["metadata"] = json_array({"id": sid, "residuals": result.residuals,
+                                              "subject_hash": subject.content_hash()})
+            save_npz_atomic(path, record)
+        meta = json_from_array(record["metadata"])
+        velocities.append(np.asarray(record["velocity"], np.float32).reshape(-1))
+        residuals[sid] = meta["residuals"]
+        if "warped_ct" in record:
+            w = np.asarray(record["warped_ct"], np.float64)
+            warped_sum = w if warped_sum is None else warped_sum + w
+            warped_sq = w * w if warped_sq is None else warped_sq + w * w
+            n_ct += 1
+        if progress:
+            bar.set_postfix(surface_mm=f"{meta['residuals'].get('surface_mean_mm', float('nan')):.2f}")
+        if on_subject is not None:
+            on_subject(i, sid)
+
+    V = np.stack(velocities)
+    mean, modes, sigma, kept, all_var = population_pca(V, variance, n_modes)
+    # how well the kept modes reproduce each training field (mm, RMS over the grid)
+    C = V.astype(np.float64) - mean
+    recon = C @ modes.T @ modes if len(modes) else np.zeros_like(C)
+    pca_rms = np.sqrt(((C - recon) ** 2).reshape(len(V), -1, ).mean(1))
+    for sid, r in zip(ids, pca_rms):
+        residuals[sid]["pca_rms_mm"] = float(r)
+    model = ShapeModel(mean.reshape(3, *mshape), modes.reshape(-1, 3, *mshape), sigma, msp, morg)
+    density = None
+    if atlas and n_ct:
+        m = warped_sum / n_ct
+        var = np.maximum(warped_sq / n_ct - m * m, 0.0)
+        var[var < 1e-12 * max(float(np.abs(m).max()) ** 2, 1e-30)] = 0.0  # round-off of identical inputs
+        density = DensityAtlas(m.astype(np.float32), var.astype(np.float32), template.spacing, template.origin)
+    meta = dict(extra_meta or {})
+    meta.update(population=ids, settings=settings, settings_hash=settings_hash, variance_kept=kept,
+                variance_spectrum=[float(x) for x in all_var], residuals=residuals, template_name=template.name,
+                template_hash=template.content_hash(), atlas_subjects=n_ct,
+                atlas_note="" if (density is not None or not atlas) else "no subject had a CT volume: no atlas")
+    save_model(out_path, model, density, meta)
+    if not keep_cache:
+        shutil.rmtree(cache, ignore_errors=True)
+    return out_path

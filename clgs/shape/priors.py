@@ -1,0 +1,99 @@
+"""The loss terms a shape model and a density atlas give a Gaussian fit: the shape prior on the
+mode coefficients and the atlas density prior on the field, over a random sub-grid."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from clgs.geometry import Grid
+from clgs.shape.gaussian_set import ShapeGuidedSet
+
+
+def shape_prior_term(set_name: str = "shape"):
+    """|alpha|^2 of the shape set."""
+
+    def fn(ctx):
+        s = _set(ctx.trainer, set_name)
+        return (s.alpha * s.alpha).sum()
+
+    return fn
+
+
+def _set(trainer, name):
+    for s in trainer.sets:
+        if s.name == name:
+            return s
+    raise KeyError(name)
+
+
+def random_subgrid(grid, n: int, generator: torch.Generator):
+    """An ``n^3`` strided grid spanning ``grid``'s box with a random sub-stride offset."""
+    shape = np.asarray(grid.shape)  # (Z, Y, X)
+    sp = np.asarray(grid.spacing, float)  # (x, y, z)
+    counts = np.minimum(shape, n)
+    extent = (shape[::-1] - 1) * sp  # (x, y, z)
+    step = np.where(counts[::-1] > 1, extent / np.maximum(counts[::-1], 1), 0.0)
+    offset = torch.rand(3, generator=generator, dtype=torch.float64).numpy() * step
+    origin = np.asarray(grid.origin, float) + offset
+    return Grid(tuple(int(c) for c in counts), tuple(origin), tuple(np.where(step > 0, step, sp)))
+
+
+class DensityPrior:
+    """``L_density`` of the module doc, evaluated lazily per iteration.
+
+    ``field="shape"``: the shape set's field ``V_s`` inside the template's bone (carried by the
+    current deformation), as the paper writes it. ``field="all"``: the whole model's field
+    everywhere on the sub-grid, against the atlas of the whole scan (bone and the tissue around
+    it), with the same confidence ``w``; the free Gaussians then get the atlas's help where the
+    few views leave them undetermined (measured on the femur at 5 views and 600 iterations:
+    +0.3 dB over ``"shape"``)."""
+
+    def __init__(self, atlas, template, geometry, value_scale: float, s: float, n_points: int,
+                 set_name: str = "shape", field: str = "shape"):
+        if field not in ("shape", "all"):
+            raise ValueError(f"density prior field must be 'shape' or 'all', got {field!r}")
+        self.atlas, self.template, self.geometry = atlas, template, geometry
+        self.value_scale = float(value_scale)
+        self.s2 = float(s) ** 2
+        self.n_points = int(n_points)
+        self.set_name = set_name
+        self.field = field
+        lo, hi = template.bounds()
+        self._lo, self._hi = torch.as_tensor(lo, dtype=torch.float32), torch.as_tensor(hi, dtype=torch.float32)
+        self._label = torch.as_tensor(template.label.astype(np.float32))[None, None]
+
+    def _inside_template(self, pts_mm: torch.Tensor) -> torch.Tensor:
+        g = ((pts_mm - self._lo) / (self._hi - self._lo) * 2 - 1).reshape(1, 1, 1, -1, 3)
+        m = F.grid_sample(self._label, g, mode="bilinear", padding_mode="zeros", align_corners=True)
+        return m.reshape(-1)
+
+    def __call__(self, ctx):
+        trainer = ctx.trainer
+        s = _set(trainer, self.set_name)
+        grid = random_subgrid(self.geometry.volume_grid(scene=True), self.n_points, ctx.generator)
+        if self.field == "all":
+            tensors = ctx.tensors
+        else:
+            n = len(s)
+            offset = 0
+            for other in trainer.sets:  # the shape set's rows within the concatenated scene tensors
+                if other is s:
+                    break
+                offset += len(other)
+            tensors = tuple(t[offset:offset + n] for t in ctx.tensors)
+        v = ctx.voxelize(grid, tensors).reshape(-1)
+        with torch.no_grad():
+            pts = torch.as_tensor(grid.points().reshape(-1, 3), dtype=torch.float32)
+            pts_mm = pts / self.geometry.scale + torch.as_tensor(np.asarray(self.geometry.offOrigin[::-1]),
+                                                                 dtype=torch.float32)
+            x_t = s.to_template(pts_mm) if isinstance(s, ShapeGuidedSet) else pts_mm
+            mean = self.atlas.mean_at(x_t.double()).float() * self.value_scale
+            var = self.atlas.var_at(x_t.double()).float() * self.value_scale ** 2
+            w = torch.exp(-var / self.s2)
+            if self.field == "shape":
+                w = w * self._inside_template(x_t)
+        return (w * (v - mean) ** 2).mean()
+
+
+# ---------------------------------------------------------------------- building a run

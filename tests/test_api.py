@@ -1,0 +1,56 @@
+"""The public Python API (``clgs.NAME``) and the one error base class."""
+import importlib
+import inspect
+import os
+import pkgutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import clgs
+from clgs.errors import ClgsError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("name", clgs.__all__)
+def test_every_public_name_loads_and_is_documented(name):
+    value = getattr(clgs, name)
+    assert (inspect.getdoc(value) or "").strip(), f"clgs.{name} has no docstring"
+    exec(f"from clgs import {name}", {})
+
+
+def test_an_unknown_name_is_an_attribute_error():
+    with pytest.raises(AttributeError):
+        clgs.no_such_name  # noqa: B018
+
+
+def test_import_clgs_stays_light():
+    code = ("import sys, clgs\nassert clgs.__version__\n"
+            "print([m for m in ('torch', 'pyopencl', 'numpy') if m in sys.modules])")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
+# clgs.runtime's device error is a RuntimeError of the OpenCL set-up, not about the user's input
+NOT_INPUT_ERRORS = {"clgs.runtime.devices.NoOpenCLDevice"}
+
+
+def test_every_error_clgs_defines_is_a_clgs_error():
+    found = []
+    for info in pkgutil.walk_packages(clgs.__path__, "clgs."):
+        if info.name.endswith("__main__"):
+            continue
+        module = importlib.import_module(info.name)
+        for name, obj in vars(module).items():
+            if (inspect.isclass(obj) and issubclass(obj, Exception) and not issubclass(obj, Warning)
+                    and obj.__module__ == info.name
+                    and f"{info.name}.{name}" not in NOT_INPUT_ERRORS):
+                found.append(obj)
+    assert len(found) >= 12
+    wrong = [f"{c.__module__}.{c.__name__}" for c in found if not issubclass(c, ClgsError)]
+    assert not wrong, f"errors outside ClgsError: {wrong}"

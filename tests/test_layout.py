@@ -1,0 +1,159 @@
+"""The package's layout: imports run one way through the layers, with no cycles and no private
+names taken from another module, and the command line starts without torch or pyopencl.
+
+The import graph is read from the source (every ``import`` statement, at module level or inside a
+function), so a lazy import counts like any other."""
+import ast
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "clgs"
+
+# Lowest first. A module may import its own layer and the layers before it, never a later one.
+LAYERS = [
+    ["clgs.errors", "clgs.geometry", "clgs.progress"],
+    ["clgs.io"],
+    ["clgs.mesh"],
+    ["clgs.metrics"],
+    ["clgs.runtime"],
+    ["clgs.ops"],
+    ["clgs.reference"],
+    ["clgs.ct"],
+    ["clgs.fit"],
+    ["clgs.shape"],
+    ["clgs.anatomy"],
+    ["clgs.methods"],
+    ["clgs.experiment"],
+    ["clgs.api", "clgs.bench"],
+    ["clgs.cli"],
+]
+# The package's own __init__ is the public facade: it loads clgs.api on first attribute access.
+FACADE = "clgs"
+# Known, function-level: choosing a device builds the probe kernel with the program cache, which
+# itself asks for the chosen device's context. Both sit inside clgs.runtime.
+ALLOWED_EDGES = {("clgs.runtime.devices", "clgs.runtime.programs")}
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def modules() -> dict:
+    return {module_name(p): p for p in PACKAGE.rglob("*.py")}
+
+
+def imports(name: str, path: Path, known: dict):
+    """(imported module, imported names) for every import statement of a module."""
+    tree = ast.parse(path.read_text(), str(path))
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield alias.name, []
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - node.level + 1]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module
+            for alias in node.names:
+                sub = f"{target}.{alias.name}"
+                yield (sub, []) if sub in known else (target, [alias.name])
+
+
+def graph() -> tuple:
+    known = modules()
+    edges, private = {}, []
+    for name, path in known.items():
+        out = edges.setdefault(name, set())
+        for target, names in imports(name, path, known):
+            if not target.startswith("clgs"):
+                continue
+            while target not in known and "." in target:
+                target = target.rpartition(".")[0]
+            if target != name and (name, target) not in ALLOWED_EDGES:
+                out.add(target)
+            private += [f"{name} imports {n} from {target}" for n in names
+                        if n.startswith("_") and not n.startswith("__") and target != name]
+    return edges, private
+
+
+def layer_of(name: str) -> int:
+    for i, layer in enumerate(LAYERS):
+        if any(name == m or name.startswith(m + ".") for m in layer):
+            return i
+    raise AssertionError(f"{name} is in no layer of tests/test_layout.py: place it there")
+
+
+def test_every_module_has_a_layer_and_imports_only_lower_layers():
+    edges, _ = graph()
+    wrong = [f"{a} (layer {layer_of(a)}) imports {b} (layer {layer_of(b)})"
+             for a, targets in edges.items() if a != FACADE for b in targets
+             if b != FACADE and layer_of(b) > layer_of(a)]
+    assert not wrong, "imports against the layers:\n" + "\n".join(sorted(wrong))
+
+
+def test_no_import_cycles():
+    edges, _ = graph()
+    cycles, state = [], {}
+
+    def visit(node, stack):
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(edges.get(node, ())):
+            if state.get(nxt) == 1:
+                cycles.append(" -> ".join(stack[stack.index(nxt):] + [nxt]))
+            elif nxt not in state:
+                visit(nxt, stack)
+        stack.pop()
+        state[node] = 2
+
+    for node in sorted(edges):
+        if node not in state:
+            visit(node, [])
+    assert not cycles, "import cycles:\n" + "\n".join(cycles)
+
+
+def test_no_private_name_is_imported_from_another_module():
+    _, private = graph()
+    assert not private, "\n".join(private)
+
+
+def test_the_library_below_the_cli_never_imports_click():
+    edges, _ = graph()
+    known = modules()
+    users = [name for name, path in known.items()
+             if name != FACADE and layer_of(name) < layer_of("clgs.bench")
+             and any(t == "click" or t.startswith("click.") for t, _ in imports(name, path, known))]
+    assert not users, "modules outside clgs.cli that import click: " + ", ".join(sorted(users))
+
+
+def test_help_and_import_of_the_cli_load_neither_torch_nor_pyopencl():
+    code = ("import sys\nfrom click.testing import CliRunner\nimport clgs\nimport clgs.cli\n"
+            "r = CliRunner().invoke(clgs.cli.main, ['--help'])\nassert r.exit_code == 0, r.output\n"
+            "heavy = sorted(m for m in ('torch', 'pyopencl', 'numpy') if m in sys.modules)\n"
+            "print(','.join(heavy))\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    loaded = [m for m in out.stdout.strip().split(",") if m in ("torch", "pyopencl")]
+    assert not loaded, f"clgs --help imported {loaded}"
+
+
+def test_the_code_passes_ruff():
+    """``[tool.ruff]`` in pyproject.toml; skipped where ruff is not installed."""
+    import shutil
+
+    ruff = shutil.which("ruff")
+    if ruff is None:
+        pytest.skip("ruff is not installed")
+    out = subprocess.run([ruff, "check", "clgs", "tests", "examples", "anatomies"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stdout + out.stderr
