@@ -129,7 +129,7 @@ def main(argv=None):
     else:
         print(f"no femur model at {pop.model_path} yet (clgs femur build-model): atlas figure skipped")
     try:
-        from clgs.ops.ct_projector import CTProjector
+        from clgs import CTProjector
     except ImportError as exc:
         print(f"no CT projector ({exc}): projection figure skipped")
         return

@@ -1,7 +1,10 @@
 """The ``clgs`` command line: a click group whose commands are imported only when run.
 
 Commands live in the modules beside this one; anatomy plugins add one group each (see ``clgs.anatomy.plugins``).
-Nothing heavy (torch, pyopencl) is imported to print ``clgs --help``.
+Nothing heavy (torch, pyopencl) is imported to print ``clgs --help``: commands import the
+library when they run.
+
+May import every layer; nothing imports it.
 """
 from __future__ import annotations
 

@@ -9,4 +9,7 @@ noise model and analytic phantoms.
 * :mod:`clgs.ct.phantoms` - ellipsoid phantoms with exact line integrals.
 
 Import the submodules directly; this package imports nothing heavy on its own.
+
+May import: :mod:`clgs.ops`, :mod:`clgs.runtime`, :mod:`clgs.io`, :mod:`clgs.geometry`. Not fit,
+methods or the CLI.
 """

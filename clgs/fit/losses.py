@@ -17,8 +17,10 @@ import weakref
 import torch
 
 from clgs.metrics import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW
+from clgs.ops import ssim as ssim_cl
 from clgs.ops.ssim import Blur, shift_blur, target_maps
 from clgs.ops.ssim import window as window_tensor
+
 
 def _ssim_terms(a, b, mu_b, bb, wl, c1, c2):
     """The SSIM map's factors (numerator ``a1 a2``, denominator ``b1 b2``) and ``mu_a``."""
@@ -125,8 +127,6 @@ class ImageTerms:
     def _both(self, ctx):
         out = self._results.get(ctx)
         if out is None:
-            from clgs.ops import ssim as ssim_cl
-
             render = ctx.render
             key = (ctx.view, render.dtype)
             target = self._targets.get(key)

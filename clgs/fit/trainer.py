@@ -42,6 +42,12 @@ import torch
 
 from clgs.fit import checkpoint as ckpt
 from clgs.fit.training_log import Progress, TrainingLog
+from clgs.geometry import Grid
+from clgs.ops import gaussian_math
+from clgs.ops.projector import project_packed
+from clgs.ops.voxelizer import columns, cov_prec, grid_candidates, voxelize_precision
+from clgs.reference import voxelization
+from clgs.reference.projection import project_patches
 
 FINITE_CHECK_EVERY = 100  # iterations between checks that every parameter is finite
 
@@ -70,8 +76,6 @@ class Backend:
         if name == "cl":
             self._project, self._voxelize = self._cl_project, self._cl_voxelize
         else:
-            from clgs.reference import voxelization
-
             self._voxelize = getattr(voxelization, "voxelize_windowed", voxelization.voxelize)
             self._project = self._torch_project
 
@@ -85,7 +89,6 @@ class Backend:
     def _matrices(self, scales, quats):
         """(cov, prec, extent) for ``scales``/``quats``, from the last call when it was for the same
         tensors (same objects, unmodified, same grad mode), else computed now."""
-        from clgs.ops.voxelizer import cov_prec
 
         out = self._kept(scales, quats)
         if out is not None:
@@ -111,9 +114,6 @@ class Backend:
         self._last = None
 
     def _cl_project(self, means, scales, quats, densities, geometry, views, mode):
-        from clgs.ops.projector import project_packed
-        from clgs.ops.voxelizer import cov_prec
-
         if torch.is_grad_enabled() and (scales.requires_grad or quats.requires_grad):
             cov, prec, _ = self._matrices(scales, quats)
         else:  # evaluation: only what the projector reads
@@ -121,9 +121,6 @@ class Backend:
         return project_packed(means, cov if mode == "affine" else prec, densities, geometry, views, mode=mode)
 
     def _cl_voxelize(self, means, scales, quats, densities, grid):
-        from clgs.geometry import Grid
-        from clgs.ops.voxelizer import columns, cov_prec, grid_candidates, voxelize_precision
-
         kept = self._kept(scales, quats) if isinstance(grid, Grid) else None
         if kept is not None:
             return self.voxelize_shared(means, kept[1], densities, kept[2], grid)
@@ -142,7 +139,6 @@ class Backend:
         """The field on ``grid`` from every Gaussian's precision and half-widths (N, 6), (N, 3):
         culls by the exact 3-sigma boxes and hands the kernels only the rows that reach the grid
         (index_select keeps autograd exact: the others' gradients are 0)."""
-        from clgs.ops.voxelizer import grid_candidates, voxelize_precision
 
         idx = grid_candidates(means, extent, grid)
         if idx is not None:
@@ -150,9 +146,6 @@ class Backend:
         return voxelize_precision(means, prec, densities, extent, grid, cull=False)
 
     def _torch_project(self, means, scales, quats, densities, geometry, views, mode):
-        from clgs.ops import gaussian_math
-        from clgs.reference.projection import project_patches
-
         # the reference builds its Jacobians with torch.func, which returns NaN under no_grad here
         with torch.enable_grad():
             mats = (gaussian_math.covariance if mode == "affine" else gaussian_math.precision)(scales, quats)

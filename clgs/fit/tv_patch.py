@@ -36,9 +36,22 @@ import numpy as np
 import pyopencl as cl
 import torch
 
+from clgs.fit.losses import tv3d, tv_count
 from clgs.geometry import Grid
-from clgs.ops.voxelizer import (GRADSTRIDE, GSTRIDE, SMALL_CELLS, Voxelizer, np_dtype, wanted_gradients,
-                        default_voxelizer, grid_axes)
+from clgs.ops.voxelizer import (
+    GRADSTRIDE,
+    GSTRIDE,
+    SMALL_CELLS,
+    Voxelizer,
+    columns,
+    cov_prec,
+    default_voxelizer,
+    grid_axes,
+    grid_candidates,
+    np_dtype,
+    voxelize_precision,
+    wanted_gradients,
+)
 from clgs.runtime import round_up
 
 _CHUNK = 512  # Gaussians per culling work-item (at least; at most _MAX_CHUNKS chunks)
@@ -52,7 +65,6 @@ _runners: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()  # Voxelizer
 def _tv_weights(shape, dt):
     """(w_x, w_y, w_z): each difference's weight in the TV, 1 / (number of differences over the
     three axes, see ``losses.tv_count``), 0 for an axis of one sample."""
-    from clgs.fit.losses import tv_count
 
     count = tv_count(shape)
     w = dt(1) / dt(count) if count else dt(0)
@@ -184,7 +196,6 @@ class PatchTV:
         k = int(meta[0])
         # the TV as tv3d defines it: all absolute differences over their count; the slices'
         # partial sums are added in float64
-        from clgs.fit.losses import tv_count
 
         sums = part[:3 * nz].reshape(nz, 3).astype(np.float64).sum(0)
         count = tv_count((nz, ny, nx))
@@ -256,9 +267,6 @@ def tv_patch(means, prec, densities, extent, grid: Grid, voxelizer: Voxelizer | 
     vox = voxelizer or default_voxelizer()
     _, _, nb = vox.brick_cells(grid)
     if int(np.prod(nb)) > SMALL_CELLS:
-        from clgs.fit.losses import tv3d
-        from clgs.ops.voxelizer import voxelize_precision
-
         return tv3d(voxelize_precision(means, prec, densities, extent, grid, vox))
     if not (torch.is_grad_enabled() and any(t.requires_grad for t in (means, prec, densities))):
         value = _runner(vox).forward(means, prec, densities, extent, grid)[0]  # no gradient rows
@@ -277,13 +285,10 @@ def patch_tv(backend, tensors, grid: Grid) -> torch.Tensor:
     ``tv3d(backend.voxelize(*tensors, grid))``, fused on the OpenCL backend (see the module doc)."""
     means, scales, quats, densities = tensors
     if getattr(backend, "name", None) != "cl":
-        from clgs.fit.losses import tv3d
-
         return tv3d(backend.voxelize(means, scales, quats, densities, grid))
     kept = backend._kept(scales, quats)
     if kept is not None:
         return tv_patch(means, kept[1], densities, kept[2], grid)
-    from clgs.ops.voxelizer import columns, cov_prec, grid_candidates
 
     # no matrices from this step's projection: build them only for the Gaussians a 3 max(scale)
     # cube lets reach the block (as Backend._cl_voxelize does)

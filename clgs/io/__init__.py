@@ -10,4 +10,7 @@
 * :mod:`clgs.io.mesh`: surface meshes (STL, PLY, OBJ written in LPS with Slicer's tag; npz).
 
 Submodules are imported on demand; this package stays light.
+
+May import: :mod:`clgs.geometry` and :mod:`clgs.errors` only (every other layer reads and writes
+through here).
 """

@@ -45,19 +45,32 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from clgs.anatomy import plugins
 from clgs.anatomy.evaluation import bone_surface  # the outer bone surface written with the outputs
-from clgs.fit.gaussians import GaussianSet, Schedule, init_from_volume, r2gs_schedules
-from clgs.fit.assembly import (fdk_volume, make_trainer, projection_losses, restore, scale_bounds_for,
-                               value_scale_from, volume_box)
+from clgs.fit import losses as L
+from clgs.fit.assembly import (
+    fdk_volume,
+    make_trainer,
+    projection_losses,
+    restore,
+    scale_bounds_for,
+    value_scale_from,
+    volume_box,
+)
 from clgs.fit.config import GaussianFitConfig, run_config, setting
+from clgs.fit.gaussians import GaussianSet, Schedule, init_from_volume, r2gs_schedules
 from clgs.fit.outputs import gaussians_in_scan_units, voxelize_volume
 from clgs.fit.outputs import write_outputs as write_common
-from clgs.fit.trainer import LossTerm, Trainer
+from clgs.fit.trainer import Backend, LossTerm, Trainer
+from clgs.io import atomic
+from clgs.io.mesh import save_mesh
+from clgs.io.scan import Scan
 from clgs.methods import Method, Option
 from clgs.methods.gaussian import RUN_OPTIONS, method_output
+from clgs.ops.field_sampler import default_sampler
 from clgs.shape.gaussian_set import ShapeGuidedSet
+from clgs.shape.initialise import initialise, initialise_surroundings, sample_surrounding_centres
 from clgs.shape.priors import DensityPrior, random_subgrid, shape_prior_term
-
 
 
 @dataclass
@@ -146,8 +159,6 @@ def _free_init_volume(fdk, geometry, template) -> np.ndarray:
 def field_sampler(backend: str):
     """The deformation's sampler for a run's backend: OpenCL with ``cl``, torch's otherwise."""
     if backend == "cl":
-        from clgs.ops.field_sampler import default_sampler
-
         return default_sampler()
     return None
 
@@ -166,8 +177,6 @@ def fit_initial_alpha(scan, shape_model, cfg: ShapeGuidedConfig, init, free=None
     -1.6, model surface 1.4 mm after 100 iterations); the main run then refines alpha as before.
     The tissue around the bone is left in place: carried by the bone's deformation it made the
     fit follow the limb's outline instead (alpha_1 +0.22, model surface 4.0 mm)."""
-    from clgs.fit import losses as L
-    from clgs.fit.trainer import Backend
 
     geo = scan.geometry
     k = int(cfg.alpha_init_iterations)
@@ -232,7 +241,6 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
     Long because each branch (resumed, shape prior on or off, free set from the atlas or the FDK)
     builds the same three pieces in its own order; the pieces themselves are helpers.
     """
-    from clgs.shape.initialise import initialise, initialise_surroundings
 
     if cfg.free_init not in ("atlas", "fdk"):
         raise ValueError(f"free_init must be 'atlas' or 'fdk', got {cfg.free_init!r}")
@@ -299,8 +307,6 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
         sets.append(free)
     prior_field = cfg.density_prior_field
     if prior_field == "all" and cfg.density_prior and atlas is not None:
-        from clgs.shape.initialise import sample_surrounding_centres
-
         # an atlas of the bone alone says nothing about the tissue around it: the whole field
         # must not be pulled to its zeros there
         if len(sample_surrounding_centres(template, atlas, 1, threshold=cfg.init_threshold)) == 0:
@@ -337,7 +343,6 @@ def reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | None
     surface.stl (the reconstruction's bone surface at ``level``, 1/mm) and shape_surface.stl (the
     template deformed by the fitted alpha); checkpoints allow ``resume``.
     """
-    from clgs.io.scan import Scan
 
     if not isinstance(scan, Scan):
         scan = Scan.load(scan)
@@ -371,8 +376,6 @@ def load_anatomy_parts(anatomy) -> tuple:
 
 def write_outputs(trainer, out_dir, value_scale, volume, template, alpha, level=None) -> dict:
     """The r2gs outputs plus alpha and the two surfaces; each file atomically."""
-    from clgs.io import atomic
-    from clgs.io.mesh import save_mesh
 
     out_dir = Path(out_dir)
     paths = write_common(trainer, out_dir, value_scale, volume)
@@ -390,7 +393,6 @@ def write_outputs(trainer, out_dir, value_scale, volume, template, alpha, level=
 def _anatomy_for(scan, anatomy):
     if anatomy is not None and not isinstance(anatomy, str):
         return anatomy
-    from clgs.anatomy import plugins
 
     name = anatomy or (scan.meta or {}).get("anatomy")
     if not name:

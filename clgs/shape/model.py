@@ -32,7 +32,9 @@ import torch
 import torch.nn.functional as F
 
 from clgs.errors import ClgsError
-from clgs.shape.template import save_npz_atomic, json_array, json_from_array, zyx_triple
+from clgs.geometry import Grid
+from clgs.ops.field_sampler import sample
+from clgs.shape.template import json_array, json_from_array, save_npz_atomic, zyx_triple
 
 MODEL_FORMAT = "clgs.shape_model"
 MODEL_VERSION = 1
@@ -82,8 +84,6 @@ def sample_field(field: torch.Tensor, points: torch.Tensor, spacing, origin, sam
     origin_xyz = torch.tensor(zyx_triple("origin", origin)[::-1], dtype=field.dtype, device=field.device)
     points = torch.as_tensor(points, dtype=field.dtype, device=field.device)
     if sampler is not None:
-        from clgs.ops.field_sampler import sample
-
         dz, dy, dx = zyx_triple("spacing", spacing)
         step = torch.tensor([dx, dy, dz], dtype=field.dtype)
         return sample(field, ((points - origin_xyz) / step).T.contiguous(), sampler).T
@@ -128,8 +128,6 @@ def exp_velocity(v: torch.Tensor, spacing, n_squarings: Optional[int] = None,
 
 
 def _exp_in_voxels(v: torch.Tensor, spacing, n_squarings: int, sampler) -> torch.Tensor:
-    from clgs.ops.field_sampler import sample
-
     dz, dy, dx = zyx_triple("spacing", spacing)
     step = torch.tensor([dx, dy, dz], dtype=v.dtype).view(3, 1, 1, 1)
     axes = [torch.arange(n, dtype=v.dtype) for n in v.shape[1:]]
@@ -205,8 +203,6 @@ class ShapeModel:
                           self.origin, self.meta, dtype=dtype)
 
     def grid(self):
-        from clgs.geometry import Grid
-
         return Grid(self.shape, tuple(self.origin[::-1]), tuple(self.spacing[::-1]))
 
     # ---- fields
@@ -283,8 +279,6 @@ class DensityAtlas:
         return tuple(int(s) for s in self.mean.shape)
 
     def grid(self):
-        from clgs.geometry import Grid
-
         return Grid(self.shape, tuple(self.origin[::-1]), tuple(self.spacing[::-1]))
 
     def sample(self, points, which: str = "mean"):
