@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from clgs.cli.options import FiniteFloat
+from clgs.cli.options import FiniteFloat, distance_options
 
 
 def _ints(value, n, what, param):
@@ -55,10 +55,7 @@ def _angles(path):
 @click.option("--arc", type=FiniteFloat(min=0, min_open=True, max=360), default=None,
               help="without angles: the views span this many degrees, evenly spaced")
 @click.option("--mode", type=click.Choice(["parallel", "cone"]), default="parallel", show_default=True)
-@click.option("--DSO", "DSO", type=FiniteFloat(min=0, min_open=True), default=None,
-              help="cone beam: source to axis, mm")
-@click.option("--DSD", "DSD", type=FiniteFloat(min=0, min_open=True), default=None,
-              help="cone beam: source to detector, mm")
+@distance_options("cone beam: source to axis, mm", "cone beam: source to detector, mm")
 @click.option("--pixel", type=FiniteFloat(min=0, min_open=True), default=1.0, show_default=True,
               help="detector pixel size, mm (sets the scale of every length)")
 @click.option("--centre", default="auto", show_default=True,

@@ -163,3 +163,11 @@ def method_params(method: Method) -> list:
     opts = config_options(method.config_class()) if method.config is not None else []
     opts += method.option_list()
     return [click_option(o) if isinstance(o, Option) else o for o in opts]
+
+
+def distance_options(dso_help: str, dsd_help: str):
+    """``--DSO`` and ``--DSD`` (mm, positive, or absent) with each command's own help."""
+    def decorate(f):
+        f = click.option("--DSD", "DSD", type=FiniteFloat(min=0, min_open=True), default=None, help=dsd_help)(f)
+        return click.option("--DSO", "DSO", type=FiniteFloat(min=0, min_open=True), default=None, help=dso_help)(f)
+    return decorate

@@ -17,7 +17,7 @@ from clgs.cli.common import (
     out_of_memory,
     parse_spacing,
 )
-from clgs.cli.options import FiniteFloat, Seed
+from clgs.cli.options import FiniteFloat, Seed, distance_options
 
 
 def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, pixel):
@@ -53,10 +53,7 @@ def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, 
 @click.option("--arc", type=FiniteFloat(min=0, min_open=True, max=360), default=180.0, show_default=True,
               help="angular range in degrees, views evenly spaced, last one short of the end")
 @click.option("--mode", type=click.Choice(["cone", "parallel"]), default="cone", show_default=True)
-@click.option("--DSD", "DSD", type=FiniteFloat(min=0, min_open=True), default=None,
-              help="source-detector distance, mm [default: 1500]")
-@click.option("--DSO", "DSO", type=FiniteFloat(min=0, min_open=True), default=None,
-              help="source-rotation axis distance, mm [default: 1000]")
+@distance_options("source-rotation axis distance, mm [default: 1000]", "source-detector distance, mm [default: 1500]")
 @click.option("--detector", type=click.IntRange(min=1), default=256, show_default=True,
               help="detector pixels per side (square detector)")
 @click.option("--pixel", type=FiniteFloat(min=0, min_open=True), default=None,

@@ -30,19 +30,19 @@ class DiskFullError(ClgsError, OSError):
     """The disk filled up while an output was being written; nothing was replaced."""
 
 
-def _disk_full(exc: OSError, target: Path) -> OSError:
-    """``exc`` as a DiskFullError naming ``target`` when it is a full disk (or quota), else itself."""
+def _reraise(exc: OSError, target: Path):
+    """Raise ``exc`` again, as a DiskFullError naming ``target`` when it is a full disk (or quota)."""
     import errno
 
     if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
-        return exc
+        raise exc
     try:
         free = shutil.disk_usage(target.parent if target.parent.exists() else ".").free
         room = f"{free / 2**20:.0f} MiB left there"
     except OSError:
         room = "no room left"
-    return DiskFullError(exc.errno, f"the disk is full while writing {target} ({room}); nothing was replaced "
-                                    "and no partial output was left: free some space and run again")
+    raise DiskFullError(exc.errno, f"the disk is full while writing {target} ({room}); nothing was replaced "
+                                   "and no partial output was left: free some space and run again") from None
 
 
 def _temp_sibling(path: Path) -> Path:
@@ -85,10 +85,7 @@ def atomic_path(path, overwrite: bool = True):
         os.replace(tmp, path)
         _fsync_dir(path.parent)
     except OSError as exc:
-        full = _disk_full(exc, path)
-        if full is exc:
-            raise
-        raise full from None
+        _reraise(exc, path)
     finally:
         if tmp.exists():
             tmp.unlink()
@@ -187,10 +184,7 @@ def atomic_dir(path, overwrite: bool = False):
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
     except OSError as exc:
-        full = _disk_full(exc, path)
-        if full is exc:
-            raise
-        raise full from None
+        _reraise(exc, path)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
