@@ -320,3 +320,32 @@ def test_experiment_subjects_must_be_held_out(tmp_path, subjects, words):
     res = CliRunner().invoke(main, ["femur", "experiment", "--subjects", subjects, "--out", str(tmp_path / "e")])
     assert_clean_error(res, "--subjects", *words, code=2)
     assert not (tmp_path / "e").exists()
+
+
+def test_reconstruct_never_replaces_a_run_or_writes_into_its_scan(bare, tiny_scan, tmp_path):
+    out = tmp_path / "rec"
+    out.mkdir()
+    (out / "checkpoint.pt").write_bytes(b"an earlier run")
+    res = invoke(bare, "reconstruct", tiny_scan, "--out", out, "--method", "fdk")
+    assert_clean_error(res, "holds a run already", "--resume", "--force")
+    assert (out / "checkpoint.pt").read_bytes() == b"an earlier run"
+    res = invoke(bare, "reconstruct", tiny_scan, "--out", out, "--method", "fdk", "--force")
+    assert res.exit_code == 0, res.output
+    assert (out / "volume.npy").is_file() and not (out / "checkpoint.pt").exists()
+    for inside in (tiny_scan, tiny_scan / "runs"):
+        res = invoke(bare, "reconstruct", tiny_scan, "--out", inside, "--method", "fdk")
+        assert_clean_error(res, "scan")
+    assert not (tiny_scan / "volume.npy").exists() and not (tiny_scan / "runs").exists()
+
+
+def test_the_python_api_refuses_the_same(tiny_scan, tmp_path):
+    from clgs import reconstruct_r2gs
+    from clgs.fit.config import RunFolderError
+
+    with pytest.raises(RunFolderError, match="scan folder"):
+        reconstruct_r2gs(Scan.load(tiny_scan), out_dir=tiny_scan, iterations=2, progress=False)
+    held = tmp_path / "held"
+    held.mkdir()
+    (held / "checkpoint.pt").write_bytes(b"x")
+    with pytest.raises(RunFolderError, match="holds a run already"):
+        reconstruct_r2gs(Scan.load(tiny_scan), out_dir=held, iterations=2, progress=False)

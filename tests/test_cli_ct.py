@@ -1,5 +1,6 @@
 """clgs simulate / reconstruct / evaluate through click's CliRunner, small volumes."""
 import json
+import signal
 import subprocess
 import sys
 
@@ -492,3 +493,30 @@ def test_volume_figures_report_undefined_metrics_and_still_raise_on_bad_input():
     assert ok["psnr3d"] > 10 and 0 < ok["ssim3d"] <= 1 and "metrics_undefined" not in ok
     with pytest.raises(metrics.MetricError):
         metrics.volume_figures(flat[:5], flat)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_stopped_run_saves_and_exits_with_the_signal_status(scan_dir, tmp_path, sig, code):
+    """SIGTERM (timeout, batch schedulers) and Ctrl-C: the run stops after its iteration, writes
+    its outputs and checkpoint, says how to resume, and exits 128 + the signal, so that
+    ``clgs reconstruct ... && clgs evaluate ...`` stops there."""
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "run"
+    log = tmp_path / "stderr.txt"
+    with open(log, "w") as err:
+        proc = subprocess.Popen([sys.executable, "-m", "clgs.cli", "reconstruct", str(scan_dir / "scan"), "--method",
+                                 "r2gs", "--iterations", "100000", "--out", str(out)],
+                                stdout=subprocess.PIPE, stderr=err, text=True)
+        deadline = time.time() + 120
+        while time.time() < deadline and "train:" not in log.read_text():
+            time.sleep(0.1)  # training has begun: its first progress line is out
+        time.sleep(0.5)
+        proc.send_signal(sig)
+        stdout, _ = proc.communicate(timeout=120)
+    stderr = log.read_text()
+    assert proc.returncode == code, (stdout[-1000:], stderr[-2000:])
+    assert "--resume" in stderr and (out / "checkpoint.pt").is_file() and (out / "volume.nii.gz").is_file()

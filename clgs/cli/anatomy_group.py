@@ -19,6 +19,7 @@ import time
 
 import click
 
+from clgs.cli.common import check_not_input, exit_if_interrupted
 from clgs.cli.options import FiniteFloat, Seed
 from clgs.cli.settings import check_settings, parse_settings
 
@@ -147,6 +148,24 @@ def run_reconstruct(scan, anatomy, method: str, out=None, **options):
     return result
 
 
+def _check_run_out(scan_dir, out, resume: bool, force: bool) -> None:
+    """``clgs <anatomy> reconstruct``'s output folder: never the scan folder or inside it; one that
+    holds a run needs --resume (continue) or --force (a new run replaces it)."""
+    from pathlib import Path
+
+    check_not_input(Path(out), [("scan", Path(scan_dir), True)])
+    scan_root, target = Path(scan_dir).resolve(), Path(out).resolve()
+    if scan_root in target.parents:
+        raise click.ClickException(f"--out {out} lies inside the scan folder {scan_dir}: a run's outputs may not go "
+                                   "into its input; choose a folder outside it")
+    ckpt = Path(out) / "checkpoint.pt"
+    if ckpt.is_file() and not resume:
+        if not force:
+            raise click.ClickException(f"{out} holds a run already ({ckpt.name}); --resume continues it, --force "
+                                       "starts a new one in its place, or choose another --out")
+        ckpt.unlink()  # the new run writes every other file afresh
+
+
 def _echo_metrics(m: dict):
     for k, v in m.items():
         if isinstance(v, float):
@@ -218,7 +237,8 @@ def _reconstruct_command(anatomy) -> click.Command:
     @click.option("--resume", is_flag=True,
                   help="continue the run in --out from its checkpoint, with its settings (same as --set "
                        "resume=true); without --set iterations=N it runs to the checkpoint's planned iterations")
-    def reconstruct(scan_dir, out, method, views, settings, resume):
+    @click.option("--force", is_flag=True, help="start a new run in an --out that holds one (it is replaced)")
+    def reconstruct(scan_dir, out, method, views, settings, resume, force):
         """Reconstruct a scan folder with the anatomy's prior; writes OUT/volume.npy."""
         from clgs.io.scan import Scan
 
@@ -234,6 +254,7 @@ def _reconstruct_command(anatomy) -> click.Command:
             opts["resume"] = True
         # no iterations unless given: a resumed run then goes on to its checkpoint's planned count
         opts = check_settings(method, m, run, opts, raw)
+        _check_run_out(scan_dir, out, bool(opts.get("resume")), force)
         scan = Scan.load(scan_dir)
         if views is not None:
             if not 1 <= views <= scan.n_views:
@@ -249,6 +270,7 @@ def _reconstruct_command(anatomy) -> click.Command:
         click.echo(f"{name}: {method} reconstruction of {scan.n_views} views in {seconds:.1f} s -> {out}")
         if scan.truth is not None and "volume" in result:
             _echo_metrics(_evaluate(anatomy, scan, result["volume"], out))
+        exit_if_interrupted(result.get("info"))
 
     return reconstruct
 

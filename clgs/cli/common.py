@@ -218,3 +218,15 @@ def load_scan(path: Path, split: str = "train"):
         else:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     return sc
+
+
+def exit_if_interrupted(info) -> None:
+    """After an interrupted run wrote what it had: exit with 128 + the signal's number (130 for
+    Ctrl-C, 143 for SIGTERM), as shells and batch systems expect, so that ``... && next`` stops."""
+    if isinstance(info, dict) and info.get("interrupted"):
+        import signal
+
+        sig = int(info.get("stop_signal") or signal.SIGINT)
+        click.echo(f"interrupted by {signal.Signals(sig).name}: the outputs so far are written; "
+                   "the same command with --resume continues the run", err=True)
+        raise SystemExit(128 + sig)

@@ -13,6 +13,7 @@ from clgs.cli.common import (
     check_output,
     check_writable,
     click_error,
+    exit_if_interrupted,
     fmt_number,
     is_out_of_memory,
     is_volume_path,
@@ -238,3 +239,4 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, show_help):
             line += f", PSNR {fmt_number(m['psnr3d'])} dB, SSIM {m['ssim3d']:.4f}"
     click.echo(line)
     click.echo(f"wrote {out}")
+    exit_if_interrupted(report.get("info"))

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from clgs.errors import ClgsError
 from clgs.fit import checkpoint as ckpt
 
 CHECKPOINT = "checkpoint.pt"  # the file name of a run's checkpoint in its folder
@@ -145,6 +146,25 @@ class GaussianFitConfig(JsonConfig):
             self.scale_bounds = (lo, hi)
 
 
+class RunFolderError(ClgsError, ValueError):
+    """A run's output folder that would lose work or overwrite its input."""
+
+
+def check_run_folder(out_dir, resume: bool) -> None:
+    """Refuse an ``out_dir`` that is a scan folder (the run's files would land among the scan's),
+    and one that holds another run (its checkpoint) unless that run is being resumed: a new run
+    there would replace it. Delete the old run's folder, or choose another, to start afresh."""
+    if out_dir is None:
+        return
+    out = Path(out_dir)
+    if (out / "scan.json").is_file() or (out / "meta_data.json").is_file():
+        raise RunFolderError(f"{out} is a scan folder: a run's outputs may not go into its input; "
+                             "choose another output folder")
+    if not resume and (out / CHECKPOINT).is_file():
+        raise RunFolderError(f"{out} holds a run already ({CHECKPOINT}); resume it (--resume, resume=True), "
+                             "or delete that folder (or pass --force on the command line) to start a new run there")
+
+
 def run_config(config_cls, iterations: int | None, settings: dict, resume: bool, out_dir):
     """(settings, checkpoint or None) of a new run, or of a run resumed from ``out_dir``: a resumed
     run keeps its checkpoint's settings (only ``iterations`` may grow and ``backend`` change).
@@ -153,6 +173,7 @@ def run_config(config_cls, iterations: int | None, settings: dict, resume: bool,
     was started with (an interrupted run is finished, not extended)."""
     if iterations is not None and int(iterations) < 1:
         raise ValueError(f"iterations must be at least 1, got {iterations}")
+    check_run_folder(out_dir, resume)
     settings = dict(settings)
     if not resume:
         n = config_cls().iterations if iterations is None else int(iterations)

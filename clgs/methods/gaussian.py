@@ -21,5 +21,5 @@ def method_output(result, out_dir, files: dict, **extra) -> dict:
         print(f"interrupted at iteration {result.trainer.iteration}: outputs so far written{where}", file=sys.stderr)
     info = {"iterations": result.trainer.iteration, "n_gaussians": result.trainer.n_gaussians,
             "training_seconds": result.trainer.seconds, "value_scale": result.value_scale,
-            "interrupted": result.interrupted, **extra}
+            "interrupted": result.interrupted, "stop_signal": getattr(result.trainer, "stop_signal", None), **extra}
     return {"volume": result.volume, "files": files, "info": info}
