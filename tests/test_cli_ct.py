@@ -520,3 +520,21 @@ def test_a_stopped_run_saves_and_exits_with_the_signal_status(scan_dir, tmp_path
     stderr = log.read_text()
     assert proc.returncode == code, (stdout[-1000:], stderr[-2000:])
     assert "--resume" in stderr and (out / "checkpoint.pt").is_file() and (out / "volume.nii.gz").is_file()
+
+
+def test_simulate_names_odd_volumes_and_sizes_before_any_work(tmp_path):
+    np.save(tmp_path / "mask.npy", np.ones((8, 8, 8), bool))
+    np.save(tmp_path / "cplx.npy", np.ones((8, 8, 8), complex))
+    np.save(tmp_path / "ints.npy", np.full((8, 8, 8), 5, np.int16))
+    np.save(tmp_path / "slab.npy", np.full((1, 32, 32), 0.02, np.float32))
+    res = run("simulate", tmp_path / "mask.npy", "--spacing", 1, "--out", tmp_path / "a", ok=False)
+    assert res.exit_code == 1 and "a mask" in res.output and not (tmp_path / "a").exists()
+    res = run("simulate", tmp_path / "cplx.npy", "--spacing", 1, "--out", tmp_path / "b", ok=False)
+    assert res.exit_code == 1 and "complex" in res.output
+    res = run("simulate", tmp_path / "ints.npy", "--spacing", 1, "--views", 2, "--detector", 16, "--out", tmp_path / "c")
+    assert "holds integers" in res.output and "--hu" in res.output
+    res = run("simulate", tmp_path / "slab.npy", "--spacing", 1, "--views", 2, "--detector", 32, "--out", tmp_path / "d")
+    assert "less than one detector row" in res.output
+    for flags in (["--views", 10**9], ["--detector", 10**6]):
+        res = run("simulate", tmp_path / "slab.npy", "--spacing", 1, *flags, "--out", tmp_path / "e", ok=False)
+        assert res.exit_code == 1 and "GiB of memory" in res.output and not (tmp_path / "e").exists()

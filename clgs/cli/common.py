@@ -159,22 +159,58 @@ def out_of_memory(what: str, shape=None) -> click.ClickException:
         "(fewer voxels in the geometry's nVoxel) or a machine with more memory")
 
 
+def available_memory() -> int | None:
+    """Bytes of memory the system can give now (Linux ``MemAvailable``), or None where unknown."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def check_memory(what: str, nbytes: float, hint: str) -> None:
+    """Refuse, before any work, what would need more memory than the machine has now."""
+    free = available_memory()
+    if free is not None and nbytes > 0.9 * free:
+        raise click.ClickException(f"{what} needs about {nbytes / 2**30:.3g} GiB of memory and {free / 2**30:.1f} GiB "
+                                   f"are available; {hint}")
+
+
 def is_out_of_memory(exc: BaseException) -> bool:
     """MemoryError, or torch's allocation failure (a RuntimeError)."""
     return isinstance(exc, MemoryError) or (isinstance(exc, RuntimeError) and "can't allocate memory" in str(exc))
 
 
-def load_volume_file(path: Path, spacing=None, label="volume"):
+def load_volume_file(path: Path, spacing=None, label="volume", attenuation: bool = False):
+    """(volume float32, spacing, origin) of a volume file; with ``attenuation``, values whose kind
+    cannot be attenuation are refused (complex, boolean masks) or warned about (integers)."""
+    import numpy as np
+
     from clgs.io.volume import VolumeError, load_volume
 
     if not (is_volume_path(path) or is_dicom_folder(path)):
         raise click.BadParameter(f"{path}: a {label} must be {', '.join(VOLUME_SUFFIXES)} or a folder of DICOM "
                                  "slices", param_hint=label.upper())
     try:
-        loaded = load_volume(path)
+        loaded = load_volume(path, dtype=None)
     except VolumeError as exc:
         raise click_error(exc) from None
     vol, sp, org = loaded
+    if attenuation:
+        if np.issubdtype(vol.dtype, np.complexfloating):
+            raise click.ClickException(f"{path}: complex values (dtype {vol.dtype}); attenuation is real: give "
+                                       "the magnitude or the real part")
+        if vol.dtype == bool or (np.issubdtype(vol.dtype, np.integer) and vol.size and int(vol.max()) <= 1
+                                 and int(vol.min()) >= 0):
+            raise click.ClickException(f"{path}: a mask (values 0 and 1 only, dtype {vol.dtype}), not attenuation; "
+                                       "give attenuation in 1/mm (e.g. a mask times 0.02 for soft tissue)")
+        if np.issubdtype(vol.dtype, np.integer):
+            click.echo(f"warning: {path} holds integers (dtype {vol.dtype}): read as attenuation in 1/mm; for "
+                       "Hounsfield units add --hu, for labels give attenuation instead", err=True)
+    vol = np.asarray(vol, np.float32)
     if spacing is not None:
         sp = tuple(float(s) for s in spacing)
     return vol, sp, org

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from clgs.cli.common import (
+    check_memory,
     check_not_input,
     check_output,
     check_writable,
@@ -93,7 +94,10 @@ def simulate(volume, out, hu, kev, views, arc, mode, DSD, DSO, detector, pixel, 
     check_output(out, force)
     check_writable(out)
     sp_override = parse_spacing(spacing)
-    vol, sp, org = load_volume_file(volume, sp_override)
+    # projections, their noisy copy and the parts joined: three float32 copies of views x detector^2
+    check_memory(f"simulating {views} views of {detector} x {detector} pixels", 3.0 * 4 * views * detector ** 2,
+                 "use fewer --views or a smaller --detector")
+    vol, sp, org = load_volume_file(volume, sp_override, attenuation=not hu)
     if sp is None:
         raise click.UsageError(f"{volume} is a .npy array without voxel size; give --spacing (mm)")
     if not np.all(np.isfinite(vol)):
@@ -110,6 +114,7 @@ def simulate(volume, out, hu, kev, views, arc, mode, DSD, DSO, detector, pixel, 
         geo = _scanner_geometry(vol.shape, sp, views, arc, mode, DSD, DSO, detector, pixel)
     except GeometryError as exc:
         raise click_error(exc, "invalid scanner") from None
+    _warn_if_thinner_than_a_row(volume, vol.shape, sp, geo)
     try:
         from clgs.ops.ct_projector import CTProjector
     except ImportError as exc:  # pragma: no cover - the CT module ships with clgs
@@ -171,3 +176,14 @@ def simulate(volume, out, hu, kev, views, arc, mode, DSD, DSO, detector, pixel, 
     except (ScanError, FileExistsError) as exc:
         raise click_error(exc) from None
     click.echo(f"wrote {out}: {views} views, {elapsed:.1f} s")
+
+
+def _warn_if_thinner_than_a_row(path, shape, spacing, geo) -> None:
+    """A volume less than one detector row high (at the rotation axis) projects between rows and
+    mostly vanishes from the scan: say so, with the numbers and what to change."""
+    height = shape[0] * float(spacing[0])
+    row = float(geo.dDetector[0]) * (geo.DSO / geo.DSD if geo.mode == "cone" else 1.0)
+    if height < row:
+        click.echo(f"warning: {path} is {height:.3g} mm high, less than one detector row at the rotation axis "
+                   f"({row:.3g} mm): its projection falls between rows and mostly vanishes; use a smaller --pixel, "
+                   "more --detector pixels, or a thicker volume", err=True)
