@@ -202,3 +202,51 @@ def test_model_path_follows_the_cache_dir(patella, monkeypatch, tmp_path):
     assert patella.model_path.startswith(str(tmp_path) + os.sep + "models" + os.sep + "patella-")
     h = patella.settings_hash()
     assert h == patella.settings_hash() and len(h) == 12
+
+
+def _femur_population():
+    from clgs.anatomy import plugins
+
+    try:
+        return plugins.get_anatomy("femur")
+    except Exception:  # noqa: BLE001
+        pytest.skip("the femur plugin is not installed (pip install -e anatomies/femur)")
+
+
+def test_a_surface_in_the_wrong_units_is_refused_with_the_fix(tmp_path):
+    import trimesh
+
+    from clgs.io.mesh import save_mesh
+
+    femur = _femur_population()
+    subject = femur.load_subject(femur.test_subjects()[0])
+    save_mesh(tmp_path / "metres.stl", np.asarray(subject.vertices) / 1000.0, subject.faces)
+    with pytest.raises(ValueError, match="looks like metres: scale it by 1000"):
+        femur.subject_from_mesh(tmp_path / "metres.stl", echo=None)
+    box = trimesh.creation.box((80.0, 80.0, 400.0))
+    save_mesh(tmp_path / "box.stl", box.vertices, box.faces)
+    with pytest.warns(UserWarning, match="fits the femur template poorly"):
+        femur.subject_from_mesh(tmp_path / "box.stl", echo=None)
+
+
+def test_the_shape_method_warns_when_the_scan_or_the_fit_is_implausible():
+    import warnings
+
+    from clgs.geometry import Geometry
+    from clgs.io.scan import Scan
+    from clgs.methods.shape_guided import warn_if_implausible, warn_if_the_scan_cannot_hold
+
+    class Template:
+        def bounds(self):
+            return np.zeros(3), np.array([60.0, 60.0, 480.0])
+
+    small = Scan(Geometry.default(n_views=2, n_voxel=8, n_detector=16, volume_mm=64.0), np.zeros((2, 16, 16)))
+    with pytest.warns(UserWarning, match="64 mm across.*480 mm"):
+        warn_if_the_scan_cannot_hold(small, Template())
+    with pytest.warns(UserWarning, match="3.2 standard deviations.*0.7 dB"):
+        warn_if_implausible(np.array([-3.2, 0.5, 0.1]), 0.7)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn_if_implausible(np.array([1.2, -0.4, 0.0]), 45.0)  # a femur that fits: silent
+        big = Scan(Geometry.default(n_views=2, n_voxel=8, n_detector=16, volume_mm=500.0), np.zeros((2, 16, 16)))
+        warn_if_the_scan_cannot_hold(big, Template())

@@ -531,9 +531,11 @@ def test_simulate_names_odd_volumes_and_sizes_before_any_work(tmp_path):
     assert res.exit_code == 1 and "a mask" in res.output and not (tmp_path / "a").exists()
     res = run("simulate", tmp_path / "cplx.npy", "--spacing", 1, "--out", tmp_path / "b", ok=False)
     assert res.exit_code == 1 and "complex" in res.output
-    res = run("simulate", tmp_path / "ints.npy", "--spacing", 1, "--views", 2, "--detector", 16, "--out", tmp_path / "c")
+    res = run("simulate", tmp_path / "ints.npy", "--spacing", 1, "--views", 2, "--detector", 16,
+              "--out", tmp_path / "c")
     assert "holds integers" in res.output and "--hu" in res.output
-    res = run("simulate", tmp_path / "slab.npy", "--spacing", 1, "--views", 2, "--detector", 32, "--out", tmp_path / "d")
+    res = run("simulate", tmp_path / "slab.npy", "--spacing", 1, "--views", 2, "--detector", 32,
+              "--out", tmp_path / "d")
     assert "less than one detector row" in res.output
     for flags in (["--views", 10**9], ["--detector", 10**6]):
         res = run("simulate", tmp_path / "slab.npy", "--spacing", 1, *flags, "--out", tmp_path / "e", ok=False)

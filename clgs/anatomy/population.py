@@ -3,6 +3,8 @@ model of :mod:`clgs.anatomy.phantom`), the template, the cached shape model and 
 scanner that sees the whole grid. What a plugin wraps (see ``anatomies/femur``)."""
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from clgs.anatomy.alignment import align_rigid
@@ -252,6 +254,29 @@ class SurfacePopulation:
         v, f = al.apply_mesh(vertices, faces)
         return v, f, al
 
+    def _template_length(self) -> float:
+        tv, _ = self.template_mesh()
+        return float(np.max(np.ptp(np.asarray(tv, float), axis=0)))
+
+    def check_mesh_size(self, vertices, path) -> None:
+        """Refuse a surface whose size says wrong units (metres, cm) or a different object: its
+        longest side must lie within a factor of 3 of the template's."""
+        length = float(np.max(np.ptp(np.asarray(vertices, float), axis=0)))
+        ref = self._template_length()
+        if not (ref / 3 <= length <= ref * 3):
+            hint = ""
+            for unit, factor in (("metres", 1000.0), ("centimetres", 10.0)):
+                if ref / 3 <= length * factor <= ref * 3:
+                    hint = f"; it looks like {unit}: scale it by {factor:g} to millimetres"
+            raise ValueError(f"{os.fspath(path)}: the surface is {length:.4g} units long, a {self.name} of this "
+                             f"population about {ref:.0f} mm{hint}")
+
+    def plausible_rms_mm(self) -> float:
+        """The alignment RMS beyond which a surface is unlike this population's: 3 % of the
+        template's length, at least 10 mm (real femurs align within about 2.5 mm, a box of the
+        same size about 100 mm)."""
+        return max(10.0, 0.03 * self._template_length())
+
     def subject_from_mesh(self, path, seed: int = 0, align: bool = True, sid: str | None = None, echo=print):
         """A simulated CT subject from a mesh file (STL/PLY/OBJ/npz, mm, either side, any frame),
         rigidly aligned to the template first (the fit is reported through ``echo``; None for
@@ -263,9 +288,18 @@ class SurfacePopulation:
 
         v, f = load_mesh(path)
         check_mesh(v, f, closed=True)
+        self.check_mesh_size(v, path)
         al = None
         if align:
             v, f, al = self.align_mesh(v, f)
+            limit = self.plausible_rms_mm()
+            if al.rms_mm > limit:
+                import warnings
+
+                warnings.warn(f"{os.fspath(path)} fits the {self.name} template poorly: {al.rms_mm:.1f} mm RMS after "
+                              f"alignment, where the {self.name}s of this population fit within {limit:.1f} mm; "
+                              f"it may not be a {self.name} (its simulated CT and any prior will be wrong)",
+                              stacklevel=2)
             if echo is not None:
                 echo(f"aligned {os.fspath(path)} to the {self.name} template: "
                      f"{'mirrored (other side), ' if al.mirrored else ''}RMS {al.rms_mm:.2f} mm after "

@@ -39,6 +39,7 @@ the atlas is converted the same way.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -348,6 +349,7 @@ def reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | None
         scan = Scan.load(scan)
     parts = anatomy if isinstance(anatomy, tuple) else load_anatomy_parts(anatomy)
     cfg, state = run_config(ShapeGuidedConfig, iterations, settings, resume, out_dir)
+    warn_if_the_scan_cannot_hold(scan, parts[0])
     t0 = time.perf_counter()
     trainer = build_trainer(scan, parts, cfg, out_dir, progress=progress, fdk=fdk, state=state)
     restore(trainer, state, cfg)
@@ -356,6 +358,7 @@ def reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | None
     shape_set = trainer.sets[0]
     alpha = shape_set.alpha.detach().numpy().copy() if isinstance(shape_set, ShapeGuidedSet) else np.zeros(0)
     seconds = time.perf_counter() - t0
+    warn_if_implausible(alpha, trainer.log.last("proj_psnr"))
     if out_dir is not None:
         write_outputs(trainer, out_dir, cfg.value_scale, volume, parts[0], alpha, level)
     return ShapeGuidedResult(volume=volume, gaussians=gaussians_in_scan_units(trainer, cfg.value_scale),
@@ -420,3 +423,34 @@ METHOD = Method("shape", run_method, config=ShapeGuidedConfig, atomic_dir=False,
 
 __all__ = ["ShapeGuidedConfig", "ShapeGuidedSet", "ShapeGuidedResult", "reconstruct_shape_guided",
            "build_trainer", "bone_surface", "DensityPrior", "random_subgrid"]
+
+
+#: beyond these the fit says the scan does not show this anatomy (or its geometry is wrong)
+ALPHA_LIMIT_SD = 3.0
+PROJECTION_PSNR_FLOOR_DB = 20.0
+
+
+def warn_if_the_scan_cannot_hold(scan, template) -> None:
+    """Warn before a run when the scan's volume is much smaller than the anatomy's template: the
+    template cannot fit in it (a scan of something else, or a field of view that misses the bone)."""
+    lo, hi = template.bounds()
+    bone = float(np.max(np.asarray(hi, float) - np.asarray(lo, float)))
+    fov = float(np.max(scan.geometry.sVoxel))
+    if bone > 1.5 * fov:
+        warnings.warn(f"the scan's volume is {fov:.0f} mm across, the anatomy's template {bone:.0f} mm: the shape "
+                      "cannot fit in it; is this scan of that anatomy, and is its geometry in mm?", stacklevel=3)
+
+
+def warn_if_implausible(alpha, proj_psnr) -> None:
+    """Warn after a run whose fit says the prior does not describe the scan: shape coefficients
+    beyond ``ALPHA_LIMIT_SD`` standard deviations, or projections fitted to below
+    ``PROJECTION_PSNR_FLOOR_DB``."""
+    worst = float(np.max(np.abs(alpha))) if np.size(alpha) else 0.0
+    reasons = []
+    if worst > ALPHA_LIMIT_SD:
+        reasons.append(f"the fitted shape lies {worst:.1f} standard deviations from the population's mean")
+    if proj_psnr is not None and np.isfinite(proj_psnr) and proj_psnr < PROJECTION_PSNR_FLOOR_DB:
+        reasons.append(f"the projections are matched to only {proj_psnr:.1f} dB")
+    if reasons:
+        warnings.warn("; ".join(reasons) + ": the scan may not show this anatomy, or its geometry may be wrong; "
+                      "check the result before using its surface", stacklevel=3)
