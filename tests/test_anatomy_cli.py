@@ -349,3 +349,13 @@ def test_the_python_api_refuses_the_same(tiny_scan, tmp_path):
     (held / "checkpoint.pt").write_bytes(b"x")
     with pytest.raises(RunFolderError, match="holds a run already"):
         reconstruct_r2gs(Scan.load(tiny_scan), out_dir=held, iterations=2, progress=False)
+
+
+def test_a_run_whose_loss_turns_nan_ends_in_a_message(bare, tiny_scan, tmp_path, monkeypatch):
+    def diverging(scan, out_dir=None, **kw):
+        raise FloatingPointError("the loss became nan at iteration 3 (view 1); lower the learning rates")
+
+    monkeypatch.setitem(methods._REGISTRY, "t-nan", methods.Method("t-nan", diverging, help="test stand-in"))
+    res = invoke(bare, "reconstruct", tiny_scan, "--out", tmp_path / "r", "--method", "t-nan")
+    assert_clean_error(res, "the loss became nan", code=1)
+    assert "Traceback" not in res.output

@@ -540,3 +540,12 @@ def test_simulate_names_odd_volumes_and_sizes_before_any_work(tmp_path):
     for flags in (["--views", 10**9], ["--detector", 10**6]):
         res = run("simulate", tmp_path / "slab.npy", "--spacing", 1, *flags, "--out", tmp_path / "e", ok=False)
         assert res.exit_code == 1 and "GiB of memory" in res.output and not (tmp_path / "e").exists()
+
+
+def test_line_integrals_that_overflow_are_a_message_not_a_traceback(tmp_path):
+    np.save(tmp_path / "hot.npy", np.full((8, 8, 8), 3e38, np.float32))
+    for noise in ([], ["--no-noise"]):
+        res = run("simulate", tmp_path / "hot.npy", "--spacing", 1, "--views", 2, "--detector", 16, *noise,
+                  "--out", tmp_path / "s", ok=False)
+        assert res.exit_code == 1 and "overflow" in res.output and "units" in res.output
+        assert not (tmp_path / "s").exists()

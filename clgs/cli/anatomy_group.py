@@ -29,7 +29,8 @@ from clgs.cli.settings import check_settings, parse_settings
 # error with the library's message (no traceback, non-zero exit). Anything else is a bug and keeps
 # its traceback. Unknown subjects (KeyError) are caught where subjects are loaded (_load_subject),
 # not here: a KeyError elsewhere is a programming error.
-INPUT_ERRORS = (ValueError, FileNotFoundError)
+# FloatingPointError: a run whose loss or parameters turned NaN/Inf (the last good checkpoint is kept)
+INPUT_ERRORS = (ValueError, FileNotFoundError, FloatingPointError)
 
 
 def _message(exc: BaseException) -> str:

@@ -138,6 +138,11 @@ def simulate(volume, out, hu, kev, views, arc, mode, DSD, DSO, detector, pixel, 
         proj = np.concatenate(parts, axis=0)
     except MemoryError:
         raise out_of_memory(f"to project {views} views of {detector}x{detector} pixels", vol.shape) from None
+    if not np.all(np.isfinite(proj)):
+        raise click.ClickException(
+            f"{volume}: its line integrals overflow 32-bit floats (attenuation up to {float(vol.max()):.3g} 1/mm "
+            f"over paths of up to {float(max(np.multiply(vol.shape, sp))):.0f} mm); attenuation is in 1/mm "
+            "(bone about 0.05): check the volume's units")
     acquisition = {"noise": not no_noise, "I0": I0, "sigma": sigma, "scatter": scatter, "seed": seed}
     if not no_noise:
         from clgs.ct.noise import add_noise
