@@ -342,8 +342,9 @@ def test_the_python_api_refuses_the_same(tiny_scan, tmp_path):
     from clgs import reconstruct_r2gs
     from clgs.fit.config import RunFolderError
 
-    with pytest.raises(RunFolderError, match="scan folder"):
-        reconstruct_r2gs(Scan.load(tiny_scan), out_dir=tiny_scan, iterations=2, progress=False)
+    for inside in (tiny_scan, tiny_scan / "runs" / "r2gs"):
+        with pytest.raises(RunFolderError, match="scan folder"):
+            reconstruct_r2gs(Scan.load(tiny_scan), out_dir=inside, iterations=2, progress=False)
     held = tmp_path / "held"
     held.mkdir()
     (held / "checkpoint.pt").write_bytes(b"x")

@@ -157,9 +157,11 @@ def check_run_folder(out_dir, resume: bool) -> None:
     if out_dir is None:
         return
     out = Path(out_dir)
-    if (out / "scan.json").is_file() or (out / "meta_data.json").is_file():
-        raise RunFolderError(f"{out} is a scan folder: a run's outputs may not go into its input; "
-                             "choose another output folder")
+    for folder in (out, *out.resolve().parents):
+        if (folder / "scan.json").is_file() or (folder / "meta_data.json").is_file():
+            where = "is" if folder == out else f"lies inside {folder}, which is"
+            raise RunFolderError(f"{out} {where} a scan folder: a run's outputs may not go into its input; "
+                                 "choose another output folder")
     if not resume and (out / CHECKPOINT).is_file():
         raise RunFolderError(f"{out} holds a run already ({CHECKPOINT}); resume it (--resume, resume=True), "
                              "or delete that folder (or pass --force on the command line) to start a new run there")
