@@ -360,3 +360,11 @@ def test_a_run_whose_loss_turns_nan_ends_in_a_message(bare, tiny_scan, tmp_path,
     res = invoke(bare, "reconstruct", tiny_scan, "--out", tmp_path / "r", "--method", "t-nan")
     assert_clean_error(res, "the loss became nan", code=1)
     assert "Traceback" not in res.output
+
+
+@needs_femur
+@pytest.mark.parametrize("command", ["simulate", "demo"])
+def test_anatomy_sizes_are_checked_before_any_work(tmp_path, command):
+    res = CliRunner().invoke(main, ["femur", command, "--views", "1000000000", "--out", str(tmp_path / "o")])
+    assert_clean_error(res, "GiB of memory", "fewer --views", code=1)
+    assert not (tmp_path / "o").exists()

@@ -19,7 +19,7 @@ import time
 
 import click
 
-from clgs.cli.common import check_not_input, exit_if_interrupted
+from clgs.cli.common import check_memory, check_not_input, exit_if_interrupted
 from clgs.cli.options import FiniteFloat, Seed
 from clgs.cli.settings import check_settings, parse_settings
 
@@ -149,6 +149,15 @@ def run_reconstruct(scan, anatomy, method: str, out=None, **options):
     return result
 
 
+def _check_scan_memory(anatomy, views: int) -> None:
+    """Refuse, before any work, a number of views whose projections (the anatomy's detector) would
+    not fit in the memory available."""
+    n_det = anatomy.scene.get("nDetector") if anatomy.scene else None
+    if n_det:
+        check_memory(f"{views} views of {n_det[0]} x {n_det[1]} pixels", 3.0 * 4 * views * n_det[0] * n_det[1],
+                     "use fewer --views")
+
+
 def _check_run_out(scan_dir, out, resume: bool, force: bool) -> None:
     """``clgs <anatomy> reconstruct``'s output folder: never the scan folder or inside it; one that
     holds a run needs --resume (continue) or --force (a new run replaces it)."""
@@ -201,6 +210,7 @@ def _simulate_command(anatomy) -> click.Command:
 
         if subject_id and mesh:
             raise click.UsageError("give --subject or --mesh, not both")
+        _check_scan_memory(anatomy, views)
         if mesh:
             from clgs.anatomy.simulation import subject_from_mesh_file
 
@@ -364,6 +374,7 @@ def _demo_command(anatomy) -> click.Command:
             opts.setdefault("iterations", iterations)
         opts = check_settings(method, m, run, opts, raw)  # before the simulation: fail fast
         t0 = time.perf_counter()
+        _check_scan_memory(anatomy, views)
         subject = _load_subject(anatomy, subject_id)
         scan = _simulate(anatomy, subject, views, math.radians(float(scene.get("arc_deg", 180.0))), True, seed)
         click.echo(f"{name} demo: subject {subject_id}, {views} views, method {method} "
@@ -387,6 +398,7 @@ def _demo_command(anatomy) -> click.Command:
 
         click.echo(f"peak resident memory: {peak_memory_mib():.0f} MiB")
         click.echo(f"outputs in {work}")
+        exit_if_interrupted(result.get("info"))
 
     return demo
 
