@@ -427,7 +427,7 @@ __all__ = ["ShapeGuidedConfig", "ShapeGuidedSet", "ShapeGuidedResult", "reconstr
 
 #: beyond these the fit says the scan does not show this anatomy (or its geometry is wrong)
 ALPHA_LIMIT_SD = 3.0
-PROJECTION_PSNR_FLOOR_DB = 20.0
+PROJECTION_PSNR_FLOOR_DB = 10.0
 
 
 def warn_if_the_scan_cannot_hold(scan, template) -> None:
