@@ -549,3 +549,17 @@ def test_line_integrals_that_overflow_are_a_message_not_a_traceback(tmp_path):
                   "--out", tmp_path / "s", ok=False)
         assert res.exit_code == 1 and "overflow" in res.output and "units" in res.output
         assert not (tmp_path / "s").exists()
+
+
+def test_reconstruct_takes_settings_as_the_anatomy_commands_do(scan_dir, tmp_path):
+    """One way to pass method settings everywhere: --set KEY=VALUE (the method's own options after
+    SCAN say the same); checked alike, and a setting given both ways is refused."""
+    res = run("reconstruct", scan_dir / "scan", "--method", "sart", "--set", "iterations=2", "--set", "subsets=2",
+              "--out", tmp_path / "a.nii.gz", "--json", tmp_path / "a.json")
+    assert json.loads((tmp_path / "a.json").read_text())["options"] == {"iterations": 2, "subsets": 2}
+    res = run("reconstruct", scan_dir / "scan", "--method", "sart", "--set", "iterations=2", "--iterations", 3,
+              "--out", tmp_path / "b.nii.gz", ok=False)
+    assert res.exit_code == 2 and "given both" in res.output
+    res = run("reconstruct", scan_dir / "scan", "--method", "sart", "--set", "nope=1", "--out", tmp_path / "c.nii.gz",
+              ok=False)
+    assert res.exit_code == 2 and "unknown setting 'nope'" in res.output

@@ -76,6 +76,20 @@ def _method_options(ctx, method, mcmd) -> tuple:
     return options, kwargs
 
 
+def _merge_settings(method, pairs, options: dict, kwargs: dict) -> None:
+    """``--set KEY=VALUE`` pairs checked as ``clgs <anatomy> reconstruct`` checks them, added to
+    the run's options; a setting given both ways is a usage error."""
+    from clgs.cli.settings import check_settings, parse_settings
+
+    raw: dict = {}
+    extra = check_settings(method.name, method, method.callable(), parse_settings(pairs, raw), raw)
+    clash = sorted(set(extra) & set(options))
+    if clash:
+        raise click.UsageError(f"{', '.join(clash)} given both as an option and with --set; give it once")
+    options.update(extra)
+    kwargs.update(extra)
+
+
 def _prepare_outputs(scan, out, json_out, force, into_folder: bool, resuming: bool) -> tuple:
     """Check every output location before the run, so no result is lost at the end; returns the
     folders this command creates (removed again if the run fails before writing in them)."""
@@ -108,9 +122,12 @@ def _prepare_outputs(scan, out, json_out, force, into_folder: bool, resuming: bo
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="also write the report (method, options, time, metrics) to this JSON file")
 @click.option("--force", is_flag=True, help="overwrite an existing --out")
+@click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
+              help="a method setting, as clgs <anatomy> reconstruct takes them (repeatable); the method's own "
+                   "options after SCAN say the same")
 @click.option("--help", "-h", "show_help", is_flag=True, help="show this message (with --method: its options)")
 @click.pass_context
-def reconstruct(ctx, scan, method_name, out, split, json_out, force, show_help):
+def reconstruct(ctx, scan, method_name, out, split, json_out, force, settings, show_help):
     """Reconstruct a volume from SCAN (a clgs scan folder or an R2-Gaussian dataset folder).
 
     With a ground truth in the scan, prints 3D PSNR / SSIM (as R2-Gaussian computes them) and
@@ -136,6 +153,8 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, show_help):
     if out is None:
         raise click.UsageError("missing option --out (a volume file or a folder)")
     options, kwargs = _method_options(ctx, method, mcmd)
+    if settings:
+        _merge_settings(method, settings, options, kwargs)
     into_folder = not is_volume_path(out) and not method.atomic_dir
     resuming = bool(options.get("resume")) and into_folder and out.is_dir()
     created, created_json = _prepare_outputs(scan, out, json_out, force, into_folder, resuming)
