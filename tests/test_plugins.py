@@ -277,3 +277,49 @@ def test_generic_build_model_without_a_plugin_builder(tmp_path):
     assert "no subject had a CT volume" in meta["atlas_note"]
     r = CliRunner().invoke(make_group(anatomy), ["info"])
     assert r.exit_code == 0 and "no subject had a CT volume" in r.output
+
+
+def test_methods_come_through_the_same_plugin_mechanism(monkeypatch, tmp_path):
+    """A plugin provides reconstruction methods with the pluggy hook ``clgs_methods``, beside (or
+    instead of) anatomies; ``clgs reconstruct --method NAME`` then runs it, and a name clash with a
+    built-in method is an error naming the package."""
+    import numpy as np
+    from click.testing import CliRunner
+
+    from clgs import methods
+    from clgs.anatomy import hookimpl, plugins
+    from clgs.cli import main
+    from clgs.geometry import Geometry
+    from clgs.io.scan import Scan
+
+    def zeros(scan, out_dir=None):
+        return {"volume": np.zeros(scan.geometry.nVoxel, np.float32)}
+
+    class Provider:
+        @hookimpl
+        def clgs_methods(self):
+            return [methods.Method("t-plugin-zeros", zeros, help="a plugin's method")]
+
+    reg = plugins.Registry()
+    reg.register(Provider(), name="provider", package="provider-pkg")
+    monkeypatch.setattr(plugins, "registry", lambda reload=False: reg)
+    monkeypatch.setattr(methods, "_PLUGINS_SEEN", [False])
+    monkeypatch.setattr(methods, "_REGISTRY", dict(methods._REGISTRY))
+    assert "t-plugin-zeros" in methods.names() and methods.describe()["t-plugin-zeros"] == "a plugin's method"
+    geo = Geometry.default(n_views=2, n_voxel=8, n_detector=12, volume_mm=32.0)
+    Scan(geo, np.zeros((2, 12, 12), np.float32)).save(tmp_path / "scan")
+    res = CliRunner().invoke(main, ["reconstruct", str(tmp_path / "scan"), "--method", "t-plugin-zeros",
+                                    "--out", str(tmp_path / "z.nii.gz")])
+    assert res.exit_code == 0, res.output
+
+    class Clash:
+        @hookimpl
+        def clgs_methods(self):
+            return [methods.Method("fdk", zeros, help="another fdk")]
+
+    reg2 = plugins.Registry()
+    reg2.register(Clash(), name="clash", package="clash-pkg")
+    monkeypatch.setattr(plugins, "registry", lambda reload=False: reg2)
+    monkeypatch.setattr(methods, "_PLUGINS_SEEN", [False])
+    with pytest.raises(methods.MethodError, match="clash-pkg"):
+        methods.names()

@@ -124,6 +124,21 @@ class Registry:
     def names(self) -> list:
         return list(self.anatomies())
 
+    def methods(self) -> list:
+        """(plugin's package, object) for every reconstruction method the plugins provide through
+        ``clgs_methods()``; :mod:`clgs.methods` checks and registers them. A plugin whose hook fails
+        is a warning, not a crash."""
+        found = []
+        for impl in self.pm.hook.clgs_methods.get_hookimpls():
+            package, _ = self._package.get(impl.plugin_name, (impl.plugin_name, ""))
+            try:
+                result = impl.function()
+            except Exception as exc:  # noqa: BLE001
+                self._warn(impl.plugin_name, package, f"clgs_methods() raised {type(exc).__name__}: {exc}")
+                continue
+            found.extend((package, m) for m in (result if isinstance(result, (list, tuple)) else [result]))
+        return found
+
     def get(self, name: str) -> Anatomy:
         found = self.anatomies()
         if name not in found:

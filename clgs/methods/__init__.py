@@ -20,8 +20,9 @@ Registering a method (e.g. from a plugin or another clgs module)::
 method is chosen, so listing methods stays fast. A method known only by name can be registered
 lazily with :func:`register_lazy` (``module`` is imported on first use and must register it, or
 expose it as ``METHOD``); R2-Gaussian (``r2gs``) is declared that way, from :mod:`clgs.methods.r2gs`.
-Installed distributions may also declare methods in the entry-point group ``clgs.methods``
-(name -> a :class:`Method` object or a module that registers it).
+Installed plugins provide methods the way they provide anatomies, through one mechanism: a pluggy
+hook, ``clgs_methods()`` returning :class:`Method` records, in a package registered in the
+entry-point group ``clgs.anatomies`` (see :mod:`clgs.anatomy.hookspecs`).
 
 One module per built-in method (:mod:`.fdk`, :mod:`.sart`, :mod:`.r2gs`, :mod:`.shape_guided`),
 each thin: the work is in :mod:`clgs.ct` and :mod:`clgs.fit`. The command line makes the click
@@ -125,19 +126,34 @@ def register_lazy(name: str, module: str, help: str = "") -> None:
         _LAZY[name] = (module, help)
 
 
-def _entry_points():
-    from importlib.metadata import entry_points
+_PLUGINS_SEEN = [False]
 
-    try:
-        return list(entry_points(group="clgs.methods"))
-    except Exception:  # noqa: BLE001 - a broken distribution must not break the CLI
-        return []
+
+def _register_plugin_methods() -> None:
+    """Register the methods installed plugins provide (once per process; a bad record is a warning
+    naming its package, and a name clash with another method is an error naming both)."""
+    if _PLUGINS_SEEN[0]:
+        return
+    _PLUGINS_SEEN[0] = True
+    import warnings
+
+    from clgs.anatomy import plugins
+
+    for package, m in plugins.registry().methods():
+        if not isinstance(m, Method):
+            warnings.warn(f"plugin package {package!r}: clgs_methods() must return clgs.methods.Method records, "
+                          f"got {type(m).__name__}; ignored", stacklevel=2)
+            continue
+        if m.name in _REGISTRY or m.name in _LAZY:
+            raise MethodError(f"two providers of the reconstruction method {m.name!r}: clgs and plugin package "
+                              f"{package!r}; uninstall one of them or rename its method")
+        register(m)
 
 
 def names() -> list:
     """Every method name available (without importing any method's module)."""
-    found = set(_REGISTRY) | set(_LAZY) | {ep.name for ep in _entry_points()}
-    return sorted(found)
+    _register_plugin_methods()
+    return sorted(set(_REGISTRY) | set(_LAZY))
 
 
 def describe() -> dict:
@@ -166,14 +182,9 @@ def get(name: str) -> Method:
             raise MethodError(f"{module} was expected to provide the reconstruction method {name!r} "
                               "(register it, or define METHOD = clgs.methods.Method(...))")
         return _REGISTRY[name]
-    for ep in _entry_points():
-        if ep.name == name:
-            obj = ep.load()
-            if isinstance(obj, Method):
-                register(obj)
-            if name in _REGISTRY:
-                return _REGISTRY[name]
-            raise MethodError(f"entry point {ep.value!r} did not provide the method {name!r}")
+    _register_plugin_methods()
+    if name in _REGISTRY:
+        return _REGISTRY[name]
     raise MethodError(f"unknown reconstruction method {name!r}; available: {', '.join(names())}")
 
 
