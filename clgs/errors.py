@@ -7,3 +7,8 @@ Each subclass is also the built-in exception its kind of mistake has always been
 
 class ClgsError(Exception):
     """Something clgs was given cannot be used; the message says what and what to do."""
+
+
+class InputError(ClgsError, ValueError):
+    """A value clgs was given is out of range or of the wrong kind (a setting, an array's shape, a
+    size): what ``ValueError`` says, as a :class:`ClgsError`."""

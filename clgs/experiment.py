@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from clgs.errors import InputError
 
 METHOD_LABELS = {
     "fdk": "FDK",
@@ -88,7 +89,7 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
     for key, want in made_with.items():
         had = row.get(key, defaults.get(key, want))
         if had != want:
-            raise ValueError(
+            raise InputError(
                 f"{path} was made with {key} {had!r}, this run asks for {want!r}: give the same "
                 f"{_OPTION[key]} to resume, or another --out folder")
 
@@ -112,7 +113,7 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
     population = set(anatomy.population()) if anatomy.population else set()
     leaked = population & set(subjects)
     if leaked:
-        raise ValueError(f"subjects {sorted(leaked)} are in the model's population: evaluate on held-out subjects only")
+        raise InputError(f"subjects {sorted(leaked)} are in the model's population: evaluate on held-out subjects only")
     parts = load_anatomy_parts(anatomy)
     plan = []
     for v in views:

@@ -29,7 +29,7 @@ from typing import Sequence
 
 import numpy as np
 
-from clgs.errors import ClgsError
+from clgs.errors import ClgsError, InputError
 
 
 class GeometryError(ClgsError, ValueError):
@@ -313,7 +313,7 @@ class Grid:
         start = np.asarray(start_zyx, int)
         size = np.asarray(size_zyx, int)
         if np.any(start < 0) or np.any(start + size > np.asarray(self.shape)) or np.any(size < 1):
-            raise ValueError(f"block {tuple(start)}+{tuple(size)} does not fit in grid {self.shape}")
+            raise InputError(f"block {tuple(start)}+{tuple(size)} does not fit in grid {self.shape}")
         origin = np.asarray(self.origin) + start[::-1] * np.asarray(self.spacing)
         return Grid(tuple(int(s) for s in size), tuple(origin), self.spacing)
 

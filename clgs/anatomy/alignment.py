@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from clgs.errors import InputError
 
 
 @dataclass
@@ -66,9 +67,9 @@ def align_rigid(vertices, reference_vertices, allow_mirror: bool = True, max_ite
     mov = np.asarray(vertices, float)
     ref = np.asarray(reference_vertices, float)
     if mov.ndim != 2 or mov.shape[1] != 3 or len(mov) < 4 or ref.ndim != 2 or ref.shape[1] != 3 or len(ref) < 4:
-        raise ValueError("align_rigid needs two point sets of shape (N>=4, 3)")
+        raise InputError("align_rigid needs two point sets of shape (N>=4, 3)")
     if not (np.all(np.isfinite(mov)) and np.all(np.isfinite(ref))):
-        raise ValueError("align_rigid: points contain NaN or Inf")
+        raise InputError("align_rigid: points contain NaN or Inf")
     if len(mov) > max_points:
         mov = mov[rng.choice(len(mov), max_points, replace=False)]
     ref_s = ref[rng.choice(len(ref), max_points, replace=False)] if len(ref) > max_points else ref

@@ -2,6 +2,7 @@
 bone mask (and its outer surface) and the metrics (PSNR, SSIM, surface distance). Library code
 shared by ``clgs <anatomy> ...``, :mod:`clgs.experiment` and :mod:`clgs.methods.shape_guided`."""
 from __future__ import annotations
+from clgs.errors import InputError
 
 __all__ = ["surface_level", "bone_mask", "bone_surface", "evaluate_volume"]
 
@@ -62,10 +63,10 @@ def evaluate_volume(anatomy, scan, volume) -> dict:
     from clgs.anatomy.simulation import as_float32
 
     if scan.truth is None:
-        raise ValueError("the scan has no truth volume to evaluate against (only simulated scans have one)")
+        raise InputError("the scan has no truth volume to evaluate against (only simulated scans have one)")
     vol = as_float32(volume)
     if vol.shape != scan.truth.shape:
-        raise ValueError(f"reconstruction {vol.shape} and truth {scan.truth.shape} differ in shape")
+        raise InputError(f"reconstruction {vol.shape} and truth {scan.truth.shape} differ in shape")
     out = metrics.volume_figures(vol, scan.truth)
     if out["psnr3d"] is not None:
         out = metrics.evaluate_volume(vol, scan.truth)

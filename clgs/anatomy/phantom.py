@@ -42,6 +42,7 @@ import numpy as np
 from clgs.anatomy.alignment import principal_axes
 from clgs.io.mesh import check_mesh
 from clgs.mesh.voxels import as_grid, grid_axes, mesh_to_label, signed_distance
+from clgs.errors import InputError
 
 # version of the phantom model: part of the key of cached models built from phantoms
 PHANTOM_VERSION = 2
@@ -148,7 +149,7 @@ def long_axis(label, grid):
     (direction with non-negative z, so that t = 0 is the lower end)."""
     kk, jj, ii = np.nonzero(label)
     if kk.size < 4:
-        raise ValueError("the label has fewer than 4 voxels: cannot find its long axis")
+        raise InputError("the label has fewer than 4 voxels: cannot find its long axis")
     xs, ys, zs = grid_axes(grid)
     p = np.stack([xs[ii], ys[jj], zs[kk]], 1)
     c = p.mean(0)
@@ -184,7 +185,7 @@ def limb_distance(label, grid, soft: SoftTissue) -> np.ndarray:
     any_x = label.any(axis=1)  # (Z, X)
     has = any_y.any(1)
     if not has.any():
-        raise ValueError("the bone label is empty: nothing to wrap soft tissue around")
+        raise InputError("the bone label is empty: nothing to wrap soft tissue around")
     big = 1e9
     ylo = np.where(any_y, ys[None, :], big).min(1)
     yhi = np.where(any_y, ys[None, :], -big).max(1)
@@ -243,9 +244,9 @@ def density_volume(label, sdf, grid, params: DensityParams = DensityParams(), se
     label = np.asarray(label, bool)
     sdf = np.asarray(sdf, np.float32)
     if label.shape != tuple(grid.shape) or sdf.shape != tuple(grid.shape):
-        raise ValueError(f"label {label.shape} and sdf {sdf.shape} must both have the grid's shape {grid.shape}")
+        raise InputError(f"label {label.shape} and sdf {sdf.shape} must both have the grid's shape {grid.shape}")
     if not np.all(np.isfinite(sdf)):
-        raise ValueError("the signed distance contains NaN or Inf")
+        raise InputError("the signed distance contains NaN or Inf")
     p = params
     spacing_zyx = tuple(float(s) for s in grid.spacing[::-1])
     h = float(np.mean(spacing_zyx))
@@ -310,7 +311,7 @@ def make_phantom(vertices, faces, grid, params: DensityParams = DensityParams(),
     g_lo = np.asarray(grid.origin)
     g_hi = g_lo + (np.asarray(grid.shape[::-1]) - 1) * np.asarray(grid.spacing)
     if np.any(lo < g_lo) or np.any(hi > g_hi):
-        raise ValueError(f"the surface (x, y, z mm from {np.round(lo, 1)} to {np.round(hi, 1)}) does not fit in "
+        raise InputError(f"the surface (x, y, z mm from {np.round(lo, 1)} to {np.round(hi, 1)}) does not fit in "
                          f"the grid ({np.round(g_lo, 1)} to {np.round(g_hi, 1)}): align it to the template "
                          "frame first or use a larger grid")
     label = mesh_to_label(v, f, grid)

@@ -12,6 +12,7 @@ from clgs.anatomy.phantom import PHANTOM_VERSION, DensityParams, Phantom, make_p
 from clgs.geometry import shadow_half_extents
 from clgs.io.mesh import check_mesh
 from clgs.mesh.voxels import as_grid, mesh_to_label, signed_distance
+from clgs.errors import InputError
 
 
 def cache_dir() -> str:
@@ -79,7 +80,7 @@ class SurfacePopulation:
         self.test_ids = [str(i) for i in test_ids]
         unknown = sorted(set(self.test_ids) - set(self.ids))
         if unknown:
-            raise ValueError(f"{name}: held-out ids {unknown} are not among the subjects")
+            raise InputError(f"{name}: held-out ids {unknown} are not among the subjects")
         self.grid = as_grid(grid)
         self.params = params
         self.frame_offset = np.asarray(frame_offset, float)
@@ -146,7 +147,7 @@ class SurfacePopulation:
             if faces is None:
                 faces = f
             elif f.shape != faces.shape or not np.array_equal(f, faces):
-                raise ValueError(f"{self.name}: subject {sid} has another mesh topology; a vertex-wise mean "
+                raise InputError(f"{self.name}: subject {sid} has another mesh topology; a vertex-wise mean "
                                  "needs surfaces in vertex correspondence")
             vs.append(v)
         return np.mean(vs, axis=0), faces
@@ -207,7 +208,7 @@ class SurfacePopulation:
         ids = [str(s) for s in (subjects if subjects is not None else self.population())]
         leaked = sorted(set(ids) & set(self.test_ids))
         if leaked:
-            raise ValueError(f"{self.name}: held-out subjects {leaked} must never build the model")
+            raise InputError(f"{self.name}: held-out subjects {leaked} must never build the model")
         t0, t0_wall = time.perf_counter(), time.time()
         template = self.load_template()
         # loaders, so that subjects whose registration is cached are never simulated again
@@ -268,7 +269,7 @@ class SurfacePopulation:
             for unit, factor in (("metres", 1000.0), ("centimetres", 10.0)):
                 if ref / 3 <= length * factor <= ref * 3:
                     hint = f"; it looks like {unit}: scale it by {factor:g} to millimetres"
-            raise ValueError(f"{os.fspath(path)}: the surface is {length:.4g} units long, a {self.name} of this "
+            raise InputError(f"{os.fspath(path)}: the surface is {length:.4g} units long, a {self.name} of this "
                              f"population about {ref:.0f} mm{hint}")
 
     def plausible_rms_mm(self) -> float:

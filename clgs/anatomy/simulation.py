@@ -4,6 +4,7 @@ from a surface file, projections with noise. Library code shared by ``clgs <anat
 from __future__ import annotations
 
 import os
+from clgs.errors import InputError
 
 GEOMETRY_KEYS = ("mode", "DSO", "DSD", "nDetector", "dDetector", "offDetector")
 
@@ -81,7 +82,7 @@ def simulate_subject(anatomy, subject, n_views: int = 50, arc: float = 3.1415926
     from clgs.io.scan import Scan
 
     if subject.volume is None:
-        raise ValueError(f"subject {subject.id} has no CT volume to simulate")
+        raise InputError(f"subject {subject.id} has no CT volume to simulate")
     geo = scan_geometry(anatomy, subject, n_views, arc)
     proj = as_float32(CTProjector(geo).forward(subject.volume))
     acquisition = {"noise": bool(noise), "seed": int(seed)}

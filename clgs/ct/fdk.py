@@ -37,6 +37,7 @@ import numpy as np
 from clgs.io.validate import check_projections
 from clgs.geometry import Geometry
 from clgs.ops.fdk import backproject
+from clgs.errors import InputError
 
 FILTERS = ("ram-lak", "shepp-logan", "cosine", "hamming", "hann")
 
@@ -46,7 +47,7 @@ def ramp_filter(length: int, spacing: float, filter: str = "ram-lak"):
     samples ``spacing`` mm apart; returns (response, padded_length)."""
     name = str(filter).lower()
     if name not in FILTERS:
-        raise ValueError(f"unknown filter {filter!r}; choose one of {', '.join(FILTERS)}")
+        raise InputError(f"unknown filter {filter!r}; choose one of {', '.join(FILTERS)}")
     n_pad = int(2 ** np.ceil(np.log2(max(2 * int(length), 64))))
     k = np.arange(n_pad)
     k = np.where(k < n_pad // 2, k, k - n_pad)  # signed sample offsets, circular
@@ -98,7 +99,7 @@ def view_weights(geometry: Geometry, short_scan="auto"):
     else:
         gamma = np.zeros(nu)
     if short_scan not in ("auto", True, False):
-        raise ValueError(f"short_scan must be 'auto', True or False, got {short_scan!r}")
+        raise InputError(f"short_scan must be 'auto', True or False, got {short_scan!r}")
     if n == 1:
         return np.array([np.pi]), np.ones((1, nu))
     order, un, gaps, full = _sorted_arc(angles)
@@ -171,6 +172,6 @@ def fdk(projections, geometry: Geometry, filter: str = "ram-lak", short_scan="au
     p = check_projections(projections, geometry, neg_tolerance=None, source="fdk")
     name = str(filter).lower()
     if name not in FILTERS:
-        raise ValueError(f"unknown filter {filter!r}; choose one of {', '.join(FILTERS)}")
+        raise InputError(f"unknown filter {filter!r}; choose one of {', '.join(FILTERS)}")
     q = filter_projections(p, geometry, name, short_scan)
     return backproject(q.astype(np.float64 if dtype == np.float64 else np.float32), geometry).astype(dtype, copy=False)

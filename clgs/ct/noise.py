@@ -23,26 +23,27 @@ from __future__ import annotations
 import numbers
 
 import numpy as np
+from clgs.errors import InputError
 
 
 def _check(projections, I0, sigma, scatter, max_p):
     p = np.asarray(projections, np.float64)
     if p.ndim != 3 or p.shape[0] == 0:
-        raise ValueError(f"projections must be (n_views, V, U) with at least one view, got shape {p.shape}")
+        raise InputError(f"projections must be (n_views, V, U) with at least one view, got shape {p.shape}")
     if not np.all(np.isfinite(p)):
-        raise ValueError("projections contain NaN or Inf values; noise cannot be simulated on them")
+        raise InputError("projections contain NaN or Inf values; noise cannot be simulated on them")
     if not (np.isfinite(I0) and I0 > 0):
-        raise ValueError(f"I0 (unattenuated photon count) must be positive, got {I0}")
+        raise InputError(f"I0 (unattenuated photon count) must be positive, got {I0}")
     if not (np.isfinite(sigma) and sigma >= 0):
-        raise ValueError(f"sigma (electronic noise, counts) must be >= 0, got {sigma}")
+        raise InputError(f"sigma (electronic noise, counts) must be >= 0, got {sigma}")
     if not (np.isfinite(scatter) and scatter >= 0):
-        raise ValueError(f"scatter (scatter-to-primary ratio) must be >= 0, got {scatter}")
+        raise InputError(f"scatter (scatter-to-primary ratio) must be >= 0, got {scatter}")
     if max_p is None:
         max_p = float(p.max())
         if max_p <= 0:
             max_p = 1.0  # nothing attenuates: any positive scale gives I = I0
     elif not (np.isfinite(max_p) and max_p > 0):
-        raise ValueError(f"max_p must be positive, got {max_p}")
+        raise InputError(f"max_p must be positive, got {max_p}")
     return p, float(max_p)
 
 
@@ -68,7 +69,7 @@ def simulate_counts(projections, I0=1e5, sigma=10.0, scatter=0.0, seed=0, max_p=
     """Noisy detector counts (n_views, V, U) float64, clipped to >= 1, and the ``max_p`` used."""
     p, max_p = _check(projections, I0, sigma, scatter, max_p)
     if isinstance(seed, numbers.Integral) and not isinstance(seed, bool) and seed < 0:
-        raise ValueError(f"seed must be None or a non-negative integer, got {seed}")
+        raise InputError(f"seed must be None or a non-negative integer, got {seed}")
     mean = expected_counts(p, I0, scatter, max_p)
     rng = np.random.default_rng(seed)
     counts = rng.poisson(mean).astype(np.float64)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from clgs.geometry import Geometry
+from clgs.errors import InputError
 
 
 def _rotation(angles_zyz):
@@ -38,7 +39,7 @@ class Ellipsoid:
 
     def __post_init__(self):
         if np.any(np.asarray(self.axes, float) <= 0):
-            raise ValueError(f"ellipsoid semi-axes must be positive, got {self.axes}")
+            raise InputError(f"ellipsoid semi-axes must be positive, got {self.axes}")
 
     @property
     def metric(self) -> np.ndarray:
@@ -92,7 +93,7 @@ def voxelize(ellipsoids, geometry: Geometry, supersample: int = 3) -> np.ndarray
     """(Z, Y, X) float32 volume: each voxel holds the mean density over ``supersample^3`` points."""
     s = int(supersample)
     if s < 1:
-        raise ValueError("supersample must be at least 1")
+        raise InputError("supersample must be at least 1")
     grid = geometry.volume_grid(scene=False)
     nz, ny, nx = grid.shape
     sp = np.asarray(grid.spacing)

@@ -21,6 +21,7 @@ import numpy as np
 from clgs.io.validate import check_projections
 
 from clgs.geometry import Geometry
+from clgs.errors import InputError
 
 _COLUMN_SUM_BUDGET = 1 << 30  # bytes of cached A_S^T 1 volumes; beyond it they are recomputed
 
@@ -29,7 +30,7 @@ def subsets_of(geometry: Geometry, subsets: int) -> list:
     """View indices of each ordered subset: every ``subsets``-th view in angle order."""
     n = geometry.n_views
     if not 1 <= int(subsets) <= n:
-        raise ValueError(f"subsets must lie between 1 and the number of views ({n}), got {subsets}")
+        raise InputError(f"subsets must lie between 1 and the number of views ({n}), got {subsets}")
     by_angle = np.argsort(np.mod(geometry.angles, 2 * np.pi), kind="stable")
     return [np.sort(by_angle[s::int(subsets)]) for s in range(int(subsets))]
 
@@ -50,24 +51,24 @@ def sart(projections, geometry: Geometry, n_iter: int = 10, subsets: int = 1, re
 
     b = check_projections(projections, geometry, neg_tolerance=None, source="sart")
     if int(n_iter) < 0:
-        raise ValueError(f"n_iter must be at least 0, got {n_iter}")
+        raise InputError(f"n_iter must be at least 0, got {n_iter}")
     if not np.isfinite(relaxation) or not 0 < relaxation < 2:
-        raise ValueError(f"relaxation must lie in (0, 2) for SART to converge, got {relaxation}")
+        raise InputError(f"relaxation must lie in (0, 2) for SART to converge, got {relaxation}")
     if order not in ("random", "ordered"):
-        raise ValueError(f"order must be 'random' or 'ordered', got {order!r}")
+        raise InputError(f"order must be 'random' or 'ordered', got {order!r}")
     b = b.astype(np.float32, copy=False)
     P = projector if projector is not None else CTProjector(geometry)
     if P.geometry is not geometry and P.geometry.to_dict() != geometry.to_dict():
-        raise ValueError("the projector was built for another geometry")
+        raise InputError("the projector was built for another geometry")
     shape = tuple(geometry.nVoxel)
     if x0 is None:
         x = np.zeros(shape, np.float32)
     else:
         x = np.array(x0, dtype=np.float32, copy=True)
         if x.shape != shape:
-            raise ValueError(f"x0 has shape {x.shape}, the geometry expects {shape}")
+            raise InputError(f"x0 has shape {x.shape}, the geometry expects {shape}")
         if not np.all(np.isfinite(x)):
-            raise ValueError("x0 contains NaN or Inf values")
+            raise InputError("x0 contains NaN or Inf values")
         if nonneg:
             np.maximum(x, 0, out=x)
 

@@ -15,6 +15,7 @@ from clgs.fit.gaussians import Densifier
 from clgs.fit.outputs import make_evaluator
 from clgs.fit.trainer import Backend, LossTerm, Trainer
 from clgs.fit import tv_patch
+from clgs.errors import InputError
 
 
 def volume_box(geometry) -> tuple:
@@ -36,7 +37,7 @@ def scale_bounds_for(geometry, scale_bounds, scale_floor):
     if scale_floor:
         lo = max(lo, float(scale_floor) * geometry.resolution_mm / float(np.max(geometry.sVoxel)))
     if not lo < hi:
-        raise ValueError(f"the smallest Gaussian scale ({lo:.4g} of the volume, from scale_bounds and scale_floor "
+        raise InputError(f"the smallest Gaussian scale ({lo:.4g} of the volume, from scale_bounds and scale_floor "
                          f"{scale_floor} x the scan's {geometry.resolution_mm:.3g} mm resolution) is not below the "
                          f"largest ({hi:.4g}); lower scale_floor or raise scale_bounds[1]")
     return lo, hi
@@ -50,7 +51,7 @@ def value_scale_from(volume: np.ndarray) -> float:
     """``1 / p99.9`` of a volume (its robust maximum); see the module doc."""
     p = float(np.percentile(np.asarray(volume, np.float32), 99.9))
     if not (math.isfinite(p) and p > 0):
-        raise ValueError(f"the FDK volume's 99.9th percentile is {p}: the projections look empty or "
+        raise InputError(f"the FDK volume's 99.9th percentile is {p}: the projections look empty or "
                          "negative; give value_scale explicitly")
     return 1.0 / p
 

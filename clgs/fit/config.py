@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clgs.errors import ClgsError
+from clgs.errors import ClgsError, InputError
 from clgs.fit import checkpoint as ckpt
 
 CHECKPOINT = "checkpoint.pt"  # the file name of a run's checkpoint in its folder
@@ -46,35 +46,35 @@ class JsonConfig:
         if value is None:
             if "None" in kind:
                 return None
-            raise ValueError(f"{where} must be given (got null)")
+            raise InputError(f"{where} must be given (got null)")
         base = kind.split("|")[0].strip()
         if base == "bool":
             if not isinstance(value, (bool, np.bool_)):
-                raise ValueError(f"{where} must be true or false, got {value!r}")
+                raise InputError(f"{where} must be true or false, got {value!r}")
             return bool(value)
         if base == "str":
             if not isinstance(value, str):
-                raise ValueError(f"{where} must be a string, got {value!r}")
+                raise InputError(f"{where} must be a string, got {value!r}")
             allowed = self.CHOICES.get(name)
             if allowed and value not in allowed:
-                raise ValueError(f"{where} must be one of {', '.join(allowed)}, got {value!r}")
+                raise InputError(f"{where} must be one of {', '.join(allowed)}, got {value!r}")
             return value
         if base == "tuple":
             return value
         if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
-            raise ValueError(f"{where} must be a number, got {value!r}")
+            raise InputError(f"{where} must be a number, got {value!r}")
         if not math.isfinite(value):
-            raise ValueError(f"{where} must be finite, got {value!r}")
+            raise InputError(f"{where} must be finite, got {value!r}")
         if base == "int":
             if value != int(value):
-                raise ValueError(f"{where} must be a whole number, got {value!r}")
+                raise InputError(f"{where} must be a whole number, got {value!r}")
             value = int(value)
         else:
             value = float(value)
         low = self.AT_LEAST.get(name, 0)
         if value < low or (name in self.POSITIVE and value <= 0):
             need = "> 0" if name in self.POSITIVE else f">= {low:g}"
-            raise ValueError(f"{where} must be {need}, got {value!r}")
+            raise InputError(f"{where} must be {need}, got {value!r}")
         return value
 
     def to_json(self) -> dict:
@@ -88,7 +88,7 @@ class JsonConfig:
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(d) - known)
         if unknown:
-            raise ValueError(f"unknown {cls.KIND} settings: {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+            raise InputError(f"unknown {cls.KIND} settings: {', '.join(unknown)}; known: {', '.join(sorted(known))}")
         d = dict(d)
         if d.get("scale_bounds") is not None:
             d["scale_bounds"] = tuple(d["scale_bounds"])
@@ -140,9 +140,9 @@ class GaussianFitConfig(JsonConfig):
             try:
                 lo, hi = (float(x) for x in b)
             except (TypeError, ValueError):
-                raise ValueError(f"{self.KIND} setting scale_bounds must be two numbers (or null), got {b!r}") from None
+                raise InputError(f"{self.KIND} setting scale_bounds must be two numbers (or null), got {b!r}") from None
             if not (0 < lo < hi and math.isfinite(hi)):
-                raise ValueError(f"{self.KIND} setting scale_bounds must satisfy 0 < low < high, got {b!r}")
+                raise InputError(f"{self.KIND} setting scale_bounds must satisfy 0 < low < high, got {b!r}")
             self.scale_bounds = (lo, hi)
 
 
@@ -174,14 +174,14 @@ def run_config(config_cls, iterations: int | None, settings: dict, resume: bool,
     ``iterations=None``: the default (30 000) for a new run; for a resumed one, the iterations it
     was started with (an interrupted run is finished, not extended)."""
     if iterations is not None and int(iterations) < 1:
-        raise ValueError(f"iterations must be at least 1, got {iterations}")
+        raise InputError(f"iterations must be at least 1, got {iterations}")
     check_run_folder(out_dir, resume)
     settings = dict(settings)
     if not resume:
         n = config_cls().iterations if iterations is None else int(iterations)
         return config_cls.from_json({**config_cls().to_json(), **settings, "iterations": n}), None
     if out_dir is None:
-        raise ValueError("resume needs out_dir (the folder holding checkpoint.pt)")
+        raise InputError("resume needs out_dir (the folder holding checkpoint.pt)")
     state = ckpt.load(Path(out_dir) / CHECKPOINT)
     try:
         saved = ckpt.loads(state["config"])
@@ -199,5 +199,5 @@ def run_config(config_cls, iterations: int | None, settings: dict, resume: bool,
     if "backend" in settings:  # where to compute does not change the run's meaning
         cfg.backend = settings.pop("backend")
     if settings:
-        raise ValueError(f"resume continues with the checkpoint's settings; drop {', '.join(sorted(settings))}")
+        raise InputError(f"resume continues with the checkpoint's settings; drop {', '.join(sorted(settings))}")
     return cfg, state

@@ -42,6 +42,7 @@ import torch
 import torch.nn.functional as F
 
 from clgs.ops.gaussian_math import quaternion_to_rotation
+from clgs.errors import InputError
 
 PARAM_NAMES = ("means", "scales", "quats", "densities")
 
@@ -118,7 +119,7 @@ class GaussianSet:
         means, scales, quats, densities = t(means), t(scales), t(quats), t(densities)
         n = means.shape[0]
         if means.shape != (n, 3) or scales.shape != (n, 3) or quats.shape != (n, 4) or densities.shape != (n,):
-            raise ValueError(f"GaussianSet needs means (N,3), scales (N,3), quats (N,4), densities (N,); got "
+            raise InputError(f"GaussianSet needs means (N,3), scales (N,3), quats (N,4), densities (N,); got "
                              f"{tuple(means.shape)}, {tuple(scales.shape)}, {tuple(quats.shape)}, "
                              f"{tuple(densities.shape)}")
         if not raw:
@@ -127,7 +128,7 @@ class GaussianSet:
         self.params = {"means": means, "scales": scales, "quats": quats, "densities": densities}
         for p in self.params.values():
             if not torch.all(torch.isfinite(p)):
-                raise ValueError(f"GaussianSet {name!r}: initial parameters contain NaN or Inf")
+                raise InputError(f"GaussianSet {name!r}: initial parameters contain NaN or Inf")
             p.requires_grad_(True)
 
     # ------------------------------------------------------------------ activations
@@ -232,12 +233,12 @@ def init_from_volume(volume, grid, *, box, n_gaussians: int = 50_000, threshold:
     """
     vol = np.asarray(volume, dtype=np.float32)
     if vol.shape != tuple(grid.shape):
-        raise ValueError(f"volume shape {vol.shape} does not match the grid {tuple(grid.shape)}")
+        raise InputError(f"volume shape {vol.shape} does not match the grid {tuple(grid.shape)}")
     if not np.all(np.isfinite(vol)):
-        raise ValueError("the initial volume contains NaN or Inf; check the projections")
+        raise InputError("the initial volume contains NaN or Inf; check the projections")
     lo, hi = float(vol.min()), float(vol.max())
     if not hi > lo:
-        raise ValueError("the initial volume is constant: nothing to initialise Gaussians from "
+        raise InputError("the initial volume is constant: nothing to initialise Gaussians from "
                          "(empty projections?); use init='random'")
     idx = np.flatnonzero(vol.reshape(-1) > lo + threshold * (hi - lo))
     rng = np.random.default_rng(seed)

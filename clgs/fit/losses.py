@@ -20,6 +20,7 @@ from clgs.metrics import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW
 from clgs.ops import ssim as ssim_cl
 from clgs.ops.ssim import Blur, shift_blur, target_maps
 from clgs.ops.ssim import window as window_tensor
+from clgs.errors import InputError
 
 
 def _ssim_terms(a, b, mu_b, bb, wl, c1, c2):
@@ -66,7 +67,7 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window: int = SSIM_WINDOW, sigma: flo
     """Mean SSIM of images ``a``, ``b`` shaped (H, W) or (B, H, W); ``b_maps`` = ``target_maps(b)``
     when ``b`` is fixed and its maps are cached."""
     if a.shape != b.shape:
-        raise ValueError(f"ssim: shapes differ, {tuple(a.shape)} vs {tuple(b.shape)}")
+        raise InputError(f"ssim: shapes differ, {tuple(a.shape)} vs {tuple(b.shape)}")
     a = a.reshape(-1, 1, *a.shape[-2:])
     b = b.reshape(-1, 1, *b.shape[-2:])
     w = window_tensor(window, sigma, a.dtype)
@@ -158,7 +159,7 @@ def tv3d(vol: torch.Tensor) -> torch.Tensor:
     neighbours, over all the differences of the three axes together (R2-Gaussian's definition;
     the sum of the three per-axis means would weigh TV 3x as much on a cube)."""
     if vol.dim() != 3:
-        raise ValueError(f"tv3d needs a (Z, Y, X) block, got shape {tuple(vol.shape)}")
+        raise InputError(f"tv3d needs a (Z, Y, X) block, got shape {tuple(vol.shape)}")
     count = tv_count(vol.shape)
     out = vol.new_zeros(())
     if count == 0:

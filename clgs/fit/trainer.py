@@ -48,6 +48,7 @@ from clgs.ops.projector import project_packed
 from clgs.ops.voxelizer import columns, cov_prec, grid_candidates, voxelize_precision
 from clgs.reference import voxelization
 from clgs.reference.projection import project_patches
+from clgs.errors import InputError
 
 FINITE_CHECK_EVERY = 100  # iterations between checks that every parameter is finite
 
@@ -68,9 +69,9 @@ class Backend:
 
     def __init__(self, name: str = "cl", mode: str = "affine"):
         if name not in ("cl", "torch"):
-            raise ValueError(f"backend must be 'cl' or 'torch', got {name!r}")
+            raise InputError(f"backend must be 'cl' or 'torch', got {name!r}")
         if mode not in ("affine", "exact"):
-            raise ValueError(f"projector mode must be 'affine' or 'exact', got {mode!r}")
+            raise InputError(f"projector mode must be 'affine' or 'exact', got {mode!r}")
         self.name, self.mode = name, mode
         self._last = None
         if name == "cl":
@@ -219,11 +220,11 @@ class Trainer:
         self.sets = list(sets)
         names = [s.name for s in self.sets]
         if len(set(names)) != len(names):
-            raise ValueError(f"Gaussian sets need distinct names, got {names}")
+            raise InputError(f"Gaussian sets need distinct names, got {names}")
         self.geometry = geometry
         self.projections = torch.as_tensor(np.asarray(projections, dtype=np.float32))
         if self.projections.shape != (geometry.n_views, *geometry.nDetector):
-            raise ValueError(f"projections have shape {tuple(self.projections.shape)}, the geometry "
+            raise InputError(f"projections have shape {tuple(self.projections.shape)}, the geometry "
                              f"expects {(geometry.n_views, *geometry.nDetector)}")
         self.losses = list(losses)
         self.iterations = int(iterations)

@@ -53,6 +53,7 @@ from clgs.ops.voxelizer import (
     wanted_gradients,
 )
 from clgs.runtime import round_up
+from clgs.errors import InputError
 
 _CHUNK = 512  # Gaussians per culling work-item (at least; at most _MAX_CHUNKS chunks)
 _MAX_CHUNKS = 64
@@ -257,7 +258,7 @@ def tv_patch(means, prec, densities, extent, grid: Grid, voxelizer: Voxelizer | 
     through ``voxelize_precision`` and ``tv3d`` (the fused kernels are for patches)."""
     n = means.shape[0] if means.dim() == 2 else -1
     if means.shape != (n, 3) or prec.shape != (n, 6) or densities.shape != (n,) or extent.shape != (n, 3):
-        raise ValueError(
+        raise InputError(
             "expected means (N, 3), prec (N, 6), densities (N,), extent (N, 3); got "
             f"{tuple(means.shape)}, {tuple(prec.shape)}, {tuple(densities.shape)}, {tuple(extent.shape)}")
     if any(t.dtype != means.dtype for t in (prec, densities, extent)):

@@ -31,7 +31,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from clgs.errors import ClgsError
+from clgs.errors import ClgsError, InputError
 from clgs.io import atomic
 
 __all__ = ["VolumeError", "LoadedVolume", "save_volume", "load_volume", "volume_affine",
@@ -74,7 +74,7 @@ def grid_spacing_origin(geometry=None, spacing=None, origin=None, shape=None):
     """
     if geometry is not None:
         if spacing is not None or origin is not None:
-            raise ValueError("give either a geometry or spacing/origin, not both")
+            raise InputError("give either a geometry or spacing/origin, not both")
         if hasattr(geometry, "dVoxel"):  # Geometry
             grid = geometry.volume_grid(scene=False)
             return tuple(float(s) for s in grid.spacing[::-1]), tuple(float(o) for o in grid.origin)
@@ -88,7 +88,7 @@ def grid_spacing_origin(geometry=None, spacing=None, origin=None, shape=None):
         raise VolumeError(f"spacing must be 3 positive numbers (dZ, dY, dX) in mm, got {spacing!r}")
     if origin is None:
         if shape is None:
-            raise ValueError("shape is needed to centre a volume")
+            raise InputError("shape is needed to centre a volume")
         org = -0.5 * (np.asarray(shape[::-1], float) - 1) * sp[::-1]
     else:
         org = np.asarray(origin, float).reshape(-1)

@@ -14,6 +14,7 @@ import warnings
 import numpy as np
 
 from clgs.io.mesh import check_mesh
+from clgs.errors import InputError
 
 __all__ = ["mesh_volume", "mesh_to_label", "point_mesh_distance", "signed_distance", "grid_axes"]
 
@@ -28,10 +29,10 @@ def as_grid(grid):
             raise TypeError(f"expected a clgs.geometry.Grid (shape, origin, spacing), got {type(grid).__name__}")
     shape = tuple(int(s) for s in grid.shape)
     if len(shape) != 3 or min(shape) < 1:
-        raise ValueError(f"grid shape must be 3 positive sizes (Z, Y, X), got {grid.shape}")
+        raise InputError(f"grid shape must be 3 positive sizes (Z, Y, X), got {grid.shape}")
     spacing = np.asarray(grid.spacing, float)
     if spacing.shape != (3,) or np.any(spacing <= 0) or not np.all(np.isfinite(spacing)):
-        raise ValueError(f"grid spacing must be 3 positive mm values (dx, dy, dz), got {grid.spacing}")
+        raise InputError(f"grid spacing must be 3 positive mm values (dx, dy, dz), got {grid.spacing}")
     return grid
 
 
@@ -152,7 +153,7 @@ def point_mesh_distance(points, vertices, faces, k: int = 16, chunk: int = 1024)
     if len(pts) == 0:
         return np.zeros(0)
     if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
-        raise ValueError(f"point_mesh_distance needs faces (F>=1, 3), got shape {f.shape}")
+        raise InputError(f"point_mesh_distance needs faces (F>=1, 3), got shape {f.shape}")
     tri = v[f]
     edges = np.linalg.norm(tri - np.roll(tri, -1, axis=1), axis=-1)
     limit = 4.0 * float(np.median(edges))
@@ -268,12 +269,12 @@ def signed_distance(shape, grid, band_voxels: float = 1.5, label=None) -> np.nda
         label = shape
     label = np.asarray(label).astype(bool)
     if label.shape != tuple(grid.shape):
-        raise ValueError(f"label shape {label.shape} does not match the grid {tuple(grid.shape)}")
+        raise InputError(f"label shape {label.shape} does not match the grid {tuple(grid.shape)}")
     if not label.any():
-        raise ValueError("nothing is inside: the shape misses every voxel centre (is it inside the grid, "
+        raise InputError("nothing is inside: the shape misses every voxel centre (is it inside the grid, "
                          "and larger than a voxel?)")
     if label.all():
-        raise ValueError("everything is inside: the grid lies within the shape; enlarge the grid")
+        raise InputError("everything is inside: the grid lies within the shape; enlarge the grid")
     sampling = tuple(float(s) for s in grid.spacing[::-1])  # (dz, dy, dx)
     h = min(sampling)
     d_in = distance_transform_edt(label, sampling=sampling)

@@ -46,6 +46,7 @@ from clgs.fit.training_log import TrainingLog
 from clgs.io.scan import Scan
 from clgs.methods import Method
 from clgs.methods.gaussian import RUN_OPTIONS, method_output
+from clgs.errors import InputError
 
 
 @dataclass
@@ -108,7 +109,7 @@ def build_trainer(scan, cfg: R2GSConfig, out_dir=None, *, progress=False, fdk=No
     elif cfg.init == "random":
         gset = init_random(cfg.n_gaussians, seed=cfg.seed, **kw)
     else:
-        raise ValueError(f"init must be 'fdk' or 'random', got {cfg.init!r}")
+        raise InputError(f"init must be 'fdk' or 'random', got {cfg.init!r}")
     return make_trainer(scan, cfg, [gset], projection_losses(cfg), out_dir, progress)
 
 

@@ -72,6 +72,7 @@ from clgs.ops.field_sampler import default_sampler
 from clgs.shape.gaussian_set import ShapeGuidedSet
 from clgs.shape.initialise import initialise, initialise_surroundings, sample_surrounding_centres
 from clgs.shape.priors import DensityPrior, random_subgrid, shape_prior_term
+from clgs.errors import InputError
 
 
 @dataclass
@@ -244,7 +245,7 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
     """
 
     if cfg.free_init not in ("atlas", "fdk"):
-        raise ValueError(f"free_init must be 'atlas' or 'fdk', got {cfg.free_init!r}")
+        raise InputError(f"free_init must be 'atlas' or 'fdk', got {cfg.free_init!r}")
     template, shape_model, atlas = anatomy_parts
     geo = scan.geometry
     box = volume_box(geo)
@@ -370,7 +371,7 @@ def reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | None
 def load_anatomy_parts(anatomy) -> tuple:
     """(template, shape model or None, atlas or None) from an Anatomy's lazy loaders."""
     if anatomy.load_template is None:
-        raise ValueError(f"anatomy {anatomy.name!r} provides no template; the shape-guided method needs one")
+        raise InputError(f"anatomy {anatomy.name!r} provides no template; the shape-guided method needs one")
     template = anatomy.load_template()
     model = anatomy.load_shape_model() if anatomy.load_shape_model else None
     atlas = anatomy.load_atlas() if anatomy.load_atlas else None
@@ -399,7 +400,7 @@ def _anatomy_for(scan, anatomy):
 
     name = anatomy or (scan.meta or {}).get("anatomy")
     if not name:
-        raise ValueError("the shape-guided method needs an anatomy: pass --anatomy NAME (see `clgs anatomies`) "
+        raise InputError("the shape-guided method needs an anatomy: pass --anatomy NAME (see `clgs anatomies`) "
                          "or reconstruct with `clgs <anatomy> reconstruct`")
     return plugins.get_anatomy(name)
 

@@ -26,6 +26,7 @@ import pyopencl as cl
 
 from clgs.geometry import Geometry
 from clgs.ops.operator import Operator
+from clgs.errors import InputError
 
 _VIEW_STRIDE = 16
 _ZB = 32  # z voxels per backprojector work-item (cl/ct_backprojector.cl)
@@ -38,7 +39,7 @@ def _as_real(array, name):
         arr = arr.astype(np.float32, copy=False)
     if not np.all(np.isfinite(arr)):
         bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
-        raise ValueError(f"{name} contains {bad} NaN or Inf value(s); clean the input before projecting")
+        raise InputError(f"{name} contains {bad} NaN or Inf value(s); clean the input before projecting")
     return arr
 
 
@@ -87,7 +88,7 @@ class CTProjector(Operator):
         nv, nu = g.nDetector
         us, vs = vv[:, 6:9], vv[:, 9:12]
         if np.any(np.abs(us[:, 2]) > 1e-12 * np.abs(us).max()) or np.any(np.abs(vs[:, :2]) > 1e-12 * np.abs(vs).max()):
-            raise ValueError("CTProjector needs a circular orbit: detector u horizontal and v along z")
+            raise InputError("CTProjector needs a circular orbit: detector u horizontal and v along z")
         p0 = vv[:, 3:6] - 0.5 * (nu - 1) * us - 0.5 * (nv - 1) * vs  # centre of pixel (0, 0)
         to_idx = lambda p: (p - c0) / sp  # noqa: E731
         us_i, vs_i = us / sp, vs / sp
@@ -136,7 +137,7 @@ class CTProjector(Operator):
             centre = np.array([(nx - 1) / 2, (ny - 1) / 2])
             dist = np.hypot(*((w[:, 0:2] - centre) * self.spacing_xyz[:2]).T)
             if np.any(dist <= half):
-                raise ValueError(
+                raise InputError(
                     f"the source orbit (closest {dist.min():.1f} mm from the volume centre) passes within "
                     f"the volume grown by one voxel (half-diagonal {half:.1f} mm): increase DSO"
                 )
@@ -164,9 +165,9 @@ class CTProjector(Operator):
         else:
             idx = np.asarray(views, dtype=np.int64).reshape(-1)
             if idx.size == 0:
-                raise ValueError("views is empty: give at least one view index")
+                raise InputError("views is empty: give at least one view index")
             if idx.min() < 0 or idx.max() >= self.geometry.n_views:
-                raise ValueError(f"view indices must lie in [0, {self.geometry.n_views}), got {idx.min()}..{idx.max()}")
+                raise InputError(f"view indices must lie in [0, {self.geometry.n_views}), got {idx.min()}..{idx.max()}")
             key = (idx.tobytes(), np.dtype(dtype).str)
         hit = self._view_cache.get(key)
         if hit is None:
@@ -231,7 +232,7 @@ class CTProjector(Operator):
         """Line integrals (n_views, V, U) of ``volume`` (Z, Y, X), values per mm -> value x mm."""
         vol = _as_real(volume, "volume")
         if vol.shape != self.shape:
-            raise ValueError(f"volume has shape {vol.shape}, the geometry expects nVoxel (Z, Y, X) = {self.shape}")
+            raise InputError(f"volume has shape {vol.shape}, the geometry expects nVoxel (Z, Y, X) = {self.shape}")
         nv = self.geometry.nDetector[0]
         padded = self.pad_volume(vol)
         return np.ascontiguousarray(self.forward_padded(padded, views)[:, :, :nv].transpose(0, 2, 1))
@@ -245,7 +246,7 @@ class CTProjector(Operator):
         if proj.ndim == 2 and n == 1:
             proj = proj[None]
         if proj.shape != (n, nv, nu):
-            raise ValueError(
+            raise InputError(
                 f"projections have shape {proj.shape}, expected (n_views, V, U) = {(n, nv, nu)} for these views")
         tp = np.zeros((n, nu, _round8(nv)), dtype)
         tp[:, :, :nv] = proj.transpose(0, 2, 1)
@@ -270,7 +271,7 @@ class CTProjector(Operator):
         padded = np.ascontiguousarray(padded, dtype)
         nz, ny, nx = self.shape
         if padded.shape != (nx + 3, ny + 3, nz + 3):
-            raise ValueError(f"padded volume has shape {padded.shape}, expected {(nx + 3, ny + 3, nz + 3)}")
+            raise InputError(f"padded volume has shape {padded.shape}, expected {(nx + 3, ny + 3, nz + 3)}")
         rec, vbuf = self._views(views, dtype)
         nv, nu = self.geometry.nDetector
         nvp = _round8(nv)
@@ -297,7 +298,7 @@ class CTProjector(Operator):
         nv, nu = self.geometry.nDetector
         nvp = _round8(nv)
         if tp.shape != (n, nu, nvp):
-            raise ValueError(f"projections in kernel layout have shape {tp.shape}, expected {(n, nu, nvp)}")
+            raise InputError(f"projections in kernel layout have shape {tp.shape}, expected {(n, nu, nvp)}")
         nz, ny, nx = self.shape
         nzp = (nz + _ZB - 1) // _ZB * _ZB
         scaled = np.empty((n, nu, nvp), dtype)

@@ -25,6 +25,7 @@ import torch
 from clgs import runtime
 from clgs.ops.operator import Operator
 from clgs.runtime import round_up
+from clgs.errors import InputError
 
 SOURCE = "field_sampler.cl"
 MAX_CHANNELS = 4
@@ -143,15 +144,15 @@ def sample(field: torch.Tensor, points: torch.Tensor, sampler: FieldSampler | No
     """(C, P) trilinear samples of ``field`` (C, Z, Y, X) at ``points`` (3, P) in voxel units (rows
     x, y, z); clamped to the border outside. Differentiable in both (see the module doc)."""
     if field.dim() != 4 or not 1 <= field.shape[0] <= MAX_CHANNELS:
-        raise ValueError(f"field must be (C, Z, Y, X) with 1 <= C <= {MAX_CHANNELS}, got {tuple(field.shape)}")
+        raise InputError(f"field must be (C, Z, Y, X) with 1 <= C <= {MAX_CHANNELS}, got {tuple(field.shape)}")
     if min(field.shape[1:]) < 2:
-        raise ValueError(f"a field grid needs at least 2 voxels per axis, got {tuple(field.shape[1:])}")
+        raise InputError(f"a field grid needs at least 2 voxels per axis, got {tuple(field.shape[1:])}")
     if points.dim() != 2 or points.shape[0] != 3:
-        raise ValueError(f"points must be (3, P), got {tuple(points.shape)}")
+        raise InputError(f"points must be (3, P), got {tuple(points.shape)}")
     if field.dtype not in (torch.float32, torch.float64) or points.dtype != field.dtype:
-        raise ValueError(f"field and points must share a float32 or float64 dtype, got {field.dtype}, {points.dtype}")
+        raise InputError(f"field and points must share a float32 or float64 dtype, got {field.dtype}, {points.dtype}")
     if field.device.type != "cpu" or points.device.type != "cpu":
-        raise ValueError("field and points must be CPU tensors (the kernels read host memory)")
+        raise InputError("field and points must be CPU tensors (the kernels read host memory)")
     if points.shape[1] == 0:
         return field.new_zeros((field.shape[0], 0)) + 0 * field.sum()
     return _Sample.apply(field, points, sampler or default_sampler())

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from clgs.errors import ClgsError
+from clgs.errors import ClgsError, InputError
 from clgs.ops.operator import Operator
 from clgs.metrics import SSIM_C1 as C1
 from clgs.metrics import SSIM_C2 as C2
@@ -100,7 +100,7 @@ def blur(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     dense banded matrix products do ~20x the needed arithmetic."""
     wl = w.tolist()
     if wl != wl[::-1]:
-        raise ValueError("the SSIM window must be symmetric")
+        raise InputError("the SSIM window must be symmetric")
     return Blur.apply(x, wl)
 
 

@@ -78,6 +78,7 @@ from clgs import runtime
 from clgs.ops.operator import Operator
 from clgs.geometry import Grid
 from clgs.runtime import round_up
+from clgs.errors import InputError
 
 SOURCE = "voxelizer.cl"
 
@@ -325,9 +326,9 @@ class Voxelizer(Operator):
         if not isinstance(grid, Grid):
             raise TypeError(f"grid must be a clgs.geometry.Grid, got {type(grid).__name__}")
         if len(grid.shape) != 3 or min(grid.shape) < 1:
-            raise ValueError(f"grid shape must be 3 positive sizes (Z, Y, X), got {grid.shape}")
+            raise InputError(f"grid shape must be 3 positive sizes (Z, Y, X), got {grid.shape}")
         if min(grid.spacing) <= 0 or not np.all(np.isfinite(grid.spacing)) or not np.all(np.isfinite(grid.origin)):
-            raise ValueError(f"grid spacing must be positive and finite, origin finite: {grid}")
+            raise InputError(f"grid spacing must be positive and finite, origin finite: {grid}")
 
     # ------------------------------------------------------------------------- grid
     def brick_cells(self, grid: Grid):
@@ -603,7 +604,7 @@ def cov_prec(scales, quats, cov: bool = True, prec: bool = True, extent: bool = 
     cheaper than the same maths as element-wise torch on (N,) columns (dozens of passes over
     50k-long buffers each way), and asking for several outputs costs one pass."""
     if scales.dim() != 2 or scales.shape[1] != 3 or quats.shape != (scales.shape[0], 4):
-        raise ValueError(f"expected scales (N, 3) and quats (N, 4), got {tuple(scales.shape)}, {tuple(quats.shape)}")
+        raise InputError(f"expected scales (N, 3) and quats (N, 4), got {tuple(scales.shape)}, {tuple(quats.shape)}")
     if quats.dtype != scales.dtype:
         raise TypeError("scales and quats must share one dtype (float32 or float64)")
     want = int(bool(cov)) | int(bool(prec)) << 1 | int(bool(extent)) << 2
@@ -623,10 +624,10 @@ def _prepare(means, scales, quats, densities):
         if not isinstance(t, torch.Tensor):
             raise TypeError(f"{name} must be a torch tensor, got {type(t).__name__}")
         if t.device.type != "cpu":
-            raise ValueError(f"{name} is on {t.device}; the OpenCL voxelizer takes CPU tensors (use .cpu())")
+            raise InputError(f"{name} is on {t.device}; the OpenCL voxelizer takes CPU tensors (use .cpu())")
     n = means.shape[0] if means.dim() == 2 else -1
     if means.shape != (n, 3) or scales.shape != (n, 3) or quats.shape != (n, 4) or densities.shape != (n,):
-        raise ValueError(
+        raise InputError(
             "expected means (N, 3), scales (N, 3), quats (N, 4), densities (N,); got "
             f"{tuple(means.shape)}, {tuple(scales.shape)}, {tuple(quats.shape)}, {tuple(densities.shape)}"
         )
@@ -636,12 +637,12 @@ def _prepare(means, scales, quats, densities):
         raise TypeError("means, scales, quats and densities must share one dtype (float32 or float64)")
     with torch.no_grad():
         if n and not (torch.isfinite(means).all() and torch.isfinite(densities).all() and torch.isfinite(quats).all()):
-            raise ValueError("means, quats and densities must be finite (found NaN or Inf)")
+            raise InputError("means, quats and densities must be finite (found NaN or Inf)")
         if n and not (scales > 0).all():
-            raise ValueError("scales must be positive (activated standard deviations)")
+            raise InputError("scales must be positive (activated standard deviations)")
     _, prec, extent = cov_prec(scales, quats, cov=False, prec=True, extent=True)
     if n and not torch.isfinite(prec.detach()).all():
-        raise ValueError(
+        raise InputError(
             f"scales too small for {dtype}: the precision 1/scale^2 overflows (smallest scale "
             f"{scales.detach().min().item():.3g}); clamp scales or use float64"
         )
@@ -675,7 +676,7 @@ def voxelize_precision(means, prec, densities, extent, where, voxelizer: Voxeliz
     already kept only ``grid_candidates`` (skips that pass; the result is the same either way)."""
     n = means.shape[0] if means.dim() == 2 else -1
     if means.shape != (n, 3) or prec.shape != (n, 6) or densities.shape != (n,) or extent.shape != (n, 3):
-        raise ValueError(
+        raise InputError(
             "expected means (N, 3), prec (N, 6), densities (N,), extent (N, 3); got "
             f"{tuple(means.shape)}, {tuple(prec.shape)}, {tuple(densities.shape)}, {tuple(extent.shape)}"
         )
@@ -692,8 +693,8 @@ def voxelize_precision(means, prec, densities, extent, where, voxelizer: Voxeliz
         return _GridField.apply(means, prec, densities, extent, where, vox)
     pts = where.detach().cpu().numpy() if isinstance(where, torch.Tensor) else np.asarray(where)
     if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"points must be (M, 3), got shape {pts.shape}")
+        raise InputError(f"points must be (M, 3), got shape {pts.shape}")
     pts = np.ascontiguousarray(pts, dtype=np_dtype(means.dtype))
     if not np.all(np.isfinite(pts)):
-        raise ValueError("points must be finite (found NaN or Inf)")
+        raise InputError("points must be finite (found NaN or Inf)")
     return _PointField.apply(means, prec, densities, extent, pts, vox)

@@ -29,6 +29,7 @@ import numpy as np
 
 from clgs.shape.template import (Subject, Template, save_npz_atomic, json_array, json_from_array, box_grid, grid_points,
                            mesh_to_sdf)
+from clgs.errors import InputError
 
 BUILDER_VERSION = 2  # 2: the atlas samples a CT with its border value past its grid (was air)
 
@@ -61,7 +62,7 @@ def population_pca(velocities: np.ndarray, variance: Optional[float] = 0.95, n_m
     X = np.asarray(velocities, np.float64)
     n = X.shape[0]
     if n < 2:
-        raise ValueError(f"PCA needs at least 2 subjects, got {n}")
+        raise InputError(f"PCA needs at least 2 subjects, got {n}")
     mean = X.mean(0)
     _, s, vt = np.linalg.svd(X - mean, full_matrices=False)
     var = s ** 2 / (n - 1)
@@ -70,11 +71,11 @@ def population_pca(velocities: np.ndarray, variance: Optional[float] = 0.95, n_m
     var, vt = var[keep], vt[keep]
     if n_modes is not None:
         if n_modes < 1:
-            raise ValueError(f"n_modes must be >= 1, got {n_modes}")
+            raise InputError(f"n_modes must be >= 1, got {n_modes}")
         m = min(int(n_modes), len(var))
     else:
         if variance is None or not (0 < variance <= 1):
-            raise ValueError(f"variance must be in (0, 1], got {variance}")
+            raise InputError(f"variance must be in (0, 1], got {variance}")
         if len(var) == 0:
             m = 0
         else:
@@ -117,9 +118,9 @@ def build_model(template: Template, subjects: Union[Iterable[Subject], Mapping],
     items = _subject_items(subjects)
     ids = [sid for sid, _ in items]
     if len(set(ids)) != len(ids):
-        raise ValueError(f"subject ids must be unique, got {ids}")
+        raise InputError(f"subject ids must be unique, got {ids}")
     if len(items) < 2:
-        raise ValueError(f"a shape model needs at least 2 subjects, got {len(items)}")
+        raise InputError(f"a shape model needs at least 2 subjects, got {len(items)}")
     reg = RegistrationSettings.from_dict(registration)
     mshape, msp, morg = template.model_grid(max_cells)
     reg_key = {"builder": BUILDER_VERSION, "template": template.content_hash(), "max_cells": int(max_cells),
@@ -161,7 +162,7 @@ def build_model(template: Template, subjects: Union[Iterable[Subject], Mapping],
         if record is None:
             subject = loader()
             if subject.id != sid:
-                raise ValueError(f"loader for {sid!r} returned subject {subject.id!r}")
+                raise InputError(f"loader for {sid!r} returned subject {subject.id!r}")
             lo = np.minimum(subject.vertices.min(0), template.bounds()[0]) - 4 * msp[0]
             hi = np.maximum(subject.vertices.max(0), template.bounds()[1]) + 4 * msp[0]
             gshape, gsp, gorg = box_grid(lo, hi, spacing=msp[0])

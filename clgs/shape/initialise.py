@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from clgs.errors import InputError
 
 
 @dataclass
@@ -48,13 +49,13 @@ def sample_reference_centres(template, n: int, *, boundary_weight: float = 4.0, 
     proportional to the boundary weight (with replacement when ``n`` exceeds the candidates) and
     the point is jittered uniformly within its voxel."""
     if n < 1:
-        raise ValueError(f"need at least one shape-guided Gaussian, got {n}")
+        raise InputError(f"need at least one shape-guided Gaussian, got {n}")
     spacing = np.asarray(template.spacing, float)  # (dz, dy, dx)
     band = float(band_mm if band_mm is not None else 2.0 * spacing.max())
     sdf = template.sdf
     cand = np.flatnonzero(sdf.reshape(-1) <= 0.5 * spacing.min())
     if cand.size == 0:
-        raise ValueError("the template has no interior voxels: its signed distance is positive everywhere")
+        raise InputError("the template has no interior voxels: its signed distance is positive everywhere")
     d = sdf.reshape(-1)[cand].astype(np.float64)
     w = 1.0 + boundary_weight * np.exp(-((d / band) ** 2))
     rng = np.random.default_rng(seed)
@@ -111,7 +112,7 @@ def initialise(template, atlas, geometry, n: int, *, tau: float = 0.5, boundary_
     ``atlas`` may be None: every centre then starts at 0.05 (1/mm, about cancellous bone) before
     the overlap division."""
     if not 0 < tau <= 1:
-        raise ValueError(f"tau (thinning along the normal) must be in (0, 1], got {tau}")
+        raise InputError(f"tau (thinning along the normal) must be in (0, 1], got {tau}")
     centres = sample_reference_centres(template, n, boundary_weight=boundary_weight, band_mm=band_mm, seed=seed)
     s = nearest_neighbour_spacing(centres)
     scales = np.repeat(s[:, None], 3, 1)
@@ -139,13 +140,13 @@ def sample_surrounding_centres(template, atlas, n: int, *, threshold: float = 0.
     the voxel; seeded. Fewer when there are fewer voxels (drawn without replacement); none when
     the atlas holds the bone alone."""
     if n < 1:
-        raise ValueError(f"need at least one surrounding Gaussian, got {n}")
+        raise InputError(f"need at least one surrounding Gaussian, got {n}")
     grid = atlas.grid()
     pts = grid.points().reshape(-1, 3)
     mean = atlas.mean.reshape(-1)
     peak = float(mean.max())
     if not peak > 0:
-        raise ValueError("the density atlas is zero everywhere: nothing to lay the surroundings out from")
+        raise InputError("the density atlas is zero everywhere: nothing to lay the surroundings out from")
     spacing = np.asarray(atlas.spacing, float)  # (dz, dy, dx)
     outside = template.sdf_at(pts) > 0.5 * float(min(template.spacing))
     cand = np.flatnonzero(outside & (mean > threshold * peak))

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from clgs.errors import ClgsError
+from clgs.errors import ClgsError, InputError
 from clgs.geometry import Grid
 from clgs.ops.field_sampler import sample
 from clgs.shape.template import json_array, json_from_array, save_npz_atomic, zyx_triple
@@ -55,7 +55,7 @@ def _norm_scale(shape, spacing, like: torch.Tensor) -> torch.Tensor:
     dz, dy, dx = spacing
     ext = [(X - 1) * dx, (Y - 1) * dy, (Z - 1) * dz]
     if min(ext) <= 0:
-        raise ValueError(f"a field grid needs at least 2 voxels per axis, got {tuple(shape)}")
+        raise InputError(f"a field grid needs at least 2 voxels per axis, got {tuple(shape)}")
     return torch.tensor([2.0 / e for e in ext], dtype=like.dtype, device=like.device)
 
 
@@ -98,11 +98,11 @@ def squarings_for(v: torch.Tensor, spacing, min_squarings: int = MIN_SQUARINGS) 
         d = torch.tensor([dx, dy, dz], dtype=v.dtype, device=v.device).view(3, 1, 1, 1)
         cells = float((v.detach().abs() / d).max()) if v.numel() else 0.0
     if not math.isfinite(cells):
-        raise ValueError("velocity field contains NaN or Inf")
+        raise InputError("velocity field contains NaN or Inf")
     n = math.ceil(math.log2(cells / 0.5)) if cells > 0.5 else 0
     n = max(n + 1 if cells / 2.0 ** n >= 0.5 else n, min_squarings)
     if n > MAX_SQUARINGS:
-        raise ValueError(f"velocity field too large ({cells:.3g} cells): more than {MAX_SQUARINGS} squarings")
+        raise InputError(f"velocity field too large ({cells:.3g} cells): more than {MAX_SQUARINGS} squarings")
     return n
 
 
@@ -112,7 +112,7 @@ def exp_velocity(v: torch.Tensor, spacing, n_squarings: Optional[int] = None,
     in mm (components x, y, z), by scaling and squaring. Differentiable in v. ``sampler``: as
     :func:`sample_field` (the squarings then run in voxel units, in OpenCL)."""
     if v.dim() != 4 or v.shape[0] != 3:
-        raise ValueError(f"velocity must be (3, Z, Y, X), got {tuple(v.shape)}")
+        raise InputError(f"velocity must be (3, Z, Y, X), got {tuple(v.shape)}")
     shape = tuple(v.shape[1:])
     if n_squarings is None:
         n_squarings = squarings_for(v, spacing, min_squarings)
@@ -211,7 +211,7 @@ class ShapeModel:
             return torch.zeros(self.n_modes, dtype=self.dtype)
         alpha = torch.as_tensor(alpha, dtype=self.dtype)
         if alpha.shape != (self.n_modes,):
-            raise ValueError(f"alpha must have {self.n_modes} entries (one per mode), got {tuple(alpha.shape)}")
+            raise InputError(f"alpha must have {self.n_modes} entries (one per mode), got {tuple(alpha.shape)}")
         return alpha
 
     def velocity(self, alpha=None) -> torch.Tensor:
@@ -286,7 +286,7 @@ class DensityAtlas:
 
         Torch points give a torch result (differentiable in the points); NumPy gives NumPy."""
         if which not in ("mean", "var"):
-            raise ValueError(f"which must be 'mean' or 'var', got {which!r}")
+            raise InputError(f"which must be 'mean' or 'var', got {which!r}")
         is_torch = isinstance(points, torch.Tensor)
         pts = points if is_torch else torch.as_tensor(np.asarray(points, np.float64), dtype=torch.float64)
         key = (which, pts.dtype)
@@ -325,7 +325,7 @@ def save_model(path, shape_model: Optional[ShapeModel], atlas: Optional[DensityA
     ``meta`` (JSON-serialisable) is stored with the format name and version; keys used by clgs:
     population (ids), settings, settings_hash, variance_kept, residuals."""
     if shape_model is None and atlas is None:
-        raise ValueError("nothing to save: give a shape model, an atlas or both")
+        raise InputError("nothing to save: give a shape model, an atlas or both")
     record = dict(shape_model.meta if shape_model is not None else {})
     record.update(meta or {})
     record.update(format=MODEL_FORMAT, version=MODEL_VERSION, has_shape_model=shape_model is not None,

@@ -8,6 +8,7 @@ import torch.nn.functional as F
 
 from clgs.geometry import Grid
 from clgs.shape.gaussian_set import ShapeGuidedSet
+from clgs.errors import InputError
 
 
 def shape_prior_term(set_name: str = "shape"):
@@ -52,7 +53,7 @@ class DensityPrior:
     def __init__(self, atlas, template, geometry, value_scale: float, s: float, n_points: int,
                  set_name: str = "shape", field: str = "shape"):
         if field not in ("shape", "all"):
-            raise ValueError(f"density prior field must be 'shape' or 'all', got {field!r}")
+            raise InputError(f"density prior field must be 'shape' or 'all', got {field!r}")
         self.atlas, self.template, self.geometry = atlas, template, geometry
         self.value_scale = float(value_scale)
         self.s2 = float(s) ** 2

@@ -23,6 +23,7 @@ import torch
 
 from clgs.shape.model import exp_velocity, jacobian_determinant, sample_field, squarings_for
 from clgs.shape.template import zyx_triple, box_grid, grid_points
+from clgs.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -44,9 +45,9 @@ class RegistrationSettings:
 
     def __post_init__(self):
         if len(self.levels) != len(self.iterations) or not self.levels:
-            raise ValueError("levels and iterations must be non-empty and of the same length")
+            raise InputError("levels and iterations must be non-empty and of the same length")
         if self.lr <= 0 or self.edge_cells <= 0 or self.smooth < 0 or self.magnitude < 0:
-            raise ValueError(f"bad registration settings: {self}")
+            raise InputError(f"bad registration settings: {self}")
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -151,9 +152,9 @@ def _register(fixed_sdf, fixed_spacing, fixed_origin, moving_sdf, moving_spacing
     fixed = torch.as_tensor(np.asarray(fixed_sdf, np.float32))[None]
     moving = torch.as_tensor(np.asarray(moving_sdf, np.float32))[None]
     if fixed.dim() != 4 or moving.dim() != 4:
-        raise ValueError("fixed and moving signed distances must be (Z, Y, X) volumes")
+        raise InputError("fixed and moving signed distances must be (Z, Y, X) volumes")
     if not (torch.isfinite(fixed).all() and torch.isfinite(moving).all()):
-        raise ValueError("signed distances contain NaN or Inf")
+        raise InputError("signed distances contain NaN or Inf")
     model_shape = tuple(fixed.shape[1:])
     lo = np.asarray(f_or[::-1])
     hi = lo + (np.asarray(model_shape[::-1]) - 1) * np.asarray(f_sp[::-1])
@@ -163,7 +164,7 @@ def _register(fixed_sdf, fixed_spacing, fixed_origin, moving_sdf, moving_spacing
     if init_velocity is not None:
         v = torch.as_tensor(np.asarray(init_velocity, np.float32))
         if tuple(v.shape) != (3,) + model_shape:
-            raise ValueError(f"init_velocity must be (3, {model_shape}), got {tuple(v.shape)}")
+            raise InputError(f"init_velocity must be (3, {model_shape}), got {tuple(v.shape)}")
     prev = None  # (field, spacing, origin)
     loss_value = float("nan")
     for level, (cells, iters) in enumerate(zip(s.levels, s.iterations)):

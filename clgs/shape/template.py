@@ -22,6 +22,7 @@ import numpy as np
 
 from clgs.mesh import voxels as meshvol
 from clgs.io.mesh import check_mesh
+from clgs.errors import InputError
 
 TEMPLATE_FORMAT = "clgs.template"
 TEMPLATE_VERSION = 1
@@ -31,7 +32,7 @@ TEMPLATE_VERSION = 1
 def zyx_triple(name, value, dtype=float):
     arr = np.asarray(value, dtype=np.float64).reshape(-1)
     if arr.size != 3 or not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be 3 finite numbers (Z, Y, X), got {value!r}")
+        raise InputError(f"{name} must be 3 finite numbers (Z, Y, X), got {value!r}")
     return tuple(dtype(v) for v in arr)
 
 
@@ -51,10 +52,10 @@ def box_grid(lo_xyz, hi_xyz, max_cells: int = None, spacing: float = None):
     lo, hi = np.asarray(lo_xyz, float), np.asarray(hi_xyz, float)
     size = hi - lo
     if np.any(size <= 0):
-        raise ValueError(f"empty box: lo={lo}, hi={hi}")
+        raise InputError(f"empty box: lo={lo}, hi={hi}")
     if spacing is None:
         if not max_cells or max_cells < 2:
-            raise ValueError("give max_cells >= 2 or a spacing in mm")
+            raise InputError("give max_cells >= 2 or a spacing in mm")
         spacing = float(size.max()) / (max_cells - 1)
     n = np.maximum(np.ceil(size / spacing).astype(int) + 1, 2)
     centre = 0.5 * (lo + hi)
@@ -129,7 +130,7 @@ def mesh_from_sdf(sdf, spacing, origin, level: float = 0.0):
 
     sdf = np.asarray(sdf, np.float32)
     if not (sdf.min() < level < sdf.max()):
-        raise ValueError(f"the volume has no {level} iso-surface (range {sdf.min()}..{sdf.max()})")
+        raise InputError(f"the volume has no {level} iso-surface (range {sdf.min()}..{sdf.max()})")
     verts, faces, _, _ = marching_cubes(sdf, level=level, spacing=tuple(float(s) for s in spacing))
     verts = verts + np.asarray(origin, float)  # (z, y, x) mm
     verts = verts[:, ::-1].copy()  # to (x, y, z)
@@ -180,20 +181,20 @@ class Template:
         self.spacing = zyx_triple("spacing", self.spacing)
         self.origin = zyx_triple("origin", self.origin)
         if min(self.spacing) <= 0:
-            raise ValueError(f"template spacing must be positive, got {self.spacing}")
+            raise InputError(f"template spacing must be positive, got {self.spacing}")
         self.sdf = np.asarray(self.sdf, np.float32)
         self.label = np.asarray(self.label, bool)
         if self.sdf.ndim != 3 or self.label.shape != self.sdf.shape:
-            raise ValueError(f"template label {self.label.shape} and sdf {self.sdf.shape} must be the "
+            raise InputError(f"template label {self.label.shape} and sdf {self.sdf.shape} must be the "
                              "same (Z, Y, X) shape")
         if not np.all(np.isfinite(self.sdf)):
-            raise ValueError("template signed distance contains NaN or Inf")
+            raise InputError("template signed distance contains NaN or Inf")
         self.vertices, self.faces = _check_mesh(self.vertices, self.faces)
         if self.normals is None:
             self.normals = vertex_normals(self.vertices, self.faces)
         self.normals = np.asarray(self.normals, np.float32)
         if self.normals.shape != self.vertices.shape:
-            raise ValueError(f"normals {self.normals.shape} must match vertices {self.vertices.shape}")
+            raise InputError(f"normals {self.normals.shape} must match vertices {self.vertices.shape}")
 
     # ---- construction
     @classmethod
@@ -207,7 +208,7 @@ class Template:
         else:
             sp = zyx_triple("spacing", spacing if np.ndim(spacing) else (spacing,) * 3)
             if origin is None:
-                raise ValueError("give origin together with shape")
+                raise InputError("give origin together with shape")
         label = mesh_to_label(v, f, shape, sp, origin)
         sdf = mesh_to_sdf(v, f, shape, sp, origin, label=label)
         return cls(label, sdf, v, f, sp, origin, name=name, meta=dict(meta or {}))
@@ -282,19 +283,19 @@ class Template:
         except ValueError:
             raise
         except (OSError, KeyError, EOFError, zipfile.BadZipFile) as exc:
-            raise ValueError(f"cannot read template file {path} ({exc}): reinstall the anatomy plugin or "
+            raise InputError(f"cannot read template file {path} ({exc}): reinstall the anatomy plugin or "
                              "rebuild the template") from exc
 
     @classmethod
     def _load(cls, path) -> "Template":
         with np.load(path, allow_pickle=False) as z:
             if "metadata" not in z.files:
-                raise ValueError(f"{path} is not a clgs template (no metadata)")
+                raise InputError(f"{path} is not a clgs template (no metadata)")
             meta = json_from_array(z["metadata"])
             if meta.get("format") != TEMPLATE_FORMAT:
-                raise ValueError(f"{path} is not a clgs template (format {meta.get('format')!r})")
+                raise InputError(f"{path} is not a clgs template (format {meta.get('format')!r})")
             if meta.get("version", 0) > TEMPLATE_VERSION:
-                raise ValueError(f"{path} is template format version {meta['version']}; this clgs reads "
+                raise InputError(f"{path} is template format version {meta['version']}; this clgs reads "
                                  f"up to {TEMPLATE_VERSION}: upgrade clgs")
             return cls(z["label"].astype(bool), z["sdf"], z["vertices"], z["faces"], tuple(z["spacing"]),
                        tuple(z["origin"]), normals=z["normals"], name=meta.get("name", ""),
@@ -323,9 +324,9 @@ class Subject:
         if self.volume is not None:
             self.volume = np.asarray(self.volume, np.float32)
             if self.volume.ndim != 3:
-                raise ValueError(f"subject {self.id}: volume must be (Z, Y, X), got {self.volume.shape}")
+                raise InputError(f"subject {self.id}: volume must be (Z, Y, X), got {self.volume.shape}")
             if self.spacing is None or self.origin is None:
-                raise ValueError(f"subject {self.id}: a volume needs its spacing and origin (Z, Y, X mm)")
+                raise InputError(f"subject {self.id}: a volume needs its spacing and origin (Z, Y, X mm)")
             self.spacing = zyx_triple("spacing", self.spacing)
             self.origin = zyx_triple("origin", self.origin)
 
@@ -337,7 +338,7 @@ class Subject:
         """CT values at points (..., 3) (x, y, z mm), trilinear; ``fill`` (default 0, air) outside
         the volume, or the nearest border value when ``fill`` is None."""
         if self.volume is None:
-            raise ValueError(f"subject {self.id} has no CT volume")
+            raise InputError(f"subject {self.id} has no CT volume")
         return sample_volume(self.volume, self.spacing, self.origin, points, fill=fill)
 
     def content_hash(self) -> str:
