@@ -295,16 +295,20 @@ def test_methods_come_through_the_same_plugin_mechanism(monkeypatch, tmp_path):
     def zeros(scan, out_dir=None):
         return {"volume": np.zeros(scan.geometry.nVoxel, np.float32)}
 
-    class Provider:
-        @hookimpl
-        def clgs_methods(self):
-            return [methods.Method("t-plugin-zeros", zeros, help="a plugin's method")]
+    def installed(name, help_text, package):
+        """A registry holding one plugin whose clgs_methods provides ``name``, made the process's."""
+        class Provider:
+            @hookimpl
+            def clgs_methods(self):
+                return [methods.Method(name, zeros, help=help_text)]
 
-    reg = plugins.Registry()
-    reg.register(Provider(), name="provider", package="provider-pkg")
-    monkeypatch.setattr(plugins, "registry", lambda reload=False: reg)
-    monkeypatch.setattr(methods, "_PLUGINS_SEEN", [False])
+        reg = plugins.Registry()
+        reg.register(Provider(), name=package, package=package)
+        monkeypatch.setattr(plugins, "registry", lambda reload=False: reg)
+        monkeypatch.setattr(methods, "_PLUGINS_SEEN", [False])
+
     monkeypatch.setattr(methods, "_REGISTRY", dict(methods._REGISTRY))
+    installed("t-plugin-zeros", "a plugin's method", "provider-pkg")
     assert "t-plugin-zeros" in methods.names() and methods.describe()["t-plugin-zeros"] == "a plugin's method"
     geo = Geometry.default(n_views=2, n_voxel=8, n_detector=12, volume_mm=32.0)
     Scan(geo, np.zeros((2, 12, 12), np.float32)).save(tmp_path / "scan")
@@ -312,14 +316,6 @@ def test_methods_come_through_the_same_plugin_mechanism(monkeypatch, tmp_path):
                                     "--out", str(tmp_path / "z.nii.gz")])
     assert res.exit_code == 0, res.output
 
-    class Clash:
-        @hookimpl
-        def clgs_methods(self):
-            return [methods.Method("fdk", zeros, help="another fdk")]
-
-    reg2 = plugins.Registry()
-    reg2.register(Clash(), name="clash", package="clash-pkg")
-    monkeypatch.setattr(plugins, "registry", lambda reload=False: reg2)
-    monkeypatch.setattr(methods, "_PLUGINS_SEEN", [False])
+    installed("fdk", "another fdk", "clash-pkg")
     with pytest.raises(methods.MethodError, match="clash-pkg"):
         methods.names()

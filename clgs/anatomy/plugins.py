@@ -86,18 +86,24 @@ class Registry:
                 self._warn(ep.name, package, f"{type(exc).__name__}: {exc}")
 
     # ---- queries
+    def _results(self, hook: str):
+        """(hookimpl, package, version, result) of each plugin's ``hook``; a plugin whose hook
+        raises is a warning naming its package, and is left out."""
+        for impl in getattr(self.pm.hook, hook).get_hookimpls():
+            package, version = self._package.get(impl.plugin_name, (impl.plugin_name, ""))
+            try:
+                result = impl.function()
+            except Exception as exc:  # noqa: BLE001 - a broken plugin must not break clgs
+                self._warn(impl.plugin_name, package, f"{hook}() raised {type(exc).__name__}: {exc}")
+                continue
+            yield impl, package, version, result
+
     def anatomies(self) -> dict:
         """name -> Anatomy from every registered plugin (cached)."""
         if self._anatomies is not None:
             return self._anatomies
         found = {}
-        for impl in self.pm.hook.clgs_anatomies.get_hookimpls():
-            package, version = self._package.get(impl.plugin_name, (impl.plugin_name, ""))
-            try:
-                result = impl.function()
-            except Exception as exc:  # noqa: BLE001
-                self._warn(impl.plugin_name, package, f"clgs_anatomies() raised {type(exc).__name__}: {exc}")
-                continue
+        for impl, package, version, result in self._results("clgs_anatomies"):
             if isinstance(result, Anatomy):
                 result = [result]
             if not isinstance(result, (list, tuple)) or not all(isinstance(a, Anatomy) for a in result):
@@ -129,13 +135,7 @@ class Registry:
         ``clgs_methods()``; :mod:`clgs.methods` checks and registers them. A plugin whose hook fails
         is a warning, not a crash."""
         found = []
-        for impl in self.pm.hook.clgs_methods.get_hookimpls():
-            package, _ = self._package.get(impl.plugin_name, (impl.plugin_name, ""))
-            try:
-                result = impl.function()
-            except Exception as exc:  # noqa: BLE001
-                self._warn(impl.plugin_name, package, f"clgs_methods() raised {type(exc).__name__}: {exc}")
-                continue
+        for _, package, _, result in self._results("clgs_methods"):
             found.extend((package, m) for m in (result if isinstance(result, (list, tuple)) else [result]))
         return found
 
