@@ -68,7 +68,7 @@ def test_no_working_device_says_why_and_what_to_install(fresh_choice, monkeypatc
         runtime.get_context()
     text = str(err.value)
     assert "unknown target CPU 'generic'" in text
-    assert "setup.sh" in text and "pocl-opencl-icd" in text and "clgs[intel]" in text
+    assert "setup.sh" in text and "pocl-opencl-icd" in text and "intel-opencl-rt" in text
     assert "Traceback" not in text
 
 

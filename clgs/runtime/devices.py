@@ -32,7 +32,7 @@ try:
 except ImportError as exc:  # pragma: no cover - exercised only without pyopencl
     raise ImportError(
         "clgs needs pyopencl and an OpenCL driver; run the set-up in clgs's README "
-        "(bash setup.sh), or: pip install pyopencl 'clgs[intel]'"
+        "(bash setup.sh), or: pip install pyopencl intel-opencl-rt intel-cmplr-lib-rt"
     ) from exc
 
 #: CPU drivers in order of preference (a piece of the platform name, lower case).
@@ -41,7 +41,7 @@ CPU_PLATFORM_ORDER = ("portable computing language", "intel(r) opencl")
 INSTALL_HINT = (
     "To get a working OpenCL device on Linux x86-64: run clgs's set-up (bash setup.sh), or install "
     "Debian's PoCL (apt-get install pocl-opencl-icd) or Intel's CPU runtime "
-    "(pip install 'clgs[intel]'); for a GPU install its vendor's OpenCL driver (see the README)."
+    "(pip install intel-opencl-rt intel-cmplr-lib-rt); for a GPU install its vendor's OpenCL driver (see the README)."
 )
 
 

@@ -5,7 +5,7 @@ Everything here must happen before the OpenCL ICD loader first runs (pyopencl's 
 
 Two CPU drivers are supported and tested: PoCL (Debian's ``pocl-opencl-icd``, or
 ``pocl-binary-distribution`` from PyPI on CPUs its LLVM knows) and Intel's CPU runtime
-(``intel-opencl-rt`` from PyPI, the ``intel`` extra). The wheel of Intel's runtime ships an
+(``intel-opencl-rt`` from PyPI, a dependency of clgs on x86-64 Linux). The wheel of Intel's runtime ships an
 ``.icd`` file that names a path which does not exist (``/opt/anaconda1anaconda2anaconda3/...``),
 so the ICD loader never finds it. Here, when that package is installed and the user has not set
 ``OCL_ICD_VENDORS`` themselves, clgs writes a vendors folder in its cache that holds the
