@@ -102,7 +102,7 @@ def test_volume_npy_is_always_the_run_just_done(bare, stand_ins, tiny_scan, tmp_
         assert res.exit_code == 0, res.output
         vol = np.load(out / "volume.npy")
         assert vol.shape == (N_VOX,) * 3 and np.all(vol == value), method
-    assert sorted(os.listdir(out)) == ["volume.npy"]  # written atomically: no temporary left
+    assert sorted(os.listdir(out)) == ["volume.nii.gz", "volume.npy"]  # written atomically: no temporary left
 
 
 def test_fdk_then_sart_in_one_folder_keeps_the_sart_volume(bare, tiny_scan, tmp_path):
@@ -368,3 +368,15 @@ def test_anatomy_sizes_are_checked_before_any_work(tmp_path, command):
     res = CliRunner().invoke(main, ["femur", command, "--views", "1000000000", "--out", str(tmp_path / "o")])
     assert_clean_error(res, "GiB of memory", "fewer --views", code=1)
     assert not (tmp_path / "o").exists()
+
+
+def test_every_method_writes_a_nifti_a_viewer_places(bare, tiny_scan, tmp_path, stand_ins):
+    import nibabel as nib
+
+    res = invoke(bare, "reconstruct", tiny_scan, "--out", tmp_path / "r", "--method", "fdk")
+    assert res.exit_code == 0, res.output
+    img = nib.load(str(tmp_path / "r" / "volume.nii.gz"))
+    scan = Scan.load(tiny_scan)
+    assert img.shape == tuple(scan.geometry.nVoxel[::-1])
+    assert np.allclose(np.diag(img.affine)[:3], scan.geometry.dVoxel[::-1])
+    assert np.array_equal(np.asarray(img.dataobj).transpose(2, 1, 0), np.load(tmp_path / "r" / "volume.npy"))

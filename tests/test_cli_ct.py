@@ -563,3 +563,14 @@ def test_reconstruct_takes_settings_as_the_anatomy_commands_do(scan_dir, tmp_pat
     res = run("reconstruct", scan_dir / "scan", "--method", "sart", "--set", "nope=1", "--out", tmp_path / "c.nii.gz",
               ok=False)
     assert res.exit_code == 2 and "unknown setting 'nope'" in res.output
+
+
+def test_evaluate_refuses_volumes_on_different_world_grids(scan_dir, tmp_path):
+    """Voxels are compared by index: a reconstruction and a truth that lie in different places
+    (the input CT before simulate centred it, another voxel size) are refused with both grids."""
+    run("reconstruct", scan_dir / "scan", "--method", "fdk", "--out", tmp_path / "fdk.nii.gz")
+    res = run("evaluate", tmp_path / "fdk.nii.gz", "--truth", scan_dir / "ball.nii.gz", ok=False)
+    assert res.exit_code == 2 and "starts at" in res.output and "(-100.0, -50.0, 30.0)" in res.output
+    save_volume(tmp_path / "fine.nii.gz", ball_volume(), spacing=(1.0, 1.0, 1.0))
+    res = run("evaluate", tmp_path / "fdk.nii.gz", "--truth", tmp_path / "fine.nii.gz", ok=False)
+    assert res.exit_code == 2 and "different grids" in res.output

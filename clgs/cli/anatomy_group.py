@@ -131,7 +131,8 @@ def run_reconstruct(scan, anatomy, method: str, out=None, **options):
     """Reconstruct with a method of the registry (:mod:`clgs.methods`); the anatomy goes to the
     methods that name an ``anatomy`` parameter (the others would take it for a setting). Returns
     the method's result dict (at least ``volume``). With ``out``, ``out/volume.npy`` is (over)written
-    atomically with the volume just computed, whatever an earlier run left there."""
+    atomically with the volume just computed, whatever an earlier run left there (and
+    ``out/volume.nii.gz`` for viewers)."""
     import inspect
 
     _, run = _get_method(method)
@@ -145,7 +146,9 @@ def run_reconstruct(scan, anatomy, method: str, out=None, **options):
         os.makedirs(out, exist_ok=True)
         # always this run's volume (never an earlier run's): save_volume writes .npy files through
         # clgs.io.atomic.save_npy, so readers see the old file or the new one, never a torn one
-        save_volume(os.path.join(out, "volume.npy"), as_float32(result["volume"]), scan.geometry)
+        volume = as_float32(result["volume"])
+        save_volume(os.path.join(out, "volume.npy"), volume, scan.geometry)
+        save_volume(os.path.join(out, "volume.nii.gz"), volume, scan.geometry)  # for viewers, placed in mm
     return result
 
 
@@ -250,7 +253,7 @@ def _reconstruct_command(anatomy) -> click.Command:
                        "resume=true); without --set iterations=N it runs to the checkpoint's planned iterations")
     @click.option("--force", is_flag=True, help="start a new run in an --out that holds one (it is replaced)")
     def reconstruct(scan_dir, out, method, views, settings, resume, force):
-        """Reconstruct a scan folder with the anatomy's prior; writes OUT/volume.npy."""
+        """Reconstruct a scan folder with the anatomy's prior; writes OUT/volume.nii.gz and OUT/volume.npy."""
         from clgs.io.scan import Scan
 
         method = method or default_method(anatomy)

@@ -59,7 +59,6 @@ def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, 
     (One function: the truth, the mask, the metrics and the optional surface distance use the
     same loaded arrays.)
     """
-    import numpy as np
 
     from clgs import metrics
     from clgs.io import atomic
@@ -80,8 +79,7 @@ def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, 
     tvol, tsp, torg, tsurf = _truth_from(truth, sp)
     if pred.shape != tvol.shape:
         raise click.UsageError(f"VOLUME {pred.shape} and --truth {tvol.shape} have different shapes (Z, Y, X)")
-    if psp is not None and tsp is not None and not np.allclose(psp, tsp, rtol=1e-4):
-        click.echo(f"warning: voxel sizes differ (volume {psp}, truth {tsp} mm); using the truth's", err=True)
+    _check_same_grid(volume, psp, porg, tsp, torg)
     mask = None
     if mask_path is not None:
         mvol, _, _ = load_volume_file(mask_path, sp, "mask")
@@ -137,3 +135,23 @@ def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, 
     if json_out is not None:
         atomic.write_json(json_out, res, overwrite=True)
         click.echo(f"wrote {json_out}")
+
+
+def _check_same_grid(volume, psp, porg, tsp, torg) -> None:
+    """Voxels are compared by index, so both volumes must lie on one world grid: where both files
+    say where they lie (NIfTI, MetaImage, NRRD, DICOM), a different voxel size or origin is refused
+    with both grids (a .npy carries no position and is taken as on the truth's grid)."""
+    import numpy as np
+
+    if psp is None or tsp is None:
+        return
+    if not np.allclose(psp, tsp, rtol=1e-4):
+        raise click.UsageError(f"{volume} has voxels of {tuple(psp)} mm, the truth {tuple(tsp)} mm (dZ, dY, dX): "
+                               "the two are on different grids; resample one onto the other first")
+    if porg is not None and torg is not None:
+        off = np.abs(np.asarray(porg, float) - np.asarray(torg, float))
+        if np.any(off > 0.01 * np.asarray(tsp, float)[::-1]):
+            raise click.UsageError(f"{volume} starts at {tuple(round(float(v), 3) for v in porg)} mm, the truth at "
+                                   f"{tuple(round(float(v), 3) for v in torg)} mm (x, y, z of the first voxel): the "
+                                   "same voxel index would compare different places; resample one onto the other, "
+                                   "or evaluate against the scan's own truth (its folder)")
