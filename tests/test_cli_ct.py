@@ -574,3 +574,22 @@ def test_evaluate_refuses_volumes_on_different_world_grids(scan_dir, tmp_path):
     save_volume(tmp_path / "fine.nii.gz", ball_volume(), spacing=(1.0, 1.0, 1.0))
     res = run("evaluate", tmp_path / "fdk.nii.gz", "--truth", tmp_path / "fine.nii.gz", ok=False)
     assert res.exit_code == 2 and "different grids" in res.output
+
+
+def test_npy_axis_order_is_explicit(tmp_path):
+    """R2-Gaussian's vol_gt.npy is [x, y, z]: --axes xyz reads it as such instead of transposing it
+    silently; a file that carries its orientation is unaffected."""
+    from clgs.io.scan import Scan
+
+    xyz = np.zeros((12, 8, 4), np.float32)
+    xyz[2:10, 2:6, 1:3] = 0.02
+    np.save(tmp_path / "vol_gt.npy", xyz)
+    run("simulate", tmp_path / "vol_gt.npy", "--spacing", 2, "--axes", "xyz", "--views", 2, "--detector", 16,
+        "--no-noise", "--out", tmp_path / "s")
+    truth = Scan.load(tmp_path / "s").truth
+    assert truth.shape == (4, 8, 12) and np.array_equal(truth, xyz.transpose(2, 1, 0))
+    np.save(tmp_path / "pred_xyz.npy", xyz)
+    res = run("evaluate", tmp_path / "pred_xyz.npy", "--axes", "xyz", "--spacing", 2, "--truth", tmp_path / "s")
+    assert "inf" in res.output or "PSNR" in res.output
+    res = run("evaluate", tmp_path / "pred_xyz.npy", "--spacing", 2, "--truth", tmp_path / "s", ok=False)
+    assert res.exit_code == 2 and "different shapes" in res.output

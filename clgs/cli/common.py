@@ -184,9 +184,11 @@ def is_out_of_memory(exc: BaseException) -> bool:
     return isinstance(exc, MemoryError) or (isinstance(exc, RuntimeError) and "can't allocate memory" in str(exc))
 
 
-def load_volume_file(path: Path, spacing=None, label="volume", attenuation: bool = False):
+def load_volume_file(path: Path, spacing=None, label="volume", attenuation: bool = False, axes: str = "zyx"):
     """(volume float32, spacing, origin) of a volume file; with ``attenuation``, values whose kind
-    cannot be attenuation are refused (complex, boolean masks) or warned about (integers)."""
+    cannot be attenuation are refused (complex, boolean masks) or warned about (integers). ``axes``:
+    the order of a ``.npy`` array's axes, ``zyx`` (clgs's) or ``xyz`` (R2-Gaussian's ``vol_gt.npy``);
+    files that carry their own orientation ignore it."""
     import numpy as np
 
     from clgs.io.volume import VolumeError, load_volume
@@ -199,7 +201,10 @@ def load_volume_file(path: Path, spacing=None, label="volume", attenuation: bool
     except VolumeError as exc:
         raise click_error(exc) from None
     vol, sp, org = loaded
-    if attenuation:
+    if axes not in ("zyx", "xyz"):
+        raise click.BadParameter(f"{axes!r}: give zyx or xyz", param_hint="--axes")
+    if axes == "xyz" and str(path).lower().endswith(".npy"):
+        vol = np.ascontiguousarray(vol.transpose(2, 1, 0))
         if np.issubdtype(vol.dtype, np.complexfloating):
             raise click.ClickException(f"{path}: complex values (dtype {vol.dtype}); attenuation is real: give "
                                        "the magnitude or the real part")

@@ -19,7 +19,7 @@ from clgs.cli.common import (
 from clgs.cli.options import FiniteFloat
 
 
-def _truth_from(path: Path, spacing):
+def _truth_from(path: Path, spacing, axes: str = "zyx"):
     """A truth volume from a volume file or from a scan folder's truth."""
     if path.is_dir():
         from clgs.io.volume import grid_spacing_origin
@@ -29,7 +29,7 @@ def _truth_from(path: Path, spacing):
             raise click.BadParameter(f"{path}: this scan has no ground truth", param_hint="--truth")
         sp, org = grid_spacing_origin(sc.geometry)
         return sc.truth, sp, org, (sc.surface, sc.meta.get("truth_surface_level"))
-    vol, sp, org = load_volume_file(path, spacing, "truth")
+    vol, sp, org = load_volume_file(path, spacing, "truth", axes=axes)
     return vol, sp, org, (None, None)
 
 
@@ -48,10 +48,12 @@ def _truth_from(path: Path, spacing):
 @click.option("--surface", "surface_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="true surface mesh (STL/PLY/OBJ/npz) to compare with instead of the truth's iso-surface")
 @click.option("--spacing", default=None, help="voxel size in mm for .npy inputs, 'd' or 'dZ,dY,dX'")
+@click.option("--axes", type=click.Choice(["zyx", "xyz"]), default="zyx", show_default=True,
+              help="axis order of .npy inputs: zyx (clgs) or xyz (R2-Gaussian's vol_gt.npy)")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="write the figures to this JSON file (an infinite PSNR is written as null)")
 @click.option("--force", is_flag=True, help="overwrite an existing --json")
-def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, spacing, json_out, force):
+def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, spacing, axes, json_out, force):
     """Compare VOLUME with the truth: 3D PSNR / SSIM (as R2-Gaussian), masked variants, and the
     surface distance in mm when --level is given. VOLUME may also be a reconstruct output folder.
 
@@ -75,14 +77,14 @@ def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, 
             raise click.BadParameter(f"{volume}: a folder without volume.nii.gz", param_hint="VOLUME")
         volume = volume / "volume.nii.gz"
     sp = parse_spacing(spacing)
-    pred, psp, porg = load_volume_file(volume, sp)
-    tvol, tsp, torg, tsurf = _truth_from(truth, sp)
+    pred, psp, porg = load_volume_file(volume, sp, axes=axes)
+    tvol, tsp, torg, tsurf = _truth_from(truth, sp, axes)
     if pred.shape != tvol.shape:
         raise click.UsageError(f"VOLUME {pred.shape} and --truth {tvol.shape} have different shapes (Z, Y, X)")
     _check_same_grid(volume, psp, porg, tsp, torg)
     mask = None
     if mask_path is not None:
-        mvol, _, _ = load_volume_file(mask_path, sp, "mask")
+        mvol, _, _ = load_volume_file(mask_path, sp, "mask", axes=axes)
         if mvol.shape != tvol.shape:
             raise click.UsageError(f"--mask {mvol.shape} does not match the volumes' shape {tvol.shape}")
         mask = mvol != 0

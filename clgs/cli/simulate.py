@@ -46,6 +46,8 @@ def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, 
 @click.command()
 @click.argument("volume", type=click.Path(path_type=Path))
 @click.option("--out", "-o", "out", type=click.Path(path_type=Path), required=True, help="scan folder to write")
+@click.option("--axes", type=click.Choice(["zyx", "xyz"]), default="zyx", show_default=True,
+              help="axis order of a .npy volume: zyx (clgs) or xyz (R2-Gaussian's vol_gt.npy)")
 @click.option("--hu", is_flag=True, help="the volume holds Hounsfield units (a CT, DICOM): convert them to "
                                          "attenuation, mu = mu_water (1 + HU / 1000), at --kev")
 @click.option("--kev", type=FiniteFloat(min=40, max=150), default=70.0, show_default=True,
@@ -73,7 +75,7 @@ def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, 
 @click.option("--surface-level", type=FiniteFloat(), default=None,
               help="also store the truth's iso-surface at this value as truth_surface.stl")
 @click.option("--force", is_flag=True, help="overwrite an existing --out")
-def simulate(volume, out, hu, kev, views, arc, mode, DSD, DSO, detector, pixel, spacing, I0, sigma, scatter, seed,
+def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, pixel, spacing, I0, sigma, scatter, seed,
              no_noise, surface_level, force):
     """Simulate a sparse-view X-ray scan of VOLUME (attenuation in 1/mm, or Hounsfield units with
     --hu): .npy, NIfTI, MetaImage (.mha/.mhd), NRRD, or a DICOM series (its folder or a .dcm file).
@@ -97,7 +99,7 @@ def simulate(volume, out, hu, kev, views, arc, mode, DSD, DSO, detector, pixel, 
     # projections, their noisy copy and the parts joined: three float32 copies of views x detector^2
     check_memory(f"simulating {views} views of {detector} x {detector} pixels", 3.0 * 4 * views * detector ** 2,
                  "use fewer --views or a smaller --detector")
-    vol, sp, org = load_volume_file(volume, sp_override, attenuation=not hu)
+    vol, sp, org = load_volume_file(volume, sp_override, attenuation=not hu, axes=axes)
     if sp is None:
         raise click.UsageError(f"{volume} is a .npy array without voxel size; give --spacing (mm)")
     if not np.all(np.isfinite(vol)):
