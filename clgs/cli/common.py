@@ -205,6 +205,7 @@ def load_volume_file(path: Path, spacing=None, label="volume", attenuation: bool
         raise click.BadParameter(f"{axes!r}: give zyx or xyz", param_hint="--axes")
     if axes == "xyz" and str(path).lower().endswith(".npy"):
         vol = np.ascontiguousarray(vol.transpose(2, 1, 0))
+    if attenuation:
         if np.issubdtype(vol.dtype, np.complexfloating):
             raise click.ClickException(f"{path}: complex values (dtype {vol.dtype}); attenuation is real: give "
                                        "the magnitude or the real part")
