@@ -1,4 +1,5 @@
-"""Scanner geometry in TIGRE's terms, and the mapping to the internal [-1, 1]^3 scene.
+"""Scanner geometry: a circular scan in TIGRE's terms or any scan as per-view vectors (ASTRA's
+``cone_vec`` / ``parallel3d_vec``), and the mapping to the internal [-1, 1]^3 scene.
 
 Conventions (every kernel and reference in clgs follows them):
 
@@ -19,6 +20,13 @@ Conventions (every kernel and reference in clgs follows them):
 ``Geometry.view_vectors`` packs each view as 12 numbers (as ASTRA's ``cone_vec``): for cone beam
 the source position, for parallel beam the unit ray direction; then the detector centre, the
 step of one pixel along u, and the step of one pixel along v, in scene or world units.
+
+Per-view geometry: ``Geometry.from_vectors`` takes those 12 numbers per view in mm (world x, y, z)
+directly, so detector offsets, tilts and rolls, C-arm and other non-circular trajectories, irregular
+angles and a varying source distance are all one description. Every operator reads the views
+through ``view_vectors``; the circular TIGRE description is one way to make them. For a vector
+geometry ``DSO``, ``DSD``, ``dDetector`` and ``angles`` are nominal values derived from the vectors
+(medians; the source's azimuth), kept for reports, sizing and view ordering only.
 """
 from __future__ import annotations
 
@@ -85,9 +93,74 @@ def shadow_half_extents(size_zyx, DSO: float, DSD: float, mode: str = "cone") ->
 
 
 
+def _check_vectors(vectors, mode: str) -> np.ndarray:
+    """(n, 12) float64 copy of per-view vectors (mm), or a GeometryError naming the first bad view."""
+    if isinstance(vectors, (str, bytes, dict)):
+        raise GeometryError(f"vectors must be a list of views of 12 numbers each, got {type(vectors).__name__}")
+    try:
+        vec = np.array(vectors, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise GeometryError(f"vectors must be a list of views of 12 numbers each ({exc})") from None
+    if vec.ndim != 2 or vec.shape[1] != 12 or vec.shape[0] < 1:
+        raise GeometryError(f"vectors must have shape (n_views, 12) with at least one view, got {vec.shape}: "
+                            "each view is [source (cone) or ray direction (parallel), detector centre, "
+                            "u pixel step, v pixel step], mm")
+    first = "source" if mode == "cone" else "ray direction"
+    for i, row in enumerate(vec):
+        if not np.all(np.isfinite(row)):
+            raise GeometryError(f"view {i}: the vector has NaN or Inf entries: {row.tolist()}")
+        u, v = row[6:9], row[9:12]
+        lu, lv = np.linalg.norm(u), np.linalg.norm(v)
+        if lu == 0 or lv == 0:
+            raise GeometryError(f"view {i}: zero-length pixel step along {'u' if lu == 0 else 'v'} "
+                                "(entries 6-8 are one pixel along u, 9-11 one pixel along v, mm)")
+        normal = np.cross(u, v)
+        if np.linalg.norm(normal) <= 1e-9 * lu * lv:
+            raise GeometryError(f"view {i}: the u and v pixel steps are parallel; the detector has no area")
+        normal /= np.linalg.norm(normal)
+        if abs(np.dot(u, v)) > 1e-3 * lu * lv:
+            raise GeometryError(f"view {i}: the u and v pixel steps are not perpendicular (cosine "
+                                f"{np.dot(u, v) / (lu * lv):.2g}); a detector's rows and columns are")
+        if mode == "cone":
+            depth = float(np.dot(row[3:6] - row[0:3], normal))
+            if abs(depth) <= 1e-6 * max(lu, lv):
+                raise GeometryError(f"view {i}: the source {row[0:3].tolist()} lies on the detector plane")
+        else:
+            r = row[0:3]
+            lr = np.linalg.norm(r)
+            if lr == 0:
+                raise GeometryError(f"view {i}: zero-length {first} (entries 0-2)")
+            if abs(np.dot(r, normal)) <= 1e-6 * lr:
+                raise GeometryError(f"view {i}: the ray direction lies in the detector plane")
+            vec[i, 0:3] = r / lr  # a unit ray direction (its length means nothing)
+    return vec
+
+
+def _nominal(vec: np.ndarray, mode: str) -> dict:
+    """Nominal circular values of a vector geometry (see the module doc)."""
+    u, v = vec[:, 6:9], vec[:, 9:12]
+    out = {"dDetector": (float(np.median(np.linalg.norm(v, axis=1))), float(np.median(np.linalg.norm(u, axis=1)))),
+           "offDetector": (0.0, 0.0)}
+    if mode == "cone":
+        s = vec[:, 0:3]
+        normal = np.cross(u, v)
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        out["DSO"] = float(np.median(np.linalg.norm(s, axis=1)))
+        out["DSD"] = float(np.median(np.abs(np.sum((vec[:, 3:6] - s) * normal, 1))))
+        out["angles"] = np.arctan2(s[:, 1], s[:, 0])
+    else:
+        out["DSO"], out["DSD"] = 1000.0, 1500.0  # unused in parallel beam
+        out["angles"] = np.arctan2(-vec[:, 1], -vec[:, 0])
+    return out
+
+
 @dataclass(frozen=True)
 class Geometry:
-    """A cone- or parallel-beam circular scan. Lengths in mm, angles in radians."""
+    """A cone- or parallel-beam scan. Lengths in mm, angles in radians.
+
+    Circular (``vectors`` None): TIGRE's description. Per view (``vectors`` an (n_views, 12) array in
+    mm, see :meth:`from_vectors`): ``DSD``, ``DSO``, ``dDetector``, ``offDetector`` and ``angles``
+    are derived from the vectors (whatever was passed) and are nominal."""
 
     DSD: float
     DSO: float
@@ -99,11 +172,18 @@ class Geometry:
     offOrigin: tuple = (0.0, 0.0, 0.0)  # (Z, Y, X) mm
     offDetector: tuple = (0.0, 0.0)  # (V, U) mm
     mode: str = "cone"
+    vectors: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
         if self.mode not in ("cone", "parallel"):
             raise GeometryError(f"mode must be 'cone' or 'parallel', got {self.mode!r}")
+        if self.vectors is not None:
+            vec = _check_vectors(self.vectors, self.mode)
+            vec.setflags(write=False)
+            set_("vectors", vec)
+            for k, v in _nominal(vec, self.mode).items():
+                set_(k, v)
         set_("nDetector", _pair("nDetector", self.nDetector, int))
         set_("dDetector", _pair("dDetector", self.dDetector))
         set_("nVoxel", _triple("nVoxel", self.nVoxel, int))
@@ -136,7 +216,9 @@ class Geometry:
             raise GeometryError("the angle list is empty: a scan needs at least one view")
         if not np.all(np.isfinite(self.angles)):
             raise GeometryError("angles contain NaN or Inf")
-        if self.mode == "cone":
+        if self.vectors is not None:
+            self._validate_vectors()
+        elif self.mode == "cone":
             if self.DSO <= 0 or self.DSD <= 0:
                 raise GeometryError(f"DSO and DSD must be positive, got DSO={self.DSO}, DSD={self.DSD}")
             if self.DSO >= self.DSD:
@@ -152,10 +234,68 @@ class Geometry:
                     f"(DSO={self.DSO} mm): increase DSO or shrink the volume"
                 )
 
+    def _validate_vectors(self) -> None:
+        """A cone-beam source inside the volume (grown by one voxel) sees no ray through it whole."""
+        if self.mode != "cone":
+            return
+        lo, hi = self.volume_bounds()
+        pad = np.asarray(self.dVoxel[::-1], float)
+        inside = np.all((self.vectors[:, 0:3] > lo - pad) & (self.vectors[:, 0:3] < hi + pad), axis=1)
+        if np.any(inside):
+            i = int(np.flatnonzero(inside)[0])
+            raise GeometryError(f"view {i}: the source {self.vectors[i, 0:3].tolist()} mm lies inside the volume "
+                                f"(x, y, z from {lo.tolist()} to {hi.tolist()} mm, grown by one voxel): move the "
+                                "source out or shrink the volume")
+
+    def __eq__(self, other):
+        if not isinstance(other, Geometry):
+            return NotImplemented
+        return self.to_dict() == other.to_dict()
+
+    __hash__ = None
+
     # ----------------------------------------------------------------------------- sizes
     @property
     def n_views(self) -> int:
         return int(self.angles.size)
+
+    @property
+    def is_circular(self) -> bool:
+        """True for TIGRE's circular description; False for a per-view (vector) geometry, whatever
+        trajectory its vectors describe."""
+        return self.vectors is None
+
+    def volume_bounds(self) -> tuple:
+        """(low, high) corners of the volume in mm, (x, y, z)."""
+        centre = np.asarray(self.offOrigin[::-1], float)
+        half = 0.5 * self.sVoxel[::-1]
+        return centre - half, centre + half
+
+    def source_detector_distance(self) -> np.ndarray:
+        """(n_views,) mm from the source to the detector plane (cone beam); DSD for every view of a
+        circular scan; ones for parallel beam (no magnification)."""
+        if self.mode != "cone":
+            return np.ones(self.n_views)
+        if self.is_circular:
+            return np.full(self.n_views, self.DSD)
+        vv = self.vectors
+        normal = np.cross(vv[:, 6:9], vv[:, 9:12])
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        return np.abs(np.sum((vv[:, 3:6] - vv[:, 0:3]) * normal, 1))
+
+    def magnification(self) -> np.ndarray:
+        """(n_views,) detector magnification of the volume's centre (source-detector distance over
+        source-centre depth along the detector normal); ones for parallel beam."""
+        if self.mode != "cone":
+            return np.ones(self.n_views)
+        vv = self.view_vectors(scene=False)
+        normal = np.cross(vv[:, 6:9], vv[:, 9:12])
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        centre = np.asarray(self.offOrigin[::-1], float)
+        dsd = np.abs(np.sum((vv[:, 3:6] - vv[:, 0:3]) * normal, 1))
+        if self.is_circular:  # the rotation axis, as TIGRE
+            return dsd / self.DSO
+        return dsd / np.abs(np.sum((centre - vv[:, 0:3]) * normal, 1))
 
     @property
     def sVoxel(self) -> np.ndarray:
@@ -172,9 +312,14 @@ class Geometry:
         """The finest spacing the scan samples, in mm: the smallest voxel side or detector pixel seen
         at the rotation axis (pixel x DSO / DSD in cone beam). Structure finer than this is not in
         the data; it sets the smallest Gaussian a reconstruction may use."""
-        pixel = float(np.min(self.dDetector))
-        if self.mode == "cone":
-            pixel *= self.DSO / self.DSD
+        if self.is_circular:
+            pixel = float(np.min(self.dDetector))
+            if self.mode == "cone":
+                pixel *= self.DSO / self.DSD
+        else:
+            vec = self.vectors
+            steps = np.minimum(np.linalg.norm(vec[:, 6:9], axis=1), np.linalg.norm(vec[:, 9:12], axis=1))
+            pixel = float(np.min(steps / self.magnification()))
         return min(float(np.min(self.dVoxel)), pixel)
 
     @property
@@ -207,6 +352,9 @@ class Geometry:
     # ----------------------------------------------------------------------------- views
     def view_vectors(self, scene: bool = True, views: Sequence[int] | None = None) -> np.ndarray:
         """(n_views, 12) float64: [source or ray direction, detector centre, u step, v step]."""
+        if self.vectors is not None:
+            out = np.array(self.vectors if views is None else self.vectors[np.asarray(views, int)], np.float64)
+            return self._to_scene(out) if scene else out
         th = self.angles if views is None else self.angles[np.asarray(views, int)]
         c, s = np.cos(th), np.sin(th)
         z = np.zeros_like(th)
@@ -218,13 +366,15 @@ class Geometry:
         det = -(self.DSD - self.DSO) * e_s + ou * e_u + ov * e_v
         first = self.DSO * e_s if self.mode == "cone" else -e_s
         out = np.concatenate([first, det, du * e_u, dv * e_v], 1)
-        if scene:
-            origin = np.asarray(self.offOrigin[::-1], float)
-            k = self.scale
-            if self.mode == "cone":
-                out[:, 0:3] = (out[:, 0:3] - origin) * k
-            out[:, 3:6] = (out[:, 3:6] - origin) * k
-            out[:, 6:12] *= k
+        return self._to_scene(out) if scene else out
+
+    def _to_scene(self, out: np.ndarray) -> np.ndarray:
+        origin = np.asarray(self.offOrigin[::-1], float)
+        k = self.scale
+        if self.mode == "cone":
+            out[:, 0:3] = (out[:, 0:3] - origin) * k
+        out[:, 3:6] = (out[:, 3:6] - origin) * k
+        out[:, 6:12] *= k
         return out
 
     def rays(self, view: int, scene: bool = True):
@@ -246,6 +396,12 @@ class Geometry:
 
     # ----------------------------------------------------------------------------- I/O
     def to_dict(self) -> dict:
+        """JSON-ready: TIGRE's names for a circular scan, ``vectors`` (and no DSO, DSD, angles) for a
+        per-view one."""
+        if self.vectors is not None:
+            return {"mode": self.mode, "nDetector": list(self.nDetector), "nVoxel": list(self.nVoxel),
+                    "dVoxel": list(self.dVoxel), "offOrigin": list(self.offOrigin),
+                    "vectors": [[float(x) for x in row] for row in self.vectors]}
         return {
             "mode": self.mode,
             "DSD": self.DSD,
@@ -260,7 +416,43 @@ class Geometry:
         }
 
     @classmethod
+    def from_vectors(cls, vectors, nDetector, nVoxel, dVoxel, offOrigin=(0.0, 0.0, 0.0),
+                     mode: str = "cone") -> "Geometry":
+        """A per-view geometry: ``vectors`` (n_views, 12) in mm, world (x, y, z), ASTRA's order per
+        view: source (cone) or ray direction (parallel), detector centre, one pixel along u (columns),
+        one pixel along v (rows)."""
+        if not isinstance(vectors, np.ndarray) and vectors is None:
+            raise GeometryError("vectors are missing (null): give (n_views, 12) numbers")
+        vec = _check_vectors(vectors, mode) if mode in ("cone", "parallel") else vectors
+        return cls(DSD=1.0, DSO=0.5, nDetector=nDetector, dDetector=(1.0, 1.0), nVoxel=nVoxel, dVoxel=dVoxel,
+                   angles=np.zeros(len(vec)), offOrigin=offOrigin, mode=mode, vectors=vec)
+
+    def as_vectors(self) -> "Geometry":
+        """The same scan as a per-view geometry (the circular description written as vectors)."""
+        return Geometry.from_vectors(self.view_vectors(scene=False), self.nDetector, self.nVoxel, self.dVoxel,
+                                     self.offOrigin, self.mode)
+
+    def select(self, views) -> "Geometry":
+        """The geometry of the views ``views`` (indices, in that order)."""
+        idx = np.asarray(views, int).reshape(-1)
+        if self.vectors is not None:
+            return Geometry.from_vectors(self.vectors[idx], self.nDetector, self.nVoxel, self.dVoxel,
+                                         self.offOrigin, self.mode)
+        return self.with_angles(self.angles[idx])
+
+    @classmethod
     def from_dict(cls, d: dict) -> "Geometry":
+        if not isinstance(d, dict):
+            raise GeometryError(f"a geometry must be a JSON object, got {type(d).__name__}")
+        if "vectors" in d:
+            missing = [k for k in ("nDetector", "nVoxel", "dVoxel") if k not in d]
+            if missing:
+                raise GeometryError(f"geometry is missing {', '.join(missing)} (needed beside vectors)")
+            if d.get("angles") is not None and len(_numbers("angles", d["angles"])) != len(d["vectors"] or []):
+                raise GeometryError(f"geometry has {len(d['angles'])} angles but {len(d['vectors'] or [])} "
+                                    "vectors: give one vector per view (angles are not needed beside vectors)")
+            return cls.from_vectors(d["vectors"], d["nDetector"], d["nVoxel"], d["dVoxel"],
+                                    d.get("offOrigin", (0, 0, 0)), d.get("mode", "cone"))
         required = ("DSD", "DSO", "nDetector", "dDetector", "nVoxel", "dVoxel", "angles")
         missing = [k for k in required if k not in d]
         if missing:
@@ -282,6 +474,8 @@ class Geometry:
         return json.dumps(self.to_dict(), indent=1)
 
     def with_angles(self, angles) -> "Geometry":
+        if self.vectors is not None:
+            raise GeometryError("a per-view (vector) geometry has no angles to replace; use select(views)")
         d = self.to_dict()
         d["angles"] = list(np.asarray(angles, float).reshape(-1))
         return Geometry.from_dict(d)
@@ -322,3 +516,24 @@ class Grid:
         axes = [self.origin[a] + self.spacing[a] * np.arange(self.shape[2 - a]) for a in range(3)]
         z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
         return np.stack([x, y, z], -1)
+
+
+def read_geometry(path) -> Geometry:
+    """A geometry from a JSON file: TIGRE's names for a circular scan or ``vectors`` for a per-view
+    one (docs/formats.md), bare or under a ``geometry`` key (as in a scan folder's scan.json).
+    Errors name the file."""
+    from pathlib import Path
+
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise GeometryError(f"{p}: cannot read the geometry file ({exc})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise GeometryError(f"{p}: not a JSON file ({exc})") from None
+    if isinstance(doc, dict) and isinstance(doc.get("geometry"), dict):
+        doc = doc["geometry"]
+    try:
+        return Geometry.from_dict(doc)
+    except GeometryError as exc:
+        raise GeometryError(f"{p}: {exc}") from None

@@ -66,9 +66,12 @@ def _angles(path):
 @click.option("--floor", type=FiniteFloat(min=0, min_open=True, max=1, max_open=True), default=1e-6,
               show_default=True, help="smallest intensity ratio kept (dead and starved pixels)")
 @click.option("--views", type=click.IntRange(min=1), default=None, help="keep this many evenly spaced views")
+@click.option("--geometry", "geometry_file", type=click.Path(path_type=Path), default=None,
+              help="a geometry JSON file (TIGRE names, or per-view 'vectors'; docs/formats.md) of the detector "
+                   "after crop and binning: replaces --angles, --arc, --mode, --DSO, --DSD, --pixel and --centre")
 @click.option("--force", is_flag=True, help="overwrite an existing --out")
 def import_raw(raw, out, flats, darks, air_columns, angles_file, arc, mode, DSO, DSD, pixel, centre, crop, binning,
-               floor, views, force):
+               floor, views, geometry_file, force):
     """Turn RAW detector images into a scan folder: HDF5 Data Exchange (.h5), a TIFF stack or
     folder of TIFFs, DICOM projections, or .npy counts (views, rows, columns).
 
@@ -97,7 +100,8 @@ def import_raw(raw, out, flats, darks, air_columns, angles_file, arc, mode, DSO,
             data, mode=mode, pixel=pixel, DSO=DSO, DSD=DSD,
             angles_deg=_angles(angles_file) if angles_file else None, arc_deg=arc, centre=centre_value,
             crop=_ints(crop, 4, "R0,R1,C0,C1", "--crop"), binning=b,
-            air_columns=_ints(air_columns, 2, "FIRST,LAST", "--air-columns"), floor=floor, views=views)
+            air_columns=_ints(air_columns, 2, "FIRST,LAST", "--air-columns"), floor=floor, views=views,
+            geometry=geometry_file)
         scan.save(out, overwrite=force)
     except (RawError, ScanError) as exc:
         raise click.ClickException(str(exc)) from None
@@ -109,8 +113,11 @@ def import_raw(raw, out, flats, darks, air_columns, angles_file, arc, mode, DSO,
                f"{report['I0']}); floored {report['floored_pixels']} pixels ({report['floored_fraction']:.2%}); "
                f"{report['brighter_than_flat_pixels']} brighter than the flat set to 0 "
                f"(down to {report['most_negative']:.3g})")
-    click.echo(f"rotation axis at column {c['column']:.2f} ({c['method']}"
-               + (f", residual {c['rms_residual_pixels']:.2f} px" if "rms_residual_pixels" in c else "")
-               + f"): offDetector {g.offDetector[1]:.3f} mm")
+    if c["column"] is None:
+        click.echo(f"geometry from {geometry_file} ({'circular' if g.is_circular else 'per-view vectors'})")
+    else:
+        click.echo(f"rotation axis at column {c['column']:.2f} ({c['method']}"
+                   + (f", residual {c['rms_residual_pixels']:.2f} px" if "rms_residual_pixels" in c else "")
+                   + f"): offDetector {g.offDetector[1]:.3f} mm")
     click.echo(f"wrote {out}: {scan.n_views} {g.mode}-beam views of {g.nDetector[0]} x {g.nDetector[1]} pixels, "
                f"volume {'x'.join(map(str, g.nVoxel))} voxels of {g.dVoxel[2]:.4g} mm")

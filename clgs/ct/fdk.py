@@ -85,6 +85,14 @@ def _sorted_arc(angles):
     return order, un, np.roll(gaps, -start), full
 
 
+def require_circular(geometry: Geometry) -> None:
+    """FDK's weights hold for a circular orbit only: a per-view (vector) geometry is refused."""
+    if not geometry.is_circular:
+        raise InputError("FDK/FBP needs a circular scan (TIGRE's DSO, DSD, angles); this geometry is given per "
+                         "view as vectors. Reconstruct it with SART (--method sart) or a Gaussian method "
+                         "(--method r2gs, or shape for an anatomy), which take any per-view geometry.")
+
+
 def view_weights(geometry: Geometry, short_scan="auto"):
     """(n_views,) angular steps and (n_views, U) redundancy weights, in the geometry's view order.
 
@@ -141,6 +149,7 @@ def view_weights(geometry: Geometry, short_scan="auto"):
 def filter_projections(projections, geometry: Geometry, filter="ram-lak", short_scan="auto") -> np.ndarray:
     """Steps 1-4 of the module docstring: weighted, ramp-filtered projections (n, V, U), float64."""
     g = geometry
+    require_circular(g)
     p = np.asarray(projections, np.float64)
     nv, nu = g.nDetector
     dv, du = g.dDetector
@@ -169,6 +178,7 @@ def fdk(projections, geometry: Geometry, filter: str = "ram-lak", short_scan="au
     (redundancy weights when the angles do not cover a full circle), ``True`` or ``False``.
     ``dtype=np.float64`` backprojects in double precision.
     """
+    require_circular(geometry)
     p = check_projections(projections, geometry, neg_tolerance=None, source="fdk")
     name = str(filter).lower()
     if name not in FILTERS:

@@ -292,8 +292,10 @@ class Densifier:
         vec = geometry.view_vectors(scene=True)
         self._vectors = torch.as_tensor(vec, dtype=torch.float64)
         nv, nu = geometry.nDetector
-        self._half = (0.5 * nu * np.linalg.norm(vec[0, 6:9]), 0.5 * nv * np.linalg.norm(vec[0, 9:12]))
-        self._dsd = geometry.DSD * geometry.scale
+        # per view (a vector geometry may change pixel size and source distance from view to view)
+        self._half = np.stack([0.5 * nu * np.linalg.norm(vec[:, 6:9], axis=1),
+                               0.5 * nv * np.linalg.norm(vec[:, 9:12], axis=1)], 1)
+        self._dsd = geometry.source_detector_distance() * geometry.scale
         self._axes: dict = {}  # (view, dtype) -> detector axes scaled to normalised coordinates
 
     def _sets(self, trainer):
@@ -312,13 +314,13 @@ class Densifier:
             vec = self._vectors[view]
             eu = vec[6:9] / torch.linalg.vector_norm(vec[6:9])
             ev = vec[9:12] / torch.linalg.vector_norm(vec[9:12])
-            axes = torch.stack([eu * self._half[0], ev * self._half[1]], 0).to(grad_t.dtype)
+            axes = torch.stack([eu * float(self._half[view, 0]), ev * float(self._half[view, 1])], 0).to(grad_t.dtype)
             self._axes[(view, grad_t.dtype)] = axes
         gu, gv = torch.mm(axes, grad_t).unbind(0)
         norm = torch.sqrt(gu * gu + gv * gv)
         if self.geometry.mode == "cone":  # the depth factor is the same on both axes
             rel = _transposed(means.detach()) - self._vectors[view, 0:3].to(grad_t.dtype)[:, None]
-            norm = norm * (torch.sqrt((rel * rel).sum(0)) / self._dsd)
+            norm = norm * (torch.sqrt((rel * rel).sum(0)) / float(self._dsd[view]))
         return norm
 
     def after_backward(self, trainer, ctx) -> None:

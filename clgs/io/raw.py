@@ -278,7 +278,8 @@ def find_centre(proj: np.ndarray, angles_rad) -> tuple[float, dict]:
 
 def scan_from_raw(raw: RawProjections, *, mode: str = "parallel", pixel: float = 1.0, DSO: float | None = None,
                   DSD: float | None = None, angles_deg=None, arc_deg: float | None = None, centre="auto",
-                  crop=None, binning=(1, 1), air_columns=None, floor: float = DEFAULT_FLOOR, views=None):
+                  crop=None, binning=(1, 1), air_columns=None, floor: float = DEFAULT_FLOOR, views=None,
+                  geometry=None):
     """(clgs Scan, report) from raw counts: line integrals (:func:`line_integrals`), crop and bin,
     the angles (``angles_deg`` (n_views,), else the file's, else ``arc_deg`` evenly spaced with the
     last view one step short of the end), the rotation axis (``centre``: ``"auto"``
@@ -286,10 +287,14 @@ def scan_from_raw(raw: RawProjections, *, mode: str = "parallel", pixel: float =
     middle column), and a circular geometry in TIGRE's terms: the axis column becomes
     ``offDetector``; the volume is the detector's rows high and its width across (voxels of
     one pixel over the magnification). ``views``: keep this many evenly spaced views (after the
-    centre is found on all of them)."""
+    centre is found on all of them). ``geometry``: a geometry file (:func:`clgs.geometry.read_geometry`:
+    TIGRE's names or per-view vectors) that describes the detector after crop and binning; it
+    replaces the angles, centre, mode and distances."""
     from clgs.geometry import Geometry, GeometryError
     from clgs.io.scan import Scan
 
+    if geometry is not None:
+        return _scan_with_geometry(raw, geometry, crop, binning, air_columns, floor, views)
     if mode not in ("parallel", "cone"):
         raise RawError(f"mode must be 'parallel' or 'cone', got {mode!r}")
     if not (np.isfinite(pixel) and pixel > 0):
@@ -353,3 +358,35 @@ def scan_from_raw(raw: RawProjections, *, mode: str = "parallel", pixel: float =
         raise RawError(f"the scanner geometry is invalid: {exc}") from exc
     meta = {"acquisition": {"noise": True, "real": True}, "provenance": {"source": raw.source, "import": report}}
     return Scan(geometry, proj, None, meta), report
+
+
+def _scan_with_geometry(raw, path, crop, binning, air_columns, floor, views):
+    """(Scan, report) of :func:`scan_from_raw` with the whole geometry from the file ``path``."""
+    from clgs.geometry import GeometryError, read_geometry
+    from clgs.io.scan import Scan
+
+    try:
+        geometry = read_geometry(path)
+    except GeometryError as exc:
+        raise RawError(str(exc)) from None
+    n = raw.data.shape[0]
+    if geometry.n_views != n:
+        raise RawError(f"{path}: the geometry has {geometry.n_views} views but {raw.source} holds {n} "
+                       "projections; give one view per projection")
+    proj, report = line_integrals(raw, air_columns, floor)
+    proj = crop_and_bin(proj, crop, binning)
+    if tuple(proj.shape[1:]) != tuple(geometry.nDetector):
+        raise RawError(f"{path}: nDetector {list(geometry.nDetector)} (rows, columns) differs from the images' "
+                       f"{list(proj.shape[1:])} after crop and binning; describe the detector as imported")
+    report["angles"] = f"the geometry file {path}"
+    report["centre"] = {"column": None, "method": f"the geometry file {path}"}
+    scan = Scan(geometry, proj, None, {"acquisition": {"noise": True, "real": True},
+                                       "provenance": {"source": raw.source, "import": report}})
+    if views is not None:
+        k = int(views)
+        if not 1 <= k <= n:
+            raise RawError(f"views must lie in 1..{n}, got {k}")
+        keep = np.linspace(0, n, k, endpoint=False).astype(int)
+        scan = scan.subset(keep)
+        scan.meta["provenance"]["import"]["views_kept"] = keep.tolist()
+    return scan, report

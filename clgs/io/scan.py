@@ -106,7 +106,7 @@ class Scan:
             raise ScanError(f"view indices must lie in [0, {self.n_views}), got {idx.tolist()}")
         meta = dict(self.meta)
         meta["views"] = idx.tolist()
-        return Scan(self.geometry.with_angles(self.geometry.angles[idx]), self.projections[idx],
+        return Scan(self.geometry.select(idx), self.projections[idx],
                     self.truth, meta, self.surface)
 
     # ------------------------------------------------------------------------------ writing

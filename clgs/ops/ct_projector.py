@@ -87,8 +87,18 @@ class CTProjector(Operator):
         vv = g.view_vectors(scene=False)
         nv, nu = g.nDetector
         us, vs = vv[:, 6:9], vv[:, 9:12]
-        if np.any(np.abs(us[:, 2]) > 1e-12 * np.abs(us).max()) or np.any(np.abs(vs[:, :2]) > 1e-12 * np.abs(vs).max()):
-            raise InputError("CTProjector needs a circular orbit: detector u horizontal and v along z")
+        tol = 1e-9
+        tilted = (np.abs(us[:, 2]) > tol * np.linalg.norm(us, axis=1)) | \
+            (np.hypot(vs[:, 0], vs[:, 1]) > tol * np.linalg.norm(vs, axis=1))
+        if not self.cone:
+            tilted |= np.abs(vv[:, 2]) > tol * np.linalg.norm(vv[:, 0:3], axis=1)
+        if np.any(tilted):
+            i = int(np.flatnonzero(tilted)[0])
+            raise InputError(
+                f"view {i}: the voxel projector (CT projector, SART, simulation) needs detector rows that are "
+                "horizontal and columns along z (u step with no z part, v step along z"
+                + ("" if self.cone else ", horizontal rays") + "); any source position, detector offset or "
+                "turn about the vertical axis is fine. The Gaussian methods (r2gs, shape) take any tilt.")
         p0 = vv[:, 3:6] - 0.5 * (nu - 1) * us - 0.5 * (nv - 1) * vs  # centre of pixel (0, 0)
         to_idx = lambda p: (p - c0) / sp  # noqa: E731
         us_i, vs_i = us / sp, vs / sp
@@ -104,10 +114,23 @@ class CTProjector(Operator):
             out[:, 10] = d0[:, 2]
             out[:, 11] = vs_i[:, 2]
             # nearest depth of any point within a voxel of the grid, and the widest fan angle
-            half = 0.5 * np.hypot((nx + 2) * sp[0], (ny + 2) * sp[1]) + np.hypot(*g.offOrigin[1:])
-            depth_min = g.DSO - half
-            tan_max = max(half / depth_min, (0.5 * nu * g.dDetector[1] + abs(g.offDetector[1])) / g.DSD)
-            out[:, 12] = dmax * g.DSD / depth_min * np.sqrt(1 + tan_max**2) / g.dDetector[1] * 1.01 + 1e-3
+            # per view, in the plane: n the detector normal, depth along n
+            half = 0.5 * np.hypot((nx + 2) * sp[0], (ny + 2) * sp[1])
+            centre = np.asarray(g.offOrigin[::-1], np.float64)[:2]
+            du = np.hypot(us[:, 0], us[:, 1])
+            eu = us[:, :2] / du[:, None]
+            normal = np.stack([eu[:, 1], -eu[:, 0]], 1)
+            src = vv[:, 0:2]
+            dsd = np.abs(np.sum((vv[:, 3:5] - src) * normal, 1))
+            depth_min = np.abs(np.sum((centre - src) * normal, 1)) - half
+            if np.any(depth_min <= 0):
+                i = int(np.argmin(depth_min))
+                raise InputError(f"view {i}: the volume (grown by one voxel) reaches the source's depth along the "
+                                 "detector normal: move the source away or turn the detector to face it")
+            ends = p0[:, :2, None] + np.array([0.0, nu - 1.0])[None, None, :] * us[:, :2, None] - src[:, :, None]
+            reach = np.max(np.abs(np.sum(ends * eu[:, :, None], 1)), 1) + 0.5 * du
+            tan_max = np.maximum(half / depth_min + np.abs(np.sum((centre - src) * eu, 1)) / depth_min, reach / dsd)
+            out[:, 12] = dmax * dsd / depth_min * np.sqrt(1 + tan_max**2) / du * 1.01 + 1e-3
             delta = dmax / depth_min
             out[:, 13] = delta / (1 - delta) * 1.01 + 1e-6
             out[:, 14] = 1.0 / out[:, 11]
@@ -121,7 +144,7 @@ class CTProjector(Operator):
             out[:, 8] = p0_i[:, 2]
             out[:, 9] = vs_i[:, 2]
             out[:, 10] = r_i[:, 2]
-            out[:, 12] = dmax / g.dDetector[1] * 1.01 + 1e-3
+            out[:, 12] = dmax / np.hypot(us[:, 0], us[:, 1]) * 1.01 + 1e-3
             out[:, 14] = 1.0 / out[:, 9]
             out[:, 15] = 1.0 / (out[:, 2] * out[:, 5] - out[:, 3] * out[:, 4])  # 1 / cross(au, b0)
         return out

@@ -22,6 +22,10 @@ class FDKBackprojector(Operator):
         own eight voxels along z, or along x for volumes thinner than eight slices.
         """
         g = geometry
+        if not g.is_circular:
+            from clgs.errors import InputError
+            raise InputError("the FDK backprojector needs a circular scan; this geometry is given per view as "
+                             "vectors (use SART or a Gaussian method)")
         q = np.asarray(filtered)
         dtype = np.float64 if q.dtype == np.float64 else np.float32
         n = g.n_views
