@@ -132,6 +132,9 @@ def _check_vectors(vectors, mode: str) -> np.ndarray:
                 raise GeometryError(f"view {i}: zero-length {first} (entries 0-2)")
             if abs(np.dot(r, normal)) <= 1e-6 * lr:
                 raise GeometryError(f"view {i}: the ray direction lies in the detector plane")
+            if np.linalg.norm(np.cross(r, normal)) > 1e-6 * lr:
+                raise GeometryError(f"view {i}: the parallel rays are not perpendicular to the detector; clgs's "
+                                    "parallel beam needs them so (the detector may be turned in its own plane)")
             vec[i, 0:3] = r / lr  # a unit ray direction (its length means nothing)
     return vec
 
@@ -518,10 +521,11 @@ class Grid:
         return np.stack([x, y, z], -1)
 
 
-def read_geometry(path) -> Geometry:
+def read_geometry(path, grid: dict | None = None) -> Geometry:
     """A geometry from a JSON file: TIGRE's names for a circular scan or ``vectors`` for a per-view
     one (docs/formats.md), bare or under a ``geometry`` key (as in a scan folder's scan.json).
-    Errors name the file."""
+    ``grid``: ``nVoxel``, ``dVoxel`` and/or ``offOrigin`` that replace the file's (a simulation's
+    volume brings its own grid; the file then only needs the scanner). Errors name the file."""
     from pathlib import Path
 
     p = Path(path)
@@ -533,6 +537,8 @@ def read_geometry(path) -> Geometry:
         raise GeometryError(f"{p}: not a JSON file ({exc})") from None
     if isinstance(doc, dict) and isinstance(doc.get("geometry"), dict):
         doc = doc["geometry"]
+    if isinstance(doc, dict) and grid:
+        doc = {**doc, **{k: list(v) for k, v in grid.items()}}
     try:
         return Geometry.from_dict(doc)
     except GeometryError as exc:

@@ -20,19 +20,24 @@ def as_float32(x):
     return np.asarray(x, np.float32)
 
 
-def scan_geometry(anatomy, subject, n_views: int, arc: float):
+def scan_geometry(anatomy, subject, n_views: int, arc: float, geometry_file=None):
     """The anatomy's default scanner (``scene``) around the subject's CT grid.
 
     The volume grid is the subject's own (nVoxel, dVoxel, and offOrigin = its centre); source,
     detector and mode come from ``anatomy.scene`` (TIGRE names), or are sized to see the volume
-    whole (DSD/DSO = 1500/1000 mm) when the plugin gives none."""
+    whole (DSD/DSO = 1500/1000 mm) when the plugin gives none. ``geometry_file``: a geometry JSON
+    (TIGRE names or per-view vectors, in the subject's world mm) that replaces the scanner, the
+    views and the arc; its volume grid, if any, gives way to the subject's."""
     import numpy as np
 
-    from clgs.geometry import Geometry
+    from clgs.geometry import Geometry, read_geometry
 
     shape = np.asarray(subject.volume.shape)
     spacing = np.asarray(subject.spacing, float)
     centre = np.asarray(subject.origin, float) + 0.5 * (shape - 1) * spacing
+    if geometry_file is not None:
+        return read_geometry(geometry_file, {"nVoxel": [int(s) for s in shape], "dVoxel": [float(s) for s in spacing],
+                                             "offOrigin": [float(c) for c in centre]})
     angles = np.linspace(0.0, arc, int(n_views), endpoint=False)
     scene = dict(anatomy.scene or {})
     d = {k: scene[k] for k in GEOMETRY_KEYS if k in scene}
@@ -74,8 +79,9 @@ def subject_from_mesh_file(anatomy, path, seed: int = 0):
 
 
 def simulate_subject(anatomy, subject, n_views: int = 50, arc: float = 3.141592653589793, noise: bool = True,
-                     seed: int = 0, noise_options: dict = None):
+                     seed: int = 0, noise_options: dict = None, geometry_file=None):
     """Project a subject's CT with the anatomy's scanner, add noise: a :class:`clgs.io.scan.Scan`.
+    ``geometry_file``: the scanner and views from a geometry JSON instead (see :func:`scan_geometry`).
 
     The truth volume and the true surface travel with the scan (for evaluation)."""
     from clgs.ops.ct_projector import CTProjector
@@ -83,7 +89,7 @@ def simulate_subject(anatomy, subject, n_views: int = 50, arc: float = 3.1415926
 
     if subject.volume is None:
         raise InputError(f"subject {subject.id} has no CT volume to simulate")
-    geo = scan_geometry(anatomy, subject, n_views, arc)
+    geo = scan_geometry(anatomy, subject, n_views, arc, geometry_file)
     proj = as_float32(CTProjector(geo).forward(subject.volume))
     acquisition = {"noise": bool(noise), "seed": int(seed)}
     if noise:

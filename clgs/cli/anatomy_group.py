@@ -152,6 +152,21 @@ def run_reconstruct(scan, anatomy, method: str, out=None, **options):
     return result
 
 
+def _geometry_views(path) -> int:
+    """The number of views of a geometry file (its errors name the file: see AnatomyCommand)."""
+    import json
+
+    try:
+        doc = json.loads(open(path, encoding="utf-8").read())
+    except (OSError, ValueError) as exc:
+        raise click.BadParameter(f"{path}: not a readable JSON file ({exc})", param_hint="--geometry") from None
+    doc = doc.get("geometry", doc) if isinstance(doc, dict) else doc
+    views = doc.get("vectors", doc.get("angles")) if isinstance(doc, dict) else None
+    if not isinstance(views, list) or not views:
+        raise click.BadParameter(f"{path}: no 'vectors' or 'angles' list (one entry per view)", param_hint="--geometry")
+    return len(views)
+
+
 def _check_scan_memory(anatomy, views: int) -> None:
     """Refuse, before any work, a number of views whose projections (the anatomy's detector) would
     not fit in the memory available."""
@@ -203,16 +218,26 @@ def _simulate_command(anatomy) -> click.Command:
                   help="number of projections")
     @click.option("--arc", type=FiniteFloat(min=0, min_open=True, max=360), default=float(scene.get("arc_deg", 180.0)),
                   show_default=True, help="arc in degrees (0 < arc <= 360)")
+    @click.option("--geometry", "geometry_file", type=click.Path(exists=True, dir_okay=False), default=None,
+                  help="scanner and views from a geometry JSON (TIGRE names or per-view 'vectors', world mm; "
+                       "docs/formats.md) instead of --views and --arc; the subject's grid replaces its volume")
     @click.option("--noise/--no-noise", default=True, show_default=True, help="Poisson + electronic noise")
     @click.option("--seed", type=Seed(), default=0, show_default=True, help="noise seed, 0 to 2**64 - 1")
     @click.option("--force", is_flag=True, help="replace an existing scan folder")
     @click.option("--overwrite", "force_alias", is_flag=True, hidden=True)  # the flag's earlier name
-    def simulate(subject_id, mesh, out, views, arc, noise, seed, force, force_alias):
+    def simulate(subject_id, mesh, out, views, arc, geometry_file, noise, seed, force, force_alias):
         """Simulate a CT scan of a subject (default: the first held-out one) or of a surface file."""
         import math
 
         if subject_id and mesh:
             raise click.UsageError("give --subject or --mesh, not both")
+        if geometry_file:
+            ctx = click.get_current_context()
+            given = [f"--{p}" for p in ("views", "arc")
+                     if ctx.get_parameter_source(p) == click.core.ParameterSource.COMMANDLINE]
+            if given:
+                raise click.UsageError(f"--geometry gives the views: leave out {' and '.join(given)}")
+            views = _geometry_views(geometry_file)
         _check_scan_memory(anatomy, views)
         if mesh:
             from clgs.anatomy.simulation import subject_from_mesh_file
@@ -225,12 +250,13 @@ def _simulate_command(anatomy) -> click.Command:
                     raise click.UsageError("the plugin has no held-out subjects: give --subject or --mesh")
                 subject_id = held[0]
             subject = _load_subject(anatomy, subject_id)
-        scan = _simulate(anatomy, subject, views, math.radians(arc), noise, seed)
+        scan = _simulate(anatomy, subject, views, math.radians(arc), noise, seed, geometry_file=geometry_file)
         try:
             scan.save(out, overwrite=force or force_alias)
         except FileExistsError:
             raise click.ClickException(f"{out} exists: pass --force to replace it")
-        click.echo(f"{name}: subject {subject.id} -> {out} ({views} views over {arc:g} deg, "
+        how = f"from {geometry_file}" if geometry_file else f"over {arc:g} deg"
+        click.echo(f"{name}: subject {subject.id} -> {out} ({scan.n_views} views {how}, "
                    f"{'noisy' if noise else 'noiseless'})")
 
     return simulate

@@ -74,9 +74,13 @@ def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, 
 @click.option("--no-noise", is_flag=True, help="noiseless line integrals")
 @click.option("--surface-level", type=FiniteFloat(), default=None,
               help="also store the truth's iso-surface at this value as truth_surface.stl")
+@click.option("--geometry", "geometry_file", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              help="scanner and views from a geometry JSON (TIGRE names or per-view 'vectors', world mm; "
+                   "docs/formats.md) instead of --views, --arc, --mode, --DSO, --DSD, --detector and --pixel; the "
+                   "volume's grid replaces the file's nVoxel and dVoxel (offOrigin, if given, places the volume)")
 @click.option("--force", is_flag=True, help="overwrite an existing --out")
 def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, pixel, spacing, I0, sigma, scatter, seed,
-             no_noise, surface_level, force):
+             no_noise, surface_level, geometry_file, force):
     """Simulate a sparse-view X-ray scan of VOLUME (attenuation in 1/mm, or Hounsfield units with
     --hu): .npy, NIfTI, MetaImage (.mha/.mhd), NRRD, or a DICOM series (its folder or a .dcm file).
 
@@ -96,6 +100,12 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
     check_output(out, force)
     check_writable(out)
     sp_override = parse_spacing(spacing)
+    if geometry_file is not None:
+        ctx = click.get_current_context()
+        given = [f"--{p}" for p in ("views", "arc", "mode", "DSO", "DSD", "detector", "pixel")
+                 if ctx.get_parameter_source(p) == click.core.ParameterSource.COMMANDLINE]
+        if given:
+            raise click.UsageError(f"--geometry gives the scanner and the views: leave out {', '.join(given)}")
     # projections, their noisy copy and the parts joined: three float32 copies of views x detector^2
     check_memory(f"simulating {views} views of {detector} x {detector} pixels", 3.0 * 4 * views * detector ** 2,
                  "use fewer --views or a smaller --detector")
@@ -113,7 +123,15 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
             f"{volume}: negative values (min {float(vol.min()):.4g}); simulate expects attenuation (1/mm, >= 0); "
             "for Hounsfield units (a CT) add --hu (and --kev for the energy)")
     try:
-        geo = _scanner_geometry(vol.shape, sp, views, arc, mode, DSD, DSO, detector, pixel)
+        if geometry_file is not None:
+            from clgs.geometry import read_geometry
+
+            geo = read_geometry(geometry_file, {"nVoxel": [int(n) for n in vol.shape], "dVoxel": [float(d) for d in sp]})
+            views, mode = geo.n_views, geo.mode
+            check_memory(f"simulating {views} views of {geo.nDetector[0]} x {geo.nDetector[1]} pixels",
+                         3.0 * 4 * views * geo.nDetector[0] * geo.nDetector[1], "use fewer views or a smaller detector")
+        else:
+            geo = _scanner_geometry(vol.shape, sp, views, arc, mode, DSD, DSO, detector, pixel)
     except GeometryError as exc:
         raise click_error(exc, "invalid scanner") from None
     _warn_if_thinner_than_a_row(volume, vol.shape, sp, geo)
@@ -123,7 +141,7 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
         raise click.ClickException(f"the CT projector is unavailable ({exc})") from None
 
     click.echo(f"projecting {views} {mode}-beam views of a {'x'.join(map(str, vol.shape))} volume "
-               f"onto {detector}x{detector} pixels of {geo.dDetector[0]:.3g} mm ...", err=True)
+               f"onto {geo.nDetector[0]}x{geo.nDetector[1]} pixels of {geo.dDetector[0]:.3g} mm ...", err=True)
     t0 = time.perf_counter()
     projector = CTProjector(geo)
     volume32 = np.ascontiguousarray(vol, np.float32)
@@ -139,7 +157,8 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
                 bar.update(len(chunk))
         proj = np.concatenate(parts, axis=0)
     except MemoryError:
-        raise out_of_memory(f"to project {views} views of {detector}x{detector} pixels", vol.shape) from None
+        raise out_of_memory(f"to project {views} views of {geo.nDetector[0]}x{geo.nDetector[1]} pixels",
+                            vol.shape) from None
     if not np.all(np.isfinite(proj)):
         raise click.ClickException(
             f"{volume}: its line integrals overflow 32-bit floats (attenuation up to {float(vol.max()):.3g} 1/mm "
@@ -188,8 +207,10 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
 def _warn_if_thinner_than_a_row(path, shape, spacing, geo) -> None:
     """A volume less than one detector row high (at the rotation axis) projects between rows and
     mostly vanishes from the scan: say so, with the numbers and what to change."""
+    import numpy as np
+
     height = shape[0] * float(spacing[0])
-    row = float(geo.dDetector[0]) * (geo.DSO / geo.DSD if geo.mode == "cone" else 1.0)
+    row = float(np.max(np.linalg.norm(geo.view_vectors(scene=False)[:, 9:12], axis=1) / geo.magnification()))
     if height < row:
         click.echo(f"warning: {path} is {height:.3g} mm high, less than one detector row at the rotation axis "
                    f"({row:.3g} mm): its projection falls between rows and mostly vanishes; use a smaller --pixel, "

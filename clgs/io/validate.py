@@ -45,7 +45,7 @@ def check_projections(projections, geometry: Geometry, neg_tolerance: float | No
         raise ScanError(
             f"{source}: shape {tuple(p.shape)} does not match the geometry, which expects (n_views, V, U) = "
             f"{expected}; "
-            "check nDetector (V, U order) and the number of angles")
+            "check nDetector (V, U order) and the number of views (angles or vectors)")
     if neg_tolerance is not None:
         p = p.astype(np.float32, copy=True)
     bad = ~np.isfinite(p)
