@@ -103,6 +103,9 @@ def _angle_span(angles: np.ndarray):
 def scanner_from_geometry(geometry: Geometry, acquisition: dict | None = None) -> dict:
     """The R2-Gaussian scanner dict for a :class:`Geometry` (TIGRE layout, see the module doc)."""
     g = geometry
+    if not g.is_circular:
+        raise ScanError("R2-Gaussian's dataset format holds circular scans only (DSO, DSD, angles); this scan's "
+                        "geometry is given per view as vectors")
     start, total = _angle_span(g.angles)
     acq = acquisition or {}
     noise = bool(acq.get("noise", False))
