@@ -36,6 +36,10 @@ For each detector (128^2, 256^2), beam (cone, parallel) and mode (affine, exact)
 * ``--fastest``: after each row, the fastest of the ``--repeat`` calls each way and its rate: on
   a shared machine the least disturbed call, a bound on what the code does unloaded (the table
   keeps the medians).
+* ``--vectors``: after each row, the same calls on the same scan written as per-view vectors
+  and on it with the detector tilted (rolled 5 degrees and, in cone beam, pitched 5 degrees),
+  alternating call by call (``--repeat`` rounds, medians) with the circular description, and
+  the ratios; then the CT projector pair (64^3 volume, 16 views of 96^2) circular against vectors.
 * ``--n``, ``--det``, ``--beam``: run only these cases (each may be repeated), e.g. the
   reference case ``--n 50000 --det 256 --beam cone`` (the voxelizer rows are then left out).
 
@@ -186,14 +190,21 @@ def _stages(projector, m, mats, rho, geometry, mode, repeat):
 
 def _compare_widths(projectors, m, mats, rho, geometry, mode, repeat):
     """{width: [fwd wall, bwd wall, fwd cpu, bwd cpu] medians (ms)}, widths alternating call by call."""
+    return _alternate({w: (p, geometry) for w, p in projectors.items()}, m, mats, rho, mode, repeat)
+
+
+def _alternate(cases, m, mats, rho, mode, repeat):
+    """{name: [fwd wall, bwd wall, fwd cpu, bwd cpu] medians (ms)} of ``cases`` {name: (projector,
+    geometry)}, alternating call by call (the order reversed every round) so that a shared
+    machine's load falls on every case alike."""
     import numpy as np
 
     mn, mt, rn = m.numpy(), mats.numpy(), rho.numpy()
-    gout = np.random.default_rng(0).random((1, *geometry.nDetector), dtype=np.float32)
-    times = {w: ([], [], [], []) for w in projectors}
+    times = {w: ([], [], [], []) for w in cases}
     for r in range(repeat + 1):
-        order = list(projectors.items()) if r % 2 == 0 else list(projectors.items())[::-1]
-        for w, p in order:
+        order = list(cases.items()) if r % 2 == 0 else list(cases.items())[::-1]
+        for w, (p, geometry) in order:
+            gout = np.random.default_rng(0).random((1, *geometry.nDetector), dtype=np.float32)
             view = [r % geometry.n_views]
             t, c = time.perf_counter(), time.process_time()
             p.forward(mn, mt, rn, geometry, view, mode)
@@ -205,6 +216,73 @@ def _compare_widths(projectors, m, mats, rho, geometry, mode, repeat):
                 for lst, x in zip(times[w], (tf, tb, cf, cb)):
                     lst.append(x)
     return {w: [_median(x) * 1e3 for x in ts] for w, ts in times.items()}
+
+
+def tilted(geometry, roll_deg: float = 5.0, pitch_deg: float = 5.0):
+    """The scan as per-view vectors with its detector turned about its centre: ``roll_deg`` in its
+    own plane and, in cone beam, ``pitch_deg`` about its u axis (parallel rays stay perpendicular)."""
+    import numpy as np
+
+    from clgs.geometry import Geometry
+
+    vec = geometry.view_vectors(scene=False)
+    out = vec.copy()
+    for i, row in enumerate(vec):
+        u, v = row[6:9], row[9:12]
+        eu, ev = u / np.linalg.norm(u), v / np.linalg.norm(v)
+        n = np.cross(eu, ev)
+        r, p = np.deg2rad(roll_deg), np.deg2rad(pitch_deg if geometry.mode == "cone" else 0.0)
+        eu2, ev2 = np.cos(r) * eu + np.sin(r) * ev, -np.sin(r) * eu + np.cos(r) * ev
+        ev3 = np.cos(p) * ev2 + np.sin(p) * n
+        out[i, 6:9] = np.linalg.norm(u) * eu2
+        out[i, 9:12] = np.linalg.norm(v) * ev3
+    return Geometry.from_vectors(out, geometry.nDetector, geometry.nVoxel, geometry.dVoxel, geometry.offOrigin,
+                                 geometry.mode)
+
+
+def _vector_rows(proj, m, mats, rho, g, mode, repeat) -> str:
+    """The ``--vectors`` line of one row: the same scan circular, as vectors, and tilted."""
+    r = _alternate({"circular": (proj, g), "vectors": (proj, g.as_vectors()), "tilted": (proj, tilted(g))},
+                   m, mats, rho, mode, repeat)
+    c, v, t = r["circular"], r["vectors"], r["tilted"]
+    return (f"    circular / vectors / tilted vectors: fwd {c[0]:.2f} / {v[0]:.2f} / {t[0]:.2f} ms, "
+            f"bwd {c[1]:.2f} / {v[1]:.2f} / {t[1]:.2f} ms; vectors/circular fwd+bwd {(v[0] + v[1]) / (c[0] + c[1]):.3f}x "
+            f"(CPU {(v[2] + v[3]) / (c[2] + c[3]):.3f}x), tilted/circular {(t[0] + t[1]) / (c[0] + c[1]):.3f}x")
+
+
+def ct_vector_rows(repeat: int, n_voxel: int = 64, n_detector: int = 96, n_views: int = 16) -> list:
+    """The voxel projector pair (CT projector forward and its transpose) on one circular scan and
+    the same scan as vectors, alternating call by call: lines of medians (ms) and ratios."""
+    import numpy as np
+
+    from clgs.geometry import Geometry
+    from clgs.ops.ct_projector import CTProjector
+
+    lines = []
+    for beam in ("cone", "parallel"):
+        g = Geometry.default(n_views=n_views, mode=beam, n_detector=n_detector, n_voxel=n_voxel)
+        cases = {"circular": CTProjector(g), "vectors": CTProjector(g.as_vectors())}
+        rng = np.random.default_rng(0)
+        x = rng.random(g.nVoxel, dtype=np.float32)
+        y = rng.random(g.projection_shape, dtype=np.float32)
+        times = {k: ([], []) for k in cases}
+        for r in range(repeat + 1):
+            for name, P in (list(cases.items()) if r % 2 == 0 else list(cases.items())[::-1]):
+                t = time.perf_counter()
+                P.forward(x)
+                tf = time.perf_counter() - t
+                t = time.perf_counter()
+                P.backward(y)
+                tb = time.perf_counter() - t
+                if r:
+                    times[name][0].append(tf)
+                    times[name][1].append(tb)
+        c = [_median(t) * 1e3 for t in times["circular"]]
+        v = [_median(t) * 1e3 for t in times["vectors"]]
+        lines.append(f"CT projector {beam:>8} {n_voxel}^3, {n_views} views of {n_detector}^2: circular / vectors "
+                     f"fwd {c[0]:.1f} / {v[0]:.1f} ms, bwd {c[1]:.1f} / {v[1]:.1f} ms; vectors/circular "
+                     f"{(v[0] + v[1]) / (c[0] + c[1]):.3f}x")
+    return lines
 
 
 def _time_torch(m, mats, rho, geometry, mode, repeat):
@@ -237,15 +315,18 @@ def _time_torch(m, mats, rho, geometry, mode, repeat):
 @click.option("--det", "dets_opt", type=click.Choice(["128", "256"]), multiple=True, help="detector sizes (default both)")
 @click.option("--beam", "beams_opt", type=click.Choice(["cone", "parallel"]), multiple=True,
               help="beams (default both)")
+@click.option("--vectors", is_flag=True,
+              help="also time each row's scan written as per-view vectors and with its detector tilted, "
+                   "alternating with the circular one, and the CT projector pair both ways")
 @device_option
-def main(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt, beams_opt, devices):
+def main(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt, beams_opt, vectors, devices):
     """Gaussian projector: ms, evaluations/s, fraction of the exp ceiling, speed-up over torch."""
     results = on_each_device(devices, lambda: _bench(quick, repeat, torch_n, stages, fastest, widths, sizes_opt,
-                                                     dets_opt, beams_opt))
+                                                     dets_opt, beams_opt, vectors))
     ratio_table(results, ("fwd ms", "bwd ms"))
 
 
-def _bench(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt, beams_opt):
+def _bench(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt, beams_opt, vectors=False):
     """One device's run of :func:`main`; returns {case: (forward ms, backward ms)}."""
     import torch
 
@@ -318,6 +399,8 @@ def _bench(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt,
                                    f"bwd {a[1]:.2f} / {b[1]:.2f} ms ({a[1] / b[1]:.2f}x); CPU ms: fwd {a[2]:.2f} / "
                                    f"{b[2]:.2f} ({a[2] / b[2]:.2f}x), bwd {a[3]:.2f} / {b[3]:.2f} ({a[3] / b[3]:.2f}x); "
                                    f"16 lanes: {useful / b[0] / 1e6:.2f} / {useful / b[1] / 1e6:.2f} Geval/s")
+                    if vectors:
+                        click.echo(_vector_rows(proj, m, mats, rho, g, mode, repeat))
                     if stages:
                         ms, launches, outside = _stages(proj, m, mats, rho, g, mode, repeat)
                         for ph in ("fwd", "bwd"):
@@ -326,6 +409,9 @@ def _bench(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt,
                                        f"(sum {sum(ms[ph].values()):.2f}); outside the kernels {outside[ph]:.2f}")
     scaled = " (torch on the first %d Gaussians, time scaled by N/%d)" % (torch_n, torch_n)
     click.echo(f"useful evaluations: pixels within 3 sigma, summed over Gaussians; torch = fwd + autograd bwd{scaled}")
+    if vectors:
+        for line in ct_vector_rows(repeat):
+            click.echo(line)
     click.echo(watch.summary())
     if sizes_opt or dets_opt or beams_opt:
         return figures  # a restricted run: the projector cases only
