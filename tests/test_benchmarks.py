@@ -25,6 +25,33 @@ def test_bench_kernels_prints_its_table_and_the_fastest_calls():
     assert re.search(r"machine during the run: load average [0-9.]+ on [0-9]+ cores; [0-9]+% of the CPU time", out)
 
 
+def test_bench_kernels_vectors_times_each_row_three_ways():
+    out = _run("kernels", "--n", "600", "--det", "128", "--beam", "cone", "--repeat", "2", "--torch-n", "100",
+               "--vectors")
+    lines = [l for l in out.splitlines() if "circular / vectors / tilted vectors:" in l]
+    assert len(lines) == 2  # affine and exact
+    for line in lines:
+        assert re.search(r"vectors/circular fwd\+bwd [0-9.]+x \(CPU [0-9.]+x\), tilted/circular [0-9.]+x", line)
+    ct = [l for l in out.splitlines() if l.startswith("CT projector")]
+    assert len(ct) == 2 and all(re.search(r"vectors/circular [0-9.]+x$", l) for l in ct)
+
+
+def test_the_tilted_bench_scan_is_the_same_scan_turned():
+    import numpy as np
+
+    from clgs.bench.kernels import tilted
+    from clgs.geometry import Geometry
+
+    g = Geometry.default(n_views=4, n_detector=32, n_voxel=16)
+    t = tilted(g, 5.0, 5.0)
+    a, b = g.view_vectors(scene=False), t.view_vectors(scene=False)
+    np.testing.assert_array_equal(a[:, :6], b[:, :6])  # source and detector centre stay
+    np.testing.assert_allclose(np.linalg.norm(b[:, 6:9], axis=1), np.linalg.norm(a[:, 6:9], axis=1))
+    cos_u = np.sum(a[:, 6:9] * b[:, 6:9], 1) / np.sum(a[:, 6:9] ** 2, 1)
+    np.testing.assert_allclose(cos_u, np.cos(np.deg2rad(5.0)))  # rolled 5 degrees in the plane
+    assert np.all(np.abs(b[:, 11]) < np.abs(a[:, 11]))  # and pitched: v leaves the z axis
+
+
 def test_bench_train_prints_rates_and_the_breakdown():
     out = _run("train", "--gaussians", "400", "--detector", "32", "--voxels", "16", "--views", "4",
                "--iterations", "3", "--torch-iterations", "1")

@@ -119,7 +119,8 @@ def test_import_takes_a_vector_geometry_file(tmp_path):
     (tmp_path / "four.json").write_text(json.dumps(geo))
     res = run("import", tmp_path / "raw.npy", "--flats", tmp_path / "flat.npy", "--geometry", tmp_path / "four.json",
               "--out", tmp_path / "x", ok=False)
-    assert res.exit_code != 0 and "four.json" in res.output and "4 views" in res.output and "5 projections" in res.output
+    assert res.exit_code != 0 and "four.json" in res.output
+    assert "4 views" in res.output and "5 projections" in res.output
     # so does a detector of another size
     geo["vectors"] = c_arm_vectors()
     geo["nDetector"] = [40, 50]

@@ -126,7 +126,8 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
         if geometry_file is not None:
             from clgs.geometry import read_geometry
 
-            geo = read_geometry(geometry_file, {"nVoxel": [int(n) for n in vol.shape], "dVoxel": [float(d) for d in sp]})
+            grid = {"nVoxel": [int(n) for n in vol.shape], "dVoxel": [float(d) for d in sp]}
+            geo = read_geometry(geometry_file, grid)
             views, mode = geo.n_views, geo.mode
             check_memory(f"simulating {views} views of {geo.nDetector[0]} x {geo.nDetector[1]} pixels",
                          3.0 * 4 * views * geo.nDetector[0] * geo.nDetector[1], "use fewer views or a smaller detector")
