@@ -424,9 +424,11 @@ class Geometry:
         """A per-view geometry: ``vectors`` (n_views, 12) in mm, world (x, y, z), ASTRA's order per
         view: source (cone) or ray direction (parallel), detector centre, one pixel along u (columns),
         one pixel along v (rows)."""
-        if not isinstance(vectors, np.ndarray) and vectors is None:
+        if vectors is None:
             raise GeometryError("vectors are missing (null): give (n_views, 12) numbers")
-        vec = _check_vectors(vectors, mode) if mode in ("cone", "parallel") else vectors
+        if mode not in ("cone", "parallel"):
+            raise GeometryError(f"mode must be 'cone' or 'parallel', got {mode!r}")
+        vec = _check_vectors(vectors, mode)
         return cls(DSD=1.0, DSO=0.5, nDetector=nDetector, dDetector=(1.0, 1.0), nVoxel=nVoxel, dVoxel=dVoxel,
                    angles=np.zeros(len(vec)), offOrigin=offOrigin, mode=mode, vectors=vec)
 
@@ -451,11 +453,13 @@ class Geometry:
             missing = [k for k in ("nDetector", "nVoxel", "dVoxel") if k not in d]
             if missing:
                 raise GeometryError(f"geometry is missing {', '.join(missing)} (needed beside vectors)")
-            if d.get("angles") is not None and len(_numbers("angles", d["angles"])) != len(d["vectors"] or []):
-                raise GeometryError(f"geometry has {len(d['angles'])} angles but {len(d['vectors'] or [])} "
-                                    "vectors: give one vector per view (angles are not needed beside vectors)")
-            return cls.from_vectors(d["vectors"], d["nDetector"], d["nVoxel"], d["dVoxel"],
-                                    d.get("offOrigin", (0, 0, 0)), d.get("mode", "cone"))
+            g = cls.from_vectors(d["vectors"], d["nDetector"], d["nVoxel"], d["dVoxel"],
+                                 d.get("offOrigin", (0, 0, 0)), d.get("mode", "cone"))
+            n_angles = _numbers("angles", d["angles"]).size if d.get("angles") is not None else g.n_views
+            if n_angles != g.n_views:
+                raise GeometryError(f"geometry has {n_angles} angles but {g.n_views} vectors: give one vector per "
+                                    "view (angles are not needed beside vectors)")
+            return g
         required = ("DSD", "DSO", "nDetector", "dDetector", "nVoxel", "dVoxel", "angles")
         missing = [k for k in required if k not in d]
         if missing:
