@@ -12,10 +12,12 @@ Adjoint: the backprojector evaluates the same weights from each voxel's side (a 
 detector columns whose rays can reach it), so ``<A x, y> = <x, A^T y>`` up to rounding, with no
 atomics and bitwise-reproducible results.
 
-The kernels work in voxel-index coordinates; ``views`` are converted on the host. Because the
-detector's v axis is z on a circular orbit, rays never step along z; for cone angles steeper
-than 45 degrees in voxel units (thin slices with a huge cone) z would be undersampled, and a
-warning says so.
+The kernels work in voxel-index coordinates; ``views`` are converted on the host. They take any
+per-view geometry whose detector rows are horizontal and columns along z (any source position,
+detector offset, turn about the columns); a rolled or pitched detector goes through an upright
+virtual detector and a sparse resampling (:mod:`clgs.ops.ct_upright`). Because the detector's v
+axis is z, rays never step along z; for cone angles steeper than 45 degrees in voxel units (thin
+slices with a huge cone) z would be undersampled, and a warning says so.
 """
 from __future__ import annotations
 
@@ -25,6 +27,7 @@ import numpy as np
 import pyopencl as cl
 
 from clgs.geometry import Geometry
+from clgs.ops.ct_upright import tilted_views, upright_stand_in
 from clgs.ops.operator import Operator
 from clgs.errors import InputError
 
@@ -72,8 +75,14 @@ class CTProjector(Operator):
         nz, ny, nx = geometry.nVoxel
         self.shape = (nz, ny, nx)
         self.spacing_xyz = np.asarray(geometry.dVoxel[::-1], np.float64)
-        self._views_all = self._index_views()
         self._view_cache: dict = {}
+        self._upright = None
+        if np.any(tilted_views(geometry)):  # a rolled or pitched detector: see clgs.ops.ct_upright
+            virtual, mats = upright_stand_in(geometry, _round8(geometry.nDetector[0]))
+            self._upright = (CTProjector(virtual), mats)
+            self._views_all = self._upright[0]._views_all  # view indices check against these
+            return
+        self._views_all = self._index_views()
         self._check_geometry()
 
     # ------------------------------------------------------------------------------ set-up
@@ -87,18 +96,8 @@ class CTProjector(Operator):
         vv = g.view_vectors(scene=False)
         nv, nu = g.nDetector
         us, vs = vv[:, 6:9], vv[:, 9:12]
-        tol = 1e-9
-        tilted = (np.abs(us[:, 2]) > tol * np.linalg.norm(us, axis=1)) | \
-            (np.hypot(vs[:, 0], vs[:, 1]) > tol * np.linalg.norm(vs, axis=1))
-        if not self.cone:
-            tilted |= np.abs(vv[:, 2]) > tol * np.linalg.norm(vv[:, 0:3], axis=1)
-        if np.any(tilted):
-            i = int(np.flatnonzero(tilted)[0])
-            raise InputError(
-                f"view {i}: the voxel projector (CT projector, SART, simulation) needs detector rows that are "
-                "horizontal and columns along z (u step with no z part, v step along z"
-                + ("" if self.cone else ", horizontal rays") + "); any source position, detector offset or "
-                "turn about the vertical axis is fine. The Gaussian methods (r2gs, shape) take any tilt.")
+        if np.any(tilted_views(g)):  # __init__ sends these through an upright stand-in
+            raise InputError("the voxel projector's kernels need horizontal detector rows and columns along z")
         p0 = vv[:, 3:6] - 0.5 * (nu - 1) * us - 0.5 * (nv - 1) * vs  # centre of pixel (0, 0)
         to_idx = lambda p: (p - c0) / sp  # noqa: E731
         us_i, vs_i = us / sp, vs / sp
@@ -288,8 +287,19 @@ class CTProjector(Operator):
         padded[1:nx + 1, 1:ny + 1, 1:nz + 1] = volume.transpose(2, 1, 0)
         return padded
 
+    def _view_list(self, views):
+        return range(self.geometry.n_views) if views is None else np.asarray(views, np.int64).reshape(-1)
+
     def forward_padded(self, padded, views=None) -> np.ndarray:
         """Forward projection of a padded volume (see :meth:`pad_volume`): (n, U, Vp) float array."""
+        if self._upright is not None:
+            P, mats = self._upright
+            virtual = P.forward_padded(padded, views)
+            nv, nu = self.geometry.nDetector
+            out = np.empty((virtual.shape[0], nu, _round8(nv)), virtual.dtype)
+            for k, i in enumerate(self._view_list(views)):
+                out[k] = (mats[i] @ virtual[k].ravel()).reshape(nu, -1)
+            return out
         dtype = np.float64 if padded.dtype == np.float64 else np.float32
         padded = np.ascontiguousarray(padded, dtype)
         nz, ny, nx = self.shape
@@ -315,6 +325,17 @@ class CTProjector(Operator):
 
         Rows v >= V of ``tp`` are ignored.
         """
+        if self._upright is not None:
+            P, mats = self._upright
+            n = self._views(views, tp.dtype.type)[0].shape[0]
+            nv, nu = self.geometry.nDetector
+            if tp.shape != (n, nu, _round8(nv)):
+                raise InputError(f"projections in kernel layout have shape {tp.shape}, expected {(n, nu, _round8(nv))}")
+            nv2, nu2 = P.geometry.nDetector
+            virtual = np.empty((n, nu2, _round8(nv2)), tp.dtype)
+            for k, i in enumerate(self._view_list(views)):
+                virtual[k] = (mats[i].T @ tp[k].ravel()).reshape(nu2, -1)
+            return P.backward_internal(virtual, views)
         dtype = np.float64 if tp.dtype == np.float64 else np.float32
         rec, vbuf = self._views(views, dtype)
         n = rec.shape[0]
