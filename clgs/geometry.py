@@ -99,6 +99,11 @@ class Geometry:
     offOrigin: tuple = (0.0, 0.0, 0.0)  # (Z, Y, X) mm
     offDetector: tuple = (0.0, 0.0)  # (V, U) mm
     mode: str = "cone"
+    #: (Z, Y, X) mm: where the rotation axis crosses the central plane, in the world frame of the
+    #: input (a NIfTI's scanner frame, say). Not a TIGRE name: TIGRE puts the isocentre at the
+    #: origin. The kernels never see it (they work relative to the volume); it only places what
+    #: clgs writes (volumes, surfaces, Gaussians) where the input lay.
+    isocentre: tuple = (0.0, 0.0, 0.0)
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
@@ -110,6 +115,7 @@ class Geometry:
         set_("dVoxel", _triple("dVoxel", self.dVoxel))
         set_("offOrigin", _triple("offOrigin", self.offOrigin))
         set_("offDetector", _pair("offDetector", self.offDetector))
+        set_("isocentre", _triple("isocentre", self.isocentre))
         set_("DSD", _scalar("DSD", self.DSD))
         set_("DSO", _scalar("DSO", self.DSO))
         if self.angles is None:
@@ -121,7 +127,8 @@ class Geometry:
 
     # ----------------------------------------------------------------------------- checks
     def validate(self) -> None:
-        finite = [self.DSD, self.DSO, *self.dDetector, *self.dVoxel, *self.offOrigin, *self.offDetector]
+        finite = [self.DSD, self.DSO, *self.dDetector, *self.dVoxel, *self.offOrigin, *self.offDetector,
+                  *self.isocentre]
         if not np.all(np.isfinite(finite)):
             raise GeometryError(f"geometry has a non-finite length: {self}")
         if min(self.nDetector) < 1:
@@ -186,14 +193,19 @@ class Geometry:
     def projection_shape(self) -> tuple:
         return (self.n_views, *self.nDetector)
 
+    @property
+    def centre_xyz(self) -> np.ndarray:
+        """The volume's centre in world mm (x, y, z): the isocentre plus TIGRE's offOrigin."""
+        return np.asarray(self.isocentre[::-1], float) + np.asarray(self.offOrigin[::-1], float)
+
     # ----------------------------------------------------------------------------- mapping
     def world_to_scene(self, points_xyz) -> np.ndarray:
         """mm (x, y, z) -> scene units."""
-        return (np.asarray(points_xyz, float) - np.asarray(self.offOrigin[::-1])) * self.scale
+        return (np.asarray(points_xyz, float) - self.centre_xyz) * self.scale
 
     def scene_to_world(self, points_xyz) -> np.ndarray:
         """scene units -> mm (x, y, z)."""
-        return np.asarray(points_xyz, float) / self.scale + np.asarray(self.offOrigin[::-1])
+        return np.asarray(points_xyz, float) / self.scale + self.centre_xyz
 
     def volume_grid(self, scene: bool = True) -> "Grid":
         """The reconstruction grid, in scene units (default) or mm."""
@@ -202,11 +214,12 @@ class Geometry:
         origin = -0.5 * (shape[::-1] - 1) * spacing  # centre of voxel [0, 0, 0], relative to offOrigin
         if scene:
             return Grid(tuple(shape), tuple(origin * self.scale), tuple(spacing * self.scale))
-        return Grid(tuple(shape), tuple(origin + np.asarray(self.offOrigin[::-1])), tuple(spacing))
+        return Grid(tuple(shape), tuple(origin + self.centre_xyz), tuple(spacing))
 
     # ----------------------------------------------------------------------------- views
     def view_vectors(self, scene: bool = True, views: Sequence[int] | None = None) -> np.ndarray:
-        """(n_views, 12) float64: [source or ray direction, detector centre, u step, v step]."""
+        """(n_views, 12) float64: [source or ray direction, detector centre, u step, v step], in
+        scene units relative to the volume (default), or in world mm (the isocentre added)."""
         th = self.angles if views is None else self.angles[np.asarray(views, int)]
         c, s = np.cos(th), np.sin(th)
         z = np.zeros_like(th)
@@ -225,6 +238,11 @@ class Geometry:
                 out[:, 0:3] = (out[:, 0:3] - origin) * k
             out[:, 3:6] = (out[:, 3:6] - origin) * k
             out[:, 6:12] *= k
+        elif any(self.isocentre):
+            iso = np.asarray(self.isocentre[::-1], float)
+            if self.mode == "cone":
+                out[:, 0:3] += iso
+            out[:, 3:6] += iso
         return out
 
     def rays(self, view: int, scene: bool = True):
@@ -257,6 +275,7 @@ class Geometry:
             "offOrigin": list(self.offOrigin),
             "offDetector": list(self.offDetector),
             "angles": [float(a) for a in self.angles],
+            **({"isocentre": list(self.isocentre)} if any(self.isocentre) else {}),
         }
 
     @classmethod
@@ -276,6 +295,7 @@ class Geometry:
             offOrigin=d.get("offOrigin", (0, 0, 0)),
             offDetector=d.get("offDetector", (0, 0)),
             mode=d.get("mode", "cone"),
+            isocentre=d.get("isocentre", (0, 0, 0)),
         )
 
     def to_json(self) -> str:

@@ -2,8 +2,8 @@
 
 Our arrays are (Z, Y, X): ``volume[k, j, i]`` is the voxel whose centre, in world mm, is
 ``origin + (i dX, j dY, k dZ)`` with ``origin`` the centre of voxel [0, 0, 0] as (x, y, z). For a
-:class:`~clgs.geometry.Geometry` that origin is ``offOrigin - (nVoxel - 1) / 2 * dVoxel`` (per axis),
-i.e. the Geometry convention ``centre = offOrigin + ((i - (nX-1)/2) dX, ...)``.
+:class:`~clgs.geometry.Geometry` that origin is ``centre_xyz - (nVoxel - 1) / 2 * dVoxel`` (per axis;
+centre_xyz is the isocentre plus TIGRE's ``offOrigin``).
 
 NIfTI indexes its data array as (i, j, k) = (x, y, z), so the array is transposed to (X, Y, Z) on
 write (and back on read), and the affine is ``diag(dX, dY, dZ)`` with translation ``origin``: a

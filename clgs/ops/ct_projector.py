@@ -83,7 +83,7 @@ class CTProjector(Operator):
         g = self.geometry
         nz, ny, nx = g.nVoxel
         sp = self.spacing_xyz
-        c0 = np.asarray(g.offOrigin[::-1], np.float64) - 0.5 * (np.array([nx, ny, nz]) - 1) * sp
+        c0 = g.centre_xyz - 0.5 * (np.array([nx, ny, nz]) - 1) * sp  # world mm, as the vectors
         vv = g.view_vectors(scene=False)
         nv, nu = g.nDetector
         us, vs = vv[:, 6:9], vv[:, 9:12]
