@@ -123,7 +123,9 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
     extent = np.multiply(vol.shape, sp)  # (Z, Y, X) mm: the field of view both grids cover
     recon_sp = tuple(float(e) / n for e, n in zip(extent, recon_shape))
     # the world point the scanner turns about: the input's centre (0 for a bare .npy array)
-    centre_xyz = np.zeros(3) if org is None else np.asarray(org, float) + 0.5 * (np.asarray(vol.shape[::-1]) - 1) * sp[::-1]
+    centre_xyz = np.zeros(3)
+    if org is not None:
+        centre_xyz = np.asarray(org, float) + 0.5 * (np.asarray(vol.shape[::-1]) - 1) * np.asarray(sp[::-1], float)
     if protocol == "fine":
         check_memory(f"the fine simulation grid for a {'x'.join(map(str, recon_shape))} reconstruction grid",
                      2.0 * fine_bytes(recon_shape, vol.shape), "use --simulation same or a coarser --grid")
