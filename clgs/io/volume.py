@@ -143,7 +143,9 @@ def save_volume(path, volume, geometry=None, *, spacing=None, origin=None, overw
         return atomic.save_npy(path, data, overwrite=overwrite)
     if kind in ("itk", "dicom"):
         if kind == "dicom":
-            raise VolumeError(f"{path}: writing DICOM is not supported; write .nii.gz, .nrrd or .mha")
+            raise VolumeError(f"{path}: a DICOM series is a folder of slices: write it with "
+                              "`clgs convert VOLUME FOLDER --dicom` (or clgs.io.dicom.save_dicom_series); "
+                              "here write .nii.gz, .nrrd or .mha")
         sitk = _sitk()
         img = sitk.GetImageFromArray(np.ascontiguousarray(data))
         img.SetSpacing(tuple(float(v) for v in sp[::-1]))
