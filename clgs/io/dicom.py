@@ -37,9 +37,9 @@ def save_dicom_series(folder, volume, spacing_zyx, origin_xyz, *, kev: float = D
     """Write ``volume`` (Z, Y, X attenuation in 1/mm; voxel [0, 0, 0] centred at ``origin_xyz``,
     RAS mm) as a DICOM CT series in ``folder`` (made atomically). Returns a report: files, HU
     range, clipped voxel count."""
-    from clgs.io.volume import LPS, _sitk
+    from clgs.io.volume import LPS, require_simpleitk
 
-    sitk = _sitk()
+    sitk = require_simpleitk()
     vol = np.asarray(volume, np.float64)
     if vol.ndim != 3:
         raise ValueError(f"a DICOM series needs a 3-D volume, got shape {vol.shape}")

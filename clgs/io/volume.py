@@ -146,7 +146,7 @@ def save_volume(path, volume, geometry=None, *, spacing=None, origin=None, overw
             raise VolumeError(f"{path}: a DICOM series is a folder of slices: write it with "
                               "`clgs convert VOLUME FOLDER --dicom` (or clgs.io.dicom.save_dicom_series); "
                               "here write .nii.gz, .nrrd or .mha")
-        sitk = _sitk()
+        sitk = require_simpleitk()
         img = sitk.GetImageFromArray(np.ascontiguousarray(data))
         img.SetSpacing(tuple(float(v) for v in sp[::-1]))
         img.SetOrigin(tuple(float(v) for v in np.asarray(org) * LPS))
@@ -235,7 +235,8 @@ def _write_itk(sitk, img, path: Path, overwrite: bool) -> Path:
     return path
 
 
-def _sitk():
+def require_simpleitk():
+    """SimpleITK, or an error that says how to install it (DICOM, MetaImage and NRRD need it)."""
     try:
         import SimpleITK as sitk
     except ImportError as exc:
@@ -246,7 +247,7 @@ def _sitk():
 
 def _read_itk(path: Path, kind: str):
     """(array indexed (x, y, z), 4x4 RAS affine) of an ITK-readable file or DICOM series."""
-    sitk = _sitk()
+    sitk = require_simpleitk()
     try:
         if kind == "dicom":
             folder = path if path.is_dir() else path.parent
