@@ -160,3 +160,20 @@ def test_a_coarser_grid_covers_the_same_box(placed_nifti):
     r = CliRunner().invoke(main, ["simulate", str(folder / "in.nii.gz"), "--out", str(folder / "bad"),
                                   "--grid", "4,4"])
     assert r.exit_code != 0 and "--grid" in r.output and "NZ,NY,NX" in r.output
+
+
+def test_grid_spacing_chooses_the_grid_by_voxel_size(placed_nifti, tmp_path):
+    import nibabel as nib
+
+    from clgs.cli import main
+
+    folder, vol, aff = placed_nifti
+    r = CliRunner().invoke(main, ["simulate", str(folder / "in.nii.gz"), "--out", str(tmp_path / "s"), "--views", "4",
+                                  "--detector", "32", "--grid-spacing", "4,4,8", "--no-noise"])
+    assert r.exit_code == 0, r.output
+    truth = nib.load(tmp_path / "s" / "truth.nii.gz")
+    assert truth.shape == (8, 16, 16)  # (X, Y, Z) in NIfTI: 64 mm / 8, / 4, / 4
+    np.testing.assert_allclose(np.diag(truth.affine)[:3], [8.0, 4.0, 4.0])
+    for bad in (["--grid", "8", "--grid-spacing", "4"], ["--grid-spacing", "0"]):
+        r = CliRunner().invoke(main, ["simulate", str(folder / "in.nii.gz"), "--out", str(tmp_path / "b"), *bad])
+        assert r.exit_code == 2 and "grid" in r.output, r.output

@@ -78,12 +78,15 @@ def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, 
 @click.option("--grid", default=None,
               help="reconstruction grid, N or NZ,NY,NX voxels over the input's field of view; the truth is "
                    "resampled onto it [default: the input's own grid]")
+@click.option("--grid-spacing", default=None,
+              help="reconstruction voxel size in mm, 'd' or 'dZ,dY,dX', instead of --grid (rounded to whole voxels "
+                   "over the input's field of view)")
 @click.option("--simulation", "protocol", type=click.Choice(["fine", "same"]), default="fine", show_default=True,
               help="fine: project a volume at least twice as fine as the reconstruction grid (no inverse crime); "
                    "same: project the truth on the reconstruction grid (R2-Gaussian's protocol)")
 @click.option("--force", is_flag=True, help="overwrite an existing --out")
 def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, pixel, spacing, I0, sigma, scatter, seed,
-             no_noise, surface_level, grid, protocol, force):
+             no_noise, surface_level, grid, grid_spacing, protocol, force):
     """Simulate a sparse-view X-ray scan of VOLUME (attenuation in 1/mm, or Hounsfield units with
     --hu): .npy, NIfTI, MetaImage (.mha/.mhd), NRRD, or a DICOM series (its folder or a .dcm file).
 
@@ -112,15 +115,20 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
     from clgs.ct.simulation_grid import fine_bytes, parse_grid, projection_volume, resample_box
     from clgs.errors import InputError
 
+    if grid is not None and grid_spacing is not None:
+        raise click.UsageError("give --grid (voxels) or --grid-spacing (mm), not both")
     try:
         recon_shape = parse_grid(grid)
     except InputError as exc:
         raise click.BadParameter(str(exc), param_hint="--grid") from None
+    grid_sp = parse_spacing(grid_spacing, "--grid-spacing") if grid_spacing is not None else None
     vol, sp, org = load_volume_file(volume, sp_override, attenuation=not hu, axes=axes)
     if sp is None:
         raise click.UsageError(f"{volume} is a .npy array without voxel size; give --spacing (mm)")
-    recon_shape = tuple(vol.shape) if recon_shape is None else recon_shape
     extent = np.multiply(vol.shape, sp)  # (Z, Y, X) mm: the field of view both grids cover
+    if grid_sp is not None:
+        recon_shape = tuple(max(1, int(round(float(e) / float(d)))) for e, d in zip(extent, grid_sp))
+    recon_shape = tuple(vol.shape) if recon_shape is None else recon_shape
     recon_sp = tuple(float(e) / n for e, n in zip(extent, recon_shape))
     # the world point the scanner turns about: the input's centre (0 for a bare .npy array)
     centre_xyz = np.zeros(3)
