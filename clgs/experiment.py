@@ -96,8 +96,11 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
 
 def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: int = 1000,
                    ablation_views: int | None = 5, methods=("fdk", "r2gs", "shape"), seed: int = 0,
-                   progress: bool = True, settings: dict | None = None, echo=print) -> dict:
-    """Run (or resume) the experiment; returns the summary dict also written to ``summary.json``."""
+                   progress: bool = True, settings: dict | None = None, echo=print, simulation: str = "fine") -> dict:
+    """Run (or resume) the experiment; returns the summary dict also written to ``summary.json``.
+
+    ``simulation``: how the scans are made (:mod:`clgs.ct.simulation_grid`): ``"fine"`` (default,
+    projections from a grid twice as fine) or ``"same"`` (R2-Gaussian's same-grid protocol)."""
     from clgs.anatomy.evaluation import bone_surface, evaluate_volume, surface_level
     from clgs.io import atomic
     from clgs.io.mesh import save_mesh
@@ -125,13 +128,15 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
     for sid in subjects:
         subject = anatomy.load_subject(sid)
         for v in sorted(set(p[0] for p in plan)):
-            scan = simulate_subject(anatomy, subject, v, math.pi, True, seed)
+            scan = simulate_subject(anatomy, subject, v, math.pi, True, seed, protocol=simulation)
             for vv, method in plan:
                 if vv != v:
                     continue
                 tag = f"{sid}_{v}_{method.replace('+', '-')}"
                 record_path = out / "runs" / f"{tag}.json"
                 made_with = _made_with(method, iterations, seed, settings)
+                if simulation != "same":  # records made before the choice existed used "same"
+                    made_with["simulation"] = simulation
                 if record_path.is_file():
                     row = json.loads(record_path.read_text())
                     _check_same_run(record_path, row, made_with)

@@ -175,6 +175,12 @@ class Geometry:
     offOrigin: tuple = (0.0, 0.0, 0.0)  # (Z, Y, X) mm
     offDetector: tuple = (0.0, 0.0)  # (V, U) mm
     mode: str = "cone"
+    #: (Z, Y, X) mm: where the rotation axis crosses the central plane, in the world frame of the
+    #: input (a NIfTI's scanner frame, say). Not a TIGRE name: TIGRE puts the isocentre at the
+    #: origin. The kernels never see it (they work relative to the volume); it only places what
+    #: clgs writes (volumes, surfaces, Gaussians) where the input lay. For a per-view geometry it
+    #: is the origin of the vectors' frame in the world.
+    isocentre: tuple = (0.0, 0.0, 0.0)
     vectors: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
@@ -193,6 +199,7 @@ class Geometry:
         set_("dVoxel", _triple("dVoxel", self.dVoxel))
         set_("offOrigin", _triple("offOrigin", self.offOrigin))
         set_("offDetector", _pair("offDetector", self.offDetector))
+        set_("isocentre", _triple("isocentre", self.isocentre))
         set_("DSD", _scalar("DSD", self.DSD))
         set_("DSO", _scalar("DSO", self.DSO))
         if self.angles is None:
@@ -204,7 +211,8 @@ class Geometry:
 
     # ----------------------------------------------------------------------------- checks
     def validate(self) -> None:
-        finite = [self.DSD, self.DSO, *self.dDetector, *self.dVoxel, *self.offOrigin, *self.offDetector]
+        finite = [self.DSD, self.DSO, *self.dDetector, *self.dVoxel, *self.offOrigin, *self.offDetector,
+                  *self.isocentre]
         if not np.all(np.isfinite(finite)):
             raise GeometryError(f"geometry has a non-finite length: {self}")
         if min(self.nDetector) < 1:
@@ -269,7 +277,8 @@ class Geometry:
         return self.vectors is None
 
     def volume_bounds(self) -> tuple:
-        """(low, high) corners of the volume in mm, (x, y, z)."""
+        """(low, high) corners of the volume in mm, (x, y, z), in the scanner's frame (as
+        :meth:`frame_vectors`; add the isocentre for the world)."""
         centre = np.asarray(self.offOrigin[::-1], float)
         half = 0.5 * self.sVoxel[::-1]
         return centre - half, centre + half
@@ -291,7 +300,7 @@ class Geometry:
         source-centre depth along the detector normal); ones for parallel beam."""
         if self.mode != "cone":
             return np.ones(self.n_views)
-        vv = self.view_vectors(scene=False)
+        vv = self.frame_vectors()
         normal = np.cross(vv[:, 6:9], vv[:, 9:12])
         normal /= np.linalg.norm(normal, axis=1, keepdims=True)
         centre = np.asarray(self.offOrigin[::-1], float)
@@ -334,14 +343,19 @@ class Geometry:
     def projection_shape(self) -> tuple:
         return (self.n_views, *self.nDetector)
 
+    @property
+    def centre_xyz(self) -> np.ndarray:
+        """The volume's centre in world mm (x, y, z): the isocentre plus TIGRE's offOrigin."""
+        return np.asarray(self.isocentre[::-1], float) + np.asarray(self.offOrigin[::-1], float)
+
     # ----------------------------------------------------------------------------- mapping
     def world_to_scene(self, points_xyz) -> np.ndarray:
         """mm (x, y, z) -> scene units."""
-        return (np.asarray(points_xyz, float) - np.asarray(self.offOrigin[::-1])) * self.scale
+        return (np.asarray(points_xyz, float) - self.centre_xyz) * self.scale
 
     def scene_to_world(self, points_xyz) -> np.ndarray:
         """scene units -> mm (x, y, z)."""
-        return np.asarray(points_xyz, float) / self.scale + np.asarray(self.offOrigin[::-1])
+        return np.asarray(points_xyz, float) / self.scale + self.centre_xyz
 
     def volume_grid(self, scene: bool = True) -> "Grid":
         """The reconstruction grid, in scene units (default) or mm."""
@@ -350,14 +364,20 @@ class Geometry:
         origin = -0.5 * (shape[::-1] - 1) * spacing  # centre of voxel [0, 0, 0], relative to offOrigin
         if scene:
             return Grid(tuple(shape), tuple(origin * self.scale), tuple(spacing * self.scale))
-        return Grid(tuple(shape), tuple(origin + np.asarray(self.offOrigin[::-1])), tuple(spacing))
+        return Grid(tuple(shape), tuple(origin + self.centre_xyz), tuple(spacing))
 
     # ----------------------------------------------------------------------------- views
     def view_vectors(self, scene: bool = True, views: Sequence[int] | None = None) -> np.ndarray:
-        """(n_views, 12) float64: [source or ray direction, detector centre, u step, v step]."""
+        """(n_views, 12) float64: [source or ray direction, detector centre, u step, v step], in
+        scene units relative to the volume (default), or in world mm (the isocentre added)."""
+        return self._placed(self.frame_vectors(views), scene)
+
+    def frame_vectors(self, views: Sequence[int] | None = None) -> np.ndarray:
+        """(n_views, 12) float64 vectors in mm in the scanner's own frame (TIGRE's: the isocentre at
+        the origin, the volume's centre at ``offOrigin``): the circular description's, or the given
+        per-view ones."""
         if self.vectors is not None:
-            out = np.array(self.vectors if views is None else self.vectors[np.asarray(views, int)], np.float64)
-            return self._to_scene(out) if scene else out
+            return np.array(self.vectors if views is None else self.vectors[np.asarray(views, int)], np.float64)
         th = self.angles if views is None else self.angles[np.asarray(views, int)]
         c, s = np.cos(th), np.sin(th)
         z = np.zeros_like(th)
@@ -368,16 +388,22 @@ class Geometry:
         ov, ou = self.offDetector
         det = -(self.DSD - self.DSO) * e_s + ou * e_u + ov * e_v
         first = self.DSO * e_s if self.mode == "cone" else -e_s
-        out = np.concatenate([first, det, du * e_u, dv * e_v], 1)
-        return self._to_scene(out) if scene else out
+        return np.concatenate([first, det, du * e_u, dv * e_v], 1)
 
-    def _to_scene(self, out: np.ndarray) -> np.ndarray:
-        origin = np.asarray(self.offOrigin[::-1], float)
-        k = self.scale
-        if self.mode == "cone":
-            out[:, 0:3] = (out[:, 0:3] - origin) * k
-        out[:, 3:6] = (out[:, 3:6] - origin) * k
-        out[:, 6:12] *= k
+    def _placed(self, out: np.ndarray, scene: bool) -> np.ndarray:
+        """Scanner-frame vectors ``out`` (changed in place) in scene units or world mm."""
+        if scene:
+            origin = np.asarray(self.offOrigin[::-1], float)
+            k = self.scale
+            if self.mode == "cone":
+                out[:, 0:3] = (out[:, 0:3] - origin) * k
+            out[:, 3:6] = (out[:, 3:6] - origin) * k
+            out[:, 6:12] *= k
+        elif any(self.isocentre):
+            iso = np.asarray(self.isocentre[::-1], float)
+            if self.mode == "cone":
+                out[:, 0:3] += iso
+            out[:, 3:6] += iso
         return out
 
     def rays(self, view: int, scene: bool = True):
@@ -404,6 +430,7 @@ class Geometry:
         if self.vectors is not None:
             return {"mode": self.mode, "nDetector": list(self.nDetector), "nVoxel": list(self.nVoxel),
                     "dVoxel": list(self.dVoxel), "offOrigin": list(self.offOrigin),
+                    **({"isocentre": list(self.isocentre)} if any(self.isocentre) else {}),
                     "vectors": [[float(x) for x in row] for row in self.vectors]}
         return {
             "mode": self.mode,
@@ -416,33 +443,35 @@ class Geometry:
             "offOrigin": list(self.offOrigin),
             "offDetector": list(self.offDetector),
             "angles": [float(a) for a in self.angles],
+            **({"isocentre": list(self.isocentre)} if any(self.isocentre) else {}),
         }
 
     @classmethod
     def from_vectors(cls, vectors, nDetector, nVoxel, dVoxel, offOrigin=(0.0, 0.0, 0.0),
-                     mode: str = "cone") -> "Geometry":
-        """A per-view geometry: ``vectors`` (n_views, 12) in mm, world (x, y, z), ASTRA's order per
-        view: source (cone) or ray direction (parallel), detector centre, one pixel along u (columns),
-        one pixel along v (rows)."""
+                     mode: str = "cone", isocentre=(0.0, 0.0, 0.0)) -> "Geometry":
+        """A per-view geometry: ``vectors`` (n_views, 12) in mm, (x, y, z), ASTRA's order per view:
+        source (cone) or ray direction (parallel), detector centre, one pixel along u (columns), one
+        pixel along v (rows). They share the frame of ``offOrigin`` (the volume's centre); the
+        optional ``isocentre`` places that frame in the world, as for a circular scan."""
         if vectors is None:
             raise GeometryError("vectors are missing (null): give (n_views, 12) numbers")
         if mode not in ("cone", "parallel"):
             raise GeometryError(f"mode must be 'cone' or 'parallel', got {mode!r}")
         vec = _check_vectors(vectors, mode)
         return cls(DSD=1.0, DSO=0.5, nDetector=nDetector, dDetector=(1.0, 1.0), nVoxel=nVoxel, dVoxel=dVoxel,
-                   angles=np.zeros(len(vec)), offOrigin=offOrigin, mode=mode, vectors=vec)
+                   angles=np.zeros(len(vec)), offOrigin=offOrigin, mode=mode, isocentre=isocentre, vectors=vec)
 
     def as_vectors(self) -> "Geometry":
         """The same scan as a per-view geometry (the circular description written as vectors)."""
-        return Geometry.from_vectors(self.view_vectors(scene=False), self.nDetector, self.nVoxel, self.dVoxel,
-                                     self.offOrigin, self.mode)
+        return Geometry.from_vectors(self.frame_vectors(), self.nDetector, self.nVoxel, self.dVoxel,
+                                     self.offOrigin, self.mode, self.isocentre)
 
     def select(self, views) -> "Geometry":
         """The geometry of the views ``views`` (indices, in that order)."""
         idx = np.asarray(views, int).reshape(-1)
         if self.vectors is not None:
             return Geometry.from_vectors(self.vectors[idx], self.nDetector, self.nVoxel, self.dVoxel,
-                                         self.offOrigin, self.mode)
+                                         self.offOrigin, self.mode, self.isocentre)
         return self.with_angles(self.angles[idx])
 
     @classmethod
@@ -454,7 +483,7 @@ class Geometry:
             if missing:
                 raise GeometryError(f"geometry is missing {', '.join(missing)} (needed beside vectors)")
             g = cls.from_vectors(d["vectors"], d["nDetector"], d["nVoxel"], d["dVoxel"],
-                                 d.get("offOrigin", (0, 0, 0)), d.get("mode", "cone"))
+                                 d.get("offOrigin", (0, 0, 0)), d.get("mode", "cone"), d.get("isocentre", (0, 0, 0)))
             n_angles = _numbers("angles", d["angles"]).size if d.get("angles") is not None else g.n_views
             if n_angles != g.n_views:
                 raise GeometryError(f"geometry has {n_angles} angles but {g.n_views} vectors: give one vector per "
@@ -475,6 +504,7 @@ class Geometry:
             offOrigin=d.get("offOrigin", (0, 0, 0)),
             offDetector=d.get("offDetector", (0, 0)),
             mode=d.get("mode", "cone"),
+            isocentre=d.get("isocentre", (0, 0, 0)),
         )
 
     def to_json(self) -> str:

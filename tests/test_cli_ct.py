@@ -63,12 +63,20 @@ def test_simulate_no_noise_is_the_projector(scan_dir, tmp_path):
     from clgs.ops.ct_projector import CTProjector
 
     np.save(tmp_path / "ball.npy", ball_volume())
-    run("simulate", tmp_path / "ball.npy", "--spacing", "2", "--views", 5, "--arc", 360, "--mode", "parallel",
-        "--detector", 40, "--no-noise", "--out", tmp_path / "s")
+    common = ["--spacing", "2", "--views", 5, "--arc", 360, "--mode", "parallel", "--detector", 40, "--no-noise"]
+    run("simulate", tmp_path / "ball.npy", *common, "--simulation", "same", "--out", tmp_path / "s")
     scan = Scan.load(tmp_path / "s")
     assert scan.geometry.mode == "parallel"
-    assert np.array_equal(scan.projections, CTProjector(scan.geometry).forward(scan.truth))
+    same = CTProjector(scan.geometry).forward(scan.truth)
+    assert np.array_equal(scan.projections, same)  # R2-Gaussian's protocol: the projector itself
     assert scan.meta["acquisition"]["noise"] is False
+    # the default projects a grid twice as fine: the same object, not the same numbers
+    run("simulate", tmp_path / "ball.npy", *common, "--out", tmp_path / "f")
+    fine = Scan.load(tmp_path / "f")
+    assert np.array_equal(fine.truth, scan.truth)
+    rel = np.abs(fine.projections - same).max() / same.max()
+    assert 1e-4 < rel < 0.1, rel
+    assert fine.meta["acquisition"]["simulation"]["projected_grid"] == [48, 48, 48]
 
 
 def test_reconstruct_fdk_file_and_folder(scan_dir, tmp_path):
@@ -82,7 +90,7 @@ def test_reconstruct_fdk_file_and_folder(scan_dir, tmp_path):
     report = json.loads((tmp_path / "fdk.json").read_text())
     assert report["metrics"]["psnr3d"] == pytest.approx(metrics.psnr3d(vol, truth), abs=1e-4)
     assert report["metrics"]["psnr3d"] > 15.0
-    assert sp == (2.0, 2.0, 2.0) and org == pytest.approx((-23.0, -23.0, -23.0))
+    assert sp == (2.0, 2.0, 2.0) and org == pytest.approx((-100.0, -50.0, 30.0))  # where the input lay
     assert f"{report['metrics']['psnr3d']:.4f}" in res.output
     run("reconstruct", scan_dir / "scan", "--out", tmp_path / "rec", "--filter", "hann")
     assert sorted(p.name for p in (tmp_path / "rec").iterdir()) == ["report.json", "volume.nii.gz", "volume.npy"]
@@ -567,10 +575,13 @@ def test_reconstruct_takes_settings_as_the_anatomy_commands_do(scan_dir, tmp_pat
 
 def test_evaluate_refuses_volumes_on_different_world_grids(scan_dir, tmp_path):
     """Voxels are compared by index: a reconstruction and a truth that lie in different places
-    (the input CT before simulate centred it, another voxel size) are refused with both grids."""
+    (the same array moved, another voxel size) are refused with both grids; the input itself,
+    where simulate and reconstruct keep it, is accepted."""
     run("reconstruct", scan_dir / "scan", "--method", "fdk", "--out", tmp_path / "fdk.nii.gz")
-    res = run("evaluate", tmp_path / "fdk.nii.gz", "--truth", scan_dir / "ball.nii.gz", ok=False)
-    assert res.exit_code == 2 and "starts at" in res.output and "(-100.0, -50.0, 30.0)" in res.output
+    run("evaluate", tmp_path / "fdk.nii.gz", "--truth", scan_dir / "ball.nii.gz")
+    save_volume(tmp_path / "moved.nii.gz", ball_volume(), spacing=(2.0, 2.0, 2.0), origin=(-23.0, -23.0, -23.0))
+    res = run("evaluate", tmp_path / "fdk.nii.gz", "--truth", tmp_path / "moved.nii.gz", ok=False)
+    assert res.exit_code == 2 and "starts at" in res.output and "(-23.0, -23.0, -23.0)" in res.output
     save_volume(tmp_path / "fine.nii.gz", ball_volume(), spacing=(1.0, 1.0, 1.0))
     res = run("evaluate", tmp_path / "fdk.nii.gz", "--truth", tmp_path / "fine.nii.gz", ok=False)
     assert res.exit_code == 2 and "different grids" in res.output

@@ -30,7 +30,7 @@ LAYERS = [
     ["clgs.methods"],
     ["clgs.experiment"],
     ["clgs.api", "clgs.bench"],
-    ["clgs.cli"],
+    ["clgs.cli", "clgs.__main__"],
 ]
 # The package's own __init__ is the public facade: it loads clgs.api on first attribute access.
 FACADE = "clgs"

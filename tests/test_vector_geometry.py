@@ -74,6 +74,24 @@ def test_circular_written_as_vectors_is_the_same_scan(mode, tmp_path):
     np.testing.assert_array_equal(v.select([4, 0]).view_vectors(), g.select([4, 0]).view_vectors())
 
 
+def test_an_isocentre_places_the_vectors_as_it_places_a_circular_scan(rng):
+    """The vectors share the scanner's frame (offOrigin's); the isocentre moves both into the world."""
+    from clgs.ops.ct_projector import CTProjector
+
+    g = Geometry.from_dict({**circular().to_dict(), "isocentre": [40.0, -25.0, 130.0]})
+    v = g.as_vectors()
+    np.testing.assert_array_equal(v.view_vectors(), g.view_vectors())
+    np.testing.assert_array_equal(v.view_vectors(scene=False), g.view_vectors(scene=False))
+    np.testing.assert_array_equal(v.frame_vectors(), circular().view_vectors(scene=False))
+    assert v.volume_grid(scene=False) == g.volume_grid(scene=False)
+    back = Geometry.from_dict(json.loads(json.dumps(v.to_dict())))
+    assert back.isocentre == (40.0, -25.0, 130.0) and back == v
+    x = rng.random(g.nVoxel)
+    np.testing.assert_array_equal(CTProjector(v).forward(x), CTProjector(g).forward(x))
+    # the world shift only rounds differently
+    np.testing.assert_allclose(CTProjector(v).forward(x), CTProjector(circular()).forward(x), rtol=1e-12, atol=1e-12)
+
+
 def test_a_scan_folder_keeps_its_vectors(tmp_path):
     from clgs.io.scan import Scan
 

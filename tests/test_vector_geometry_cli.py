@@ -141,19 +141,21 @@ def _has_femur():
 
 @pytest.mark.skipif(not _has_femur(), reason="install with: pip install -e anatomies/femur")
 def test_femur_c_arm_scan_simulates_and_reconstructs_with_the_shape_method(tmp_path):
-    """5 views over 120 degrees, detector offset and turned: simulate, then a short shape-guided run."""
+    """5 views over 120 degrees, the detector offset, turned and rolled (the voxel projector's upright
+    stand-in): simulate, then a short shape-guided run."""
     import subprocess
     import sys
     from pathlib import Path
 
     script = Path(__file__).resolve().parents[1] / "examples" / "c_arm_geometry.py"
-    r = subprocess.run([sys.executable, str(script), "--out", str(tmp_path / "carm.json")], capture_output=True,
-                       text=True, timeout=120)
+    r = subprocess.run([sys.executable, str(script), "--roll", "3", "--out", str(tmp_path / "carm.json")],
+                       capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     rows = json.loads((tmp_path / "carm.json").read_text())["vectors"]
     g = Geometry.from_dict({"nDetector": [200, 160], "nVoxel": [8, 8, 8], "dVoxel": [1, 1, 1], "vectors": rows})
     assert np.degrees(g.angles.max() - g.angles.min()) == pytest.approx(120.0)
     assert np.ptp(np.linalg.norm(g.view_vectors(scene=False)[:, :3], axis=1)) > 50  # the source distance varies
+    assert np.all(np.abs(g.view_vectors(scene=False)[:, 8]) > 0.1)  # rolled: u has a z part
     res = run("femur", "simulate", "--geometry", tmp_path / "carm.json", "--out", tmp_path / "scan")
     assert "5 views from" in res.output
     scan = Scan.load(tmp_path / "scan")

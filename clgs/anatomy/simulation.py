@@ -79,19 +79,29 @@ def subject_from_mesh_file(anatomy, path, seed: int = 0):
 
 
 def simulate_subject(anatomy, subject, n_views: int = 50, arc: float = 3.141592653589793, noise: bool = True,
-                     seed: int = 0, noise_options: dict = None, geometry_file=None):
+                     seed: int = 0, noise_options: dict = None, protocol: str = "fine", geometry_file=None):
     """Project a subject's CT with the anatomy's scanner, add noise: a :class:`clgs.io.scan.Scan`.
     ``geometry_file``: the scanner and views from a geometry JSON instead (see :func:`scan_geometry`).
 
-    The truth volume and the true surface travel with the scan (for evaluation)."""
-    from clgs.ops.ct_projector import CTProjector
+    ``protocol`` (see :mod:`clgs.ct.simulation_grid`): ``"fine"`` projects the subject's CT refined
+    to a grid twice as fine (no inverse crime), ``"same"`` projects it on its own grid, which is
+    also the reconstruction grid (R2-Gaussian's protocol). The truth volume and the true surface
+    travel with the scan (for evaluation)."""
+    from clgs.ct.simulation_grid import projection_volume
+    from clgs.geometry import Geometry
     from clgs.io.scan import Scan
+    from clgs.ops.ct_projector import CTProjector
 
     if subject.volume is None:
         raise InputError(f"subject {subject.id} has no CT volume to simulate")
     geo = scan_geometry(anatomy, subject, n_views, arc, geometry_file)
-    proj = as_float32(CTProjector(geo).forward(subject.volume))
-    acquisition = {"noise": bool(noise), "seed": int(seed)}
+    source = projection_volume(subject.volume, geo.nVoxel, protocol)
+    sim = geo.to_dict()
+    sim.update(nVoxel=list(source.shape), dVoxel=[n * d / m for n, d, m in zip(geo.nVoxel, geo.dVoxel, source.shape)])
+    proj = as_float32(CTProjector(Geometry.from_dict(sim)).forward(source))
+    acquisition = {"noise": bool(noise), "seed": int(seed),
+                   "simulation": {"protocol": protocol, "projected_grid": list(source.shape),
+                                  "reconstruction_grid": list(geo.nVoxel)}}
     if noise:
         from clgs.ct.noise import add_noise
 

@@ -224,8 +224,11 @@ def _simulate_command(anatomy) -> click.Command:
     @click.option("--noise/--no-noise", default=True, show_default=True, help="Poisson + electronic noise")
     @click.option("--seed", type=Seed(), default=0, show_default=True, help="noise seed, 0 to 2**64 - 1")
     @click.option("--force", is_flag=True, help="replace an existing scan folder")
+    @click.option("--simulation", "protocol", type=click.Choice(["fine", "same"]), default="fine", show_default=True,
+                  help="fine: projections from a grid twice as fine as the reconstruction grid; same: on the "
+                       "reconstruction grid itself (R2-Gaussian's protocol, flatters FDK and SART)")
     @click.option("--overwrite", "force_alias", is_flag=True, hidden=True)  # the flag's earlier name
-    def simulate(subject_id, mesh, out, views, arc, geometry_file, noise, seed, force, force_alias):
+    def simulate(subject_id, mesh, out, views, arc, geometry_file, noise, seed, force, force_alias, protocol):
         """Simulate a CT scan of a subject (default: the first held-out one) or of a surface file."""
         import math
 
@@ -250,7 +253,8 @@ def _simulate_command(anatomy) -> click.Command:
                     raise click.UsageError("the plugin has no held-out subjects: give --subject or --mesh")
                 subject_id = held[0]
             subject = _load_subject(anatomy, subject_id)
-        scan = _simulate(anatomy, subject, views, math.radians(arc), noise, seed, geometry_file=geometry_file)
+        scan = _simulate(anatomy, subject, views, math.radians(arc), noise, seed, protocol=protocol,
+                         geometry_file=geometry_file)
         try:
             scan.save(out, overwrite=force or force_alias)
         except FileExistsError:
@@ -450,8 +454,11 @@ def _experiment_command(anatomy) -> click.Command:
                   help="experiment folder (an interrupted experiment resumes from it)")
     @click.option("--seed", type=Seed(), default=0, show_default=True, help="random seed, 0 to 2**64 - 1")
     @click.option("--log-every", default=500, show_default=True, help="evaluate every N iterations (curves)")
+    @click.option("--simulation", "protocol", type=click.Choice(["fine", "same"]), default="fine", show_default=True,
+                  help="fine: projections from a grid twice as fine as the reconstruction grid; same: on the "
+                       "reconstruction grid itself (R2-Gaussian's protocol, flatters FDK and SART)")
     @click.option("--progress/--no-progress", default=True, help="progress bar per run")
-    def experiment(views, more_views, subjects, iterations, ablation_views, out, seed, log_every, progress):
+    def experiment(views, more_views, subjects, iterations, ablation_views, out, seed, log_every, progress, protocol):
         """The seed paper's experiment: R2-Gaussian vs shape-guided on every held-out subject,
         the ablation, error against run time, surfaces; writes table.md, results.csv, curves.png."""
         from clgs.experiment import run_experiment
@@ -469,7 +476,7 @@ def _experiment_command(anatomy) -> click.Command:
         per_run = {"log_every": log_every, "checkpoint_every": 0}
         summary = run_experiment(anatomy, out, views=views, subjects=ids, iterations=iterations,
                                  ablation_views=ablation_views or None, seed=seed, progress=progress,
-                                 settings={"r2gs": per_run, "shape": per_run}, echo=click.echo)
+                                 settings={"r2gs": per_run, "shape": per_run}, echo=click.echo, simulation=protocol)
         click.echo(open(os.path.join(out, "table.md")).read())
         for v, g in summary["gain_db"].items():
             click.echo(f"{v} views: shape-guided minus R2-Gaussian {g['mean']:+.2f} dB (ahead on "

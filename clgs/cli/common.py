@@ -222,19 +222,20 @@ def load_volume_file(path: Path, spacing=None, label="volume", attenuation: bool
     return vol, sp, org
 
 
-def parse_spacing(value):
+def parse_spacing(value, param: str = "--spacing"):
+    """'d' or 'dZ,dY,dX' (mm) -> three positive numbers, or None."""
     if value is None:
         return None
     parts = [p for p in value.replace(",", " ").split() if p]
     try:
         nums = [float(p) for p in parts]
     except ValueError:
-        raise click.BadParameter(f"{value!r}: give one number or three (dZ,dY,dX) in mm", param_hint="--spacing")
+        raise click.BadParameter(f"{value!r}: give one number or three (dZ,dY,dX) in mm", param_hint=param)
     if len(nums) == 1:
         nums *= 3
     if len(nums) != 3 or min(nums) <= 0 or not all(math.isfinite(n) for n in nums):
         raise click.BadParameter(f"{value!r}: give one positive number or three (dZ,dY,dX) in mm",
-                                 param_hint="--spacing")
+                                 param_hint=param)
     return tuple(nums)
 
 

@@ -21,8 +21,9 @@ from clgs.cli.common import (
 from clgs.cli.options import FiniteFloat, Seed, distance_options
 
 
-def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, pixel):
-    """A scanner centred on the volume whose square detector sees all of it (5 % margin)."""
+def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, pixel, centre_xyz=(0, 0, 0)):
+    """A scanner turning about the volume's centre (``centre_xyz``, world mm) whose square detector
+    sees all of it (5 % margin)."""
     import numpy as np
 
     from clgs.geometry import Geometry, GeometryError, shadow_half_extents
@@ -39,7 +40,7 @@ def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, 
         pixel = 2.0 * max(half_u, half_v) * 1.05 / detector
     d = base.to_dict()
     d.update(DSD=DSD, DSO=DSO, nVoxel=list(shape), dVoxel=list(spacing), dDetector=[pixel, pixel],
-             nDetector=[detector, detector])
+             nDetector=[detector, detector], isocentre=[float(c) for c in np.asarray(centre_xyz, float)[::-1]])
     return Geometry.from_dict(d)
 
 
@@ -74,18 +75,31 @@ def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, 
 @click.option("--no-noise", is_flag=True, help="noiseless line integrals")
 @click.option("--surface-level", type=FiniteFloat(), default=None,
               help="also store the truth's iso-surface at this value as truth_surface.stl")
+@click.option("--grid", default=None,
+              help="reconstruction grid, N or NZ,NY,NX voxels over the input's field of view; the truth is "
+                   "resampled onto it [default: the input's own grid]")
+@click.option("--grid-spacing", default=None,
+              help="reconstruction voxel size in mm, 'd' or 'dZ,dY,dX', instead of --grid (rounded to whole voxels "
+                   "over the input's field of view)")
+@click.option("--simulation", "protocol", type=click.Choice(["fine", "same"]), default="fine", show_default=True,
+              help="fine: project a volume at least twice as fine as the reconstruction grid (no inverse crime); "
+                   "same: project the truth on the reconstruction grid (R2-Gaussian's protocol)")
 @click.option("--geometry", "geometry_file", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
-              help="scanner and views from a geometry JSON (TIGRE names or per-view 'vectors', world mm; "
-                   "docs/formats.md) instead of --views, --arc, --mode, --DSO, --DSD, --detector and --pixel; the "
-                   "volume's grid replaces the file's nVoxel and dVoxel (offOrigin, if given, places the volume)")
+              help="scanner and views from a geometry JSON (TIGRE names or per-view 'vectors', mm in the "
+                   "scanner's frame; docs/formats.md) instead of --views, --arc, --mode, --DSO, --DSD, --detector "
+                   "and --pixel; the volume keeps its place, centred at the file's offOrigin (default 0) in that "
+                   "frame, on the reconstruction grid (--grid), which replaces the file's nVoxel and dVoxel")
 @click.option("--force", is_flag=True, help="overwrite an existing --out")
 def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, pixel, spacing, I0, sigma, scatter, seed,
-             no_noise, surface_level, geometry_file, force):
+             no_noise, surface_level, grid, grid_spacing, protocol, geometry_file, force):
     """Simulate a sparse-view X-ray scan of VOLUME (attenuation in 1/mm, or Hounsfield units with
     --hu): .npy, NIfTI, MetaImage (.mha/.mhd), NRRD, or a DICOM series (its folder or a .dcm file).
 
-    The volume is centred on the rotation axis; the scan folder stores the projections, the
-    geometry, the acquisition settings and the volume itself as ground truth.
+    The rotation axis passes through the volume's centre, and every file written keeps the
+    input's world position (origin and spacing). The scan folder stores the projections, the
+    geometry, the acquisition settings and the truth on the reconstruction grid (--grid).
+    Projections come from a grid twice as fine as the reconstruction grid unless
+    --simulation same.
     \f
 
     (One function: the options' checks, the scanner, the projection and the writing share the
@@ -109,9 +123,31 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
     # projections, their noisy copy and the parts joined: three float32 copies of views x detector^2
     check_memory(f"simulating {views} views of {detector} x {detector} pixels", 3.0 * 4 * views * detector ** 2,
                  "use fewer --views or a smaller --detector")
+    from clgs.ct.simulation_grid import fine_bytes, parse_grid, projection_volume, resample_box
+    from clgs.errors import InputError
+
+    if grid is not None and grid_spacing is not None:
+        raise click.UsageError("give --grid (voxels) or --grid-spacing (mm), not both")
+    try:
+        recon_shape = parse_grid(grid)
+    except InputError as exc:
+        raise click.BadParameter(str(exc), param_hint="--grid") from None
+    grid_sp = parse_spacing(grid_spacing, "--grid-spacing") if grid_spacing is not None else None
     vol, sp, org = load_volume_file(volume, sp_override, attenuation=not hu, axes=axes)
     if sp is None:
         raise click.UsageError(f"{volume} is a .npy array without voxel size; give --spacing (mm)")
+    extent = np.multiply(vol.shape, sp)  # (Z, Y, X) mm: the field of view both grids cover
+    if grid_sp is not None:
+        recon_shape = tuple(max(1, int(round(float(e) / float(d)))) for e, d in zip(extent, grid_sp))
+    recon_shape = tuple(vol.shape) if recon_shape is None else recon_shape
+    recon_sp = tuple(float(e) / n for e, n in zip(extent, recon_shape))
+    # the world point the scanner turns about: the input's centre (0 for a bare .npy array)
+    centre_xyz = np.zeros(3)
+    if org is not None:
+        centre_xyz = np.asarray(org, float) + 0.5 * (np.asarray(vol.shape[::-1]) - 1) * np.asarray(sp[::-1], float)
+    if protocol == "fine":
+        check_memory(f"the fine simulation grid for a {'x'.join(map(str, recon_shape))} reconstruction grid",
+                     2.0 * fine_bytes(recon_shape, vol.shape), "use --simulation same or a coarser --grid")
     if not np.all(np.isfinite(vol)):
         raise click.ClickException(f"{volume}: the volume contains NaN or Inf")
     if hu:
@@ -124,28 +160,36 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
             "for Hounsfield units (a CT) add --hu (and --kev for the energy)")
     try:
         if geometry_file is not None:
-            from clgs.geometry import read_geometry
+            from clgs.geometry import Geometry, read_geometry
 
-            grid = {"nVoxel": [int(n) for n in vol.shape], "dVoxel": [float(d) for d in sp]}
-            geo = read_geometry(geometry_file, grid)
+            geo = read_geometry(geometry_file, {"nVoxel": list(recon_shape), "dVoxel": list(recon_sp)})
+            # the volume stays where the input lay: its centre is the file's offOrigin in the scanner's frame
+            iso = centre_xyz - np.asarray(geo.offOrigin[::-1], float)
+            geo = Geometry.from_dict({**geo.to_dict(), "isocentre": [float(c) for c in iso[::-1]]})
             views, mode = geo.n_views, geo.mode
             check_memory(f"simulating {views} views of {geo.nDetector[0]} x {geo.nDetector[1]} pixels",
                          3.0 * 4 * views * geo.nDetector[0] * geo.nDetector[1], "use fewer views or a smaller detector")
         else:
-            geo = _scanner_geometry(vol.shape, sp, views, arc, mode, DSD, DSO, detector, pixel)
+            geo = _scanner_geometry(recon_shape, recon_sp, views, arc, mode, DSD, DSO, detector, pixel, centre_xyz)
     except GeometryError as exc:
         raise click_error(exc, "invalid scanner") from None
     _warn_if_thinner_than_a_row(volume, vol.shape, sp, geo)
+    truth = resample_box(vol, recon_shape)
+    source = projection_volume(vol, recon_shape, protocol)
+    sim = geo.to_dict()
+    sim.update(nVoxel=list(source.shape), dVoxel=[float(e) / n for e, n in zip(extent, source.shape)])
+    sim_geo = type(geo).from_dict(sim)
     try:
         from clgs.ops.ct_projector import CTProjector
     except ImportError as exc:  # pragma: no cover - the CT module ships with clgs
         raise click.ClickException(f"the CT projector is unavailable ({exc})") from None
 
-    click.echo(f"projecting {views} {mode}-beam views of a {'x'.join(map(str, vol.shape))} volume "
+    click.echo(f"projecting {views} {mode}-beam views of a {'x'.join(map(str, source.shape))} volume "
+               f"({protocol} grid; reconstruction grid {'x'.join(map(str, recon_shape))}) "
                f"onto {geo.nDetector[0]}x{geo.nDetector[1]} pixels of {geo.dDetector[0]:.3g} mm ...", err=True)
     t0 = time.perf_counter()
-    projector = CTProjector(geo)
-    volume32 = np.ascontiguousarray(vol, np.float32)
+    projector = CTProjector(sim_geo)
+    volume32 = np.ascontiguousarray(source, np.float32)
     step = max(1, -(-views // 20))
     chunks = [list(range(s, min(s + step, views))) for s in range(0, views, step)]
     from clgs.progress import progress_bar
@@ -165,7 +209,9 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
             f"{volume}: its line integrals overflow 32-bit floats (attenuation up to {float(vol.max()):.3g} 1/mm "
             f"over paths of up to {float(max(np.multiply(vol.shape, sp))):.0f} mm); attenuation is in 1/mm "
             "(bone about 0.05): check the volume's units")
-    acquisition = {"noise": not no_noise, "I0": I0, "sigma": sigma, "scatter": scatter, "seed": seed}
+    acquisition = {"noise": not no_noise, "I0": I0, "sigma": sigma, "scatter": scatter, "seed": seed,
+                   "simulation": {"protocol": protocol, "projected_grid": list(source.shape),
+                                  "reconstruction_grid": list(recon_shape)}}
     if not no_noise:
         from clgs.ct.noise import add_noise
 
@@ -195,11 +241,11 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
         from clgs.mesh.surface import SurfaceError, surface_from_volume
 
         try:
-            surface = surface_from_volume(vol, surface_level, geometry=geo)
+            surface = surface_from_volume(truth, surface_level, geometry=geo)
         except SurfaceError as exc:
             raise click_error(exc, "--surface-level") from None
     try:
-        Scan(geo, proj, vol, meta, surface).save(out, overwrite=force)
+        Scan(geo, proj, truth, meta, surface).save(out, overwrite=force)
     except (ScanError, FileExistsError) as exc:
         raise click_error(exc) from None
     click.echo(f"wrote {out}: {views} views, {elapsed:.1f} s")

@@ -2,8 +2,8 @@
 
 Our arrays are (Z, Y, X): ``volume[k, j, i]`` is the voxel whose centre, in world mm, is
 ``origin + (i dX, j dY, k dZ)`` with ``origin`` the centre of voxel [0, 0, 0] as (x, y, z). For a
-:class:`~clgs.geometry.Geometry` that origin is ``offOrigin - (nVoxel - 1) / 2 * dVoxel`` (per axis),
-i.e. the Geometry convention ``centre = offOrigin + ((i - (nX-1)/2) dX, ...)``.
+:class:`~clgs.geometry.Geometry` that origin is ``centre_xyz - (nVoxel - 1) / 2 * dVoxel`` (per axis;
+centre_xyz is the isocentre plus TIGRE's ``offOrigin``).
 
 NIfTI indexes its data array as (i, j, k) = (x, y, z), so the array is transposed to (X, Y, Z) on
 write (and back on read), and the affine is ``diag(dX, dY, dZ)`` with translation ``origin``: a
@@ -143,8 +143,10 @@ def save_volume(path, volume, geometry=None, *, spacing=None, origin=None, overw
         return atomic.save_npy(path, data, overwrite=overwrite)
     if kind in ("itk", "dicom"):
         if kind == "dicom":
-            raise VolumeError(f"{path}: writing DICOM is not supported; write .nii.gz, .nrrd or .mha")
-        sitk = _sitk()
+            raise VolumeError(f"{path}: a DICOM series is a folder of slices: write it with "
+                              "`clgs convert VOLUME FOLDER --dicom` (or clgs.io.dicom.save_dicom_series); "
+                              "here write .nii.gz, .nrrd or .mha")
+        sitk = require_simpleitk()
         img = sitk.GetImageFromArray(np.ascontiguousarray(data))
         img.SetSpacing(tuple(float(v) for v in sp[::-1]))
         img.SetOrigin(tuple(float(v) for v in np.asarray(org) * LPS))
@@ -233,7 +235,8 @@ def _write_itk(sitk, img, path: Path, overwrite: bool) -> Path:
     return path
 
 
-def _sitk():
+def require_simpleitk():
+    """SimpleITK, or an error that says how to install it (DICOM, MetaImage and NRRD need it)."""
     try:
         import SimpleITK as sitk
     except ImportError as exc:
@@ -244,7 +247,7 @@ def _sitk():
 
 def _read_itk(path: Path, kind: str):
     """(array indexed (x, y, z), 4x4 RAS affine) of an ITK-readable file or DICOM series."""
-    sitk = _sitk()
+    sitk = require_simpleitk()
     try:
         if kind == "dicom":
             folder = path if path.is_dir() else path.parent

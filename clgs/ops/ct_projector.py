@@ -92,7 +92,7 @@ class CTProjector(Operator):
         g = self.geometry
         nz, ny, nx = g.nVoxel
         sp = self.spacing_xyz
-        c0 = np.asarray(g.offOrigin[::-1], np.float64) - 0.5 * (np.array([nx, ny, nz]) - 1) * sp
+        c0 = g.centre_xyz - 0.5 * (np.array([nx, ny, nz]) - 1) * sp  # world mm, as the vectors
         vv = g.view_vectors(scene=False)
         nv, nu = g.nDetector
         us, vs = vv[:, 6:9], vv[:, 9:12]
@@ -115,7 +115,7 @@ class CTProjector(Operator):
             # nearest depth of any point within a voxel of the grid, and the widest fan angle
             # per view, in the plane: n the detector normal, depth along n
             half = 0.5 * np.hypot((nx + 2) * sp[0], (ny + 2) * sp[1])
-            centre = np.asarray(g.offOrigin[::-1], np.float64)[:2]
+            centre = g.centre_xyz[:2]  # world mm, as the vectors
             du = np.hypot(us[:, 0], us[:, 1])
             eu = us[:, :2] / du[:, None]
             normal = np.stack([eu[:, 1], -eu[:, 0]], 1)

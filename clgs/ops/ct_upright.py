@@ -104,5 +104,7 @@ def upright_stand_in(geometry: Geometry, nvp: int, oversample: float | None = No
                 ww.append((w_u * w_v).ravel())
         mats.append(sparse.csr_matrix((np.concatenate(ww), (np.concatenate(rr), np.concatenate(cc))),
                                       shape=(nu * nvp, nu2 * nvp2)))
-    virtual = Geometry.from_vectors(vectors, (nv2, nu2), g.nVoxel, g.dVoxel, g.offOrigin, g.mode)
+    # in world mm, as the vectors above (the voxel projector works there): the volume's centre is
+    # its offOrigin and the isocentre the world's origin
+    virtual = Geometry.from_vectors(vectors, (nv2, nu2), g.nVoxel, g.dVoxel, tuple(g.centre_xyz[::-1]), g.mode)
     return virtual, mats

@@ -24,7 +24,7 @@ class ShapeGuidedSet(GaussianSet):
         self.sampler = sampler  # a FieldSampler (OpenCL) or None (torch's grid_sample)
         self.shape_model = shape_model.to(dt) if shape_model.dtype != dt else shape_model
         self.p_ref = torch.as_tensor(np.asarray(p_ref_mm, np.float64), dtype=dt)
-        self._origin = torch.as_tensor(np.asarray(geometry.offOrigin[::-1], np.float64), dtype=dt)
+        self._origin = torch.as_tensor(geometry.centre_xyz, dtype=dt)
         self._scale = float(geometry.scale)
         placeholder = torch.zeros((len(self.p_ref), 3), dtype=dt)
         super().__init__(placeholder, scales, quats, densities, box=box, scale_bounds=scale_bounds,

@@ -86,7 +86,7 @@ class DensityPrior:
         v = ctx.voxelize(grid, tensors).reshape(-1)
         with torch.no_grad():
             pts = torch.as_tensor(grid.points().reshape(-1, 3), dtype=torch.float32)
-            pts_mm = pts / self.geometry.scale + torch.as_tensor(np.asarray(self.geometry.offOrigin[::-1]),
+            pts_mm = pts / self.geometry.scale + torch.as_tensor(self.geometry.centre_xyz,
                                                                  dtype=torch.float32)
             x_t = s.to_template(pts_mm) if isinstance(s, ShapeGuidedSet) else pts_mm
             mean = self.atlas.mean_at(x_t.double()).float() * self.value_scale
