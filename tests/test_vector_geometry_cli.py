@@ -64,6 +64,11 @@ def test_simulate_from_a_vector_file_and_reconstruct(ball, tmp_path):
     res = run("reconstruct", tmp_path / "scan", "--method", "fdk", "--out", tmp_path / "f.npy", ok=False)
     assert res.exit_code != 0 and "SART" in res.output and "Gaussian" in res.output
     assert "Traceback" not in res.output
+    # R2-Gaussian mode starts from OS-SART where FDK does not hold, and runs
+    res = run("reconstruct", tmp_path / "scan", "--method", "r2gs", "--set", "iterations=30",
+              "--set", "n_gaussians=2000", "--out", tmp_path / "r")
+    vol = np.load(tmp_path / "r" / "volume.npy")
+    assert np.isfinite(vol).all() and vol[inside].mean() > 3 * vol[outside].mean()
     # the scanner options make no sense beside a geometry file
     res = run("simulate", ball / "ball.nii.gz", "--geometry", ball / "carm.json", "--views", 7,
               "--out", tmp_path / "x", ok=False)
