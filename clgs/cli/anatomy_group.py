@@ -19,6 +19,7 @@ import time
 
 import click
 
+from clgs.cli.cohort_options import check_cohort_options, cohort_options
 from clgs.cli.common import check_memory, check_not_input, exit_if_interrupted
 from clgs.cli.options import FiniteFloat, Seed
 from clgs.cli.settings import check_settings, parse_settings
@@ -425,11 +426,14 @@ def _experiment_command(anatomy) -> click.Command:
     @click.option("--seed", type=Seed(), default=0, show_default=True, help="random seed, 0 to 2**64 - 1")
     @click.option("--log-every", default=500, show_default=True, help="evaluate every N iterations (curves)")
     @click.option("--progress/--no-progress", default=True, help="progress bar per run")
-    def experiment(views, more_views, subjects, iterations, ablation_views, out, seed, log_every, progress):
+    @cohort_options
+    def experiment(views, more_views, subjects, iterations, ablation_views, out, seed, log_every, progress, workers,
+                   scheduler):
         """The seed paper's experiment: R2-Gaussian vs shape-guided on every held-out subject,
         the ablation, error against run time, surfaces; writes table.md, results.csv, curves.png."""
         from clgs.experiment import run_experiment
 
+        check_cohort_options(workers, scheduler)
         views = tuple(views) + tuple(more_views) or (5, 10)  # `--views 5 10`: the 10 arrives as an argument
         ids = [s.strip() for s in subjects.split(",")] if subjects else None
         if ids is not None:
@@ -443,11 +447,15 @@ def _experiment_command(anatomy) -> click.Command:
         per_run = {"log_every": log_every, "checkpoint_every": 0}
         summary = run_experiment(anatomy, out, views=views, subjects=ids, iterations=iterations,
                                  ablation_views=ablation_views or None, seed=seed, progress=progress,
-                                 settings={"r2gs": per_run, "shape": per_run}, echo=click.echo)
+                                 settings={"r2gs": per_run, "shape": per_run}, echo=click.echo,
+                                 workers=workers or None, scheduler=scheduler)
         click.echo(open(os.path.join(out, "table.md")).read())
         for v, g in summary["gain_db"].items():
             click.echo(f"{v} views: shape-guided minus R2-Gaussian {g['mean']:+.2f} dB (ahead on "
                        f"{g['subjects_ahead']}/{g['subjects']} subjects)")
+        if summary.get("failed"):
+            raise click.ClickException(f"{len(summary['failed'])} run(s) failed (listed in {out}/table.md and "
+                                       "summary.json); the others are done: run the same command again to retry them")
 
     return experiment
 

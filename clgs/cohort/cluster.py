@@ -2,8 +2,9 @@
 
 Each worker process builds its own OpenCL context on its first task (nothing OpenCL is ever
 pickled). Its share of the cores is set before that happens, through environment variables that
-PoCL reads when its platform starts (``POCL_MAX_PTHREAD_COUNT``, ``POCL_CPU_MAX_CU_NUM``) and the
-usual thread counts of numpy's and torch's libraries; PoCL's thread pinning is turned off, since
+PoCL reads when its platform starts (``POCL_MAX_PTHREAD_COUNT``, ``POCL_CPU_MAX_CU_NUM``), those of
+Intel's CPU runtime (``DPCPP_CPU_NUM_CUS``, ``CL_CONFIG_CPU_TBB_NUM_WORKERS``) and the usual thread
+counts of numpy's and torch's libraries; PoCL's thread pinning is turned off, since
 workers pinning their threads to the same first cores would share them.
 
 A local cluster's workers each advertise one ``clgs-run`` resource and every task asks for it, so a
@@ -27,7 +28,9 @@ def thread_env(threads: int) -> dict:
     """Environment variables that hold a process's compute libraries to ``threads`` threads."""
     n = str(max(1, int(threads)))
     return {"POCL_MAX_PTHREAD_COUNT": n, "POCL_CPU_MAX_CU_NUM": n, "POCL_AFFINITY": "0", "OMP_NUM_THREADS": n,
-            "MKL_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n, "CLGS_TASK_THREADS": n}
+            "MKL_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n,
+            # Intel's CPU OpenCL runtime (oneTBB underneath)
+            "DPCPP_CPU_NUM_CUS": n, "CL_CONFIG_CPU_TBB_NUM_WORKERS": n}
 
 
 def cores() -> int:

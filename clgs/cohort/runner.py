@@ -15,6 +15,7 @@ a plain loop would (no Dask import).
 """
 from __future__ import annotations
 
+import contextlib
 import time
 import traceback
 import uuid
@@ -47,12 +48,33 @@ class Outcome:
         return self.error is None
 
 
+@contextlib.contextmanager
+def torch_single_thread():
+    """torch at one thread for the block (then as it was). Some of its CPU operations (matrix
+    products, reductions) split the work by the thread count and so round differently with 1 or 2
+    threads; the training loop already runs at one thread, this holds the rest of a run to the same,
+    so that a result does not depend on the share of cores of the process it ran in."""
+    try:
+        import torch
+    except ImportError:  # pragma: no cover - torch is a dependency
+        yield
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def call_task(fn, args, kwargs) -> dict:
-    """Run one task where it is (this process or a worker); an exception is returned, not raised,
-    so that it is reported rather than retried (a bad scan fails the same way everywhere)."""
+    """Run one task where it is (this process or a worker), torch at one thread (see
+    :func:`torch_single_thread`); an exception is returned, not raised, so that it is reported
+    rather than retried (a bad scan fails the same way everywhere)."""
     t0 = time.perf_counter()
     try:
-        result = fn(*args, **kwargs)
+        with torch_single_thread():
+            result = fn(*args, **kwargs)
     except Exception as exc:  # noqa: BLE001 - any failure of one run is that run's outcome
         return {"error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc(),
                 "seconds": time.perf_counter() - t0}
