@@ -26,6 +26,7 @@ COMMANDS = {
     "evaluate": "clgs.cli.evaluate:evaluate",
     "anatomies": "clgs.cli.anatomies:anatomies",
     "import": "clgs.cli.import_raw:import_raw",
+    "batch": "clgs.cli.batch:batch",
 }
 
 
