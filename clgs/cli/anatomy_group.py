@@ -290,6 +290,13 @@ def _reconstruct_command(anatomy) -> click.Command:
     return reconstruct
 
 
+def _takes(fn, keyword: str) -> bool:
+    import inspect
+
+    params = inspect.signature(fn).parameters
+    return keyword in params or any(p.kind == p.VAR_KEYWORD for p in params.values())
+
+
 def _build_model_command(anatomy) -> click.Command:
     """``clgs <anatomy> build-model``."""
     name = anatomy.name
@@ -300,12 +307,23 @@ def _build_model_command(anatomy) -> click.Command:
     @click.option("--n-modes", type=int, default=None, help="keep exactly this many modes")
     @click.option("--max-cells", type=int, default=None, help="velocity grid cells along the longest side")
     @click.option("--force", is_flag=True, help="rebuild even if an up-to-date model exists")
-    def build_model_cmd(out_path, variance, n_modes, max_cells, force):
+    @cohort_options
+    def build_model_cmd(out_path, variance, n_modes, max_cells, force, workers, scheduler):
         """Register the population to the template, PCA of the velocities, density atlas."""
+        check_cohort_options(workers, scheduler)
         settings = {k: v for k, v in dict(variance=variance, n_modes=n_modes, max_cells=max_cells).items()
                     if v is not None}
+        if workers or scheduler:
+            from clgs.cohort.registration import registration_runner
+            from clgs.experiment import anatomy_by_name
+
+            settings["run_registrations"] = registration_runner(anatomy_by_name(anatomy), workers or None, scheduler,
+                                                                echo=click.echo)
         t0 = time.perf_counter()
         if anatomy.build_model is not None:
+            if "run_registrations" in settings and not _takes(anatomy.build_model, "run_registrations"):
+                raise click.UsageError(f"the {name} plugin's build_model takes no run_registrations: it cannot "
+                                       "register on --workers/--scheduler; build without them")
             kwargs = dict(settings, force=force)
             if out_path:
                 kwargs["out_path"] = out_path
