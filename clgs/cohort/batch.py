@@ -198,13 +198,25 @@ def batch_run(scan: str, method: str, settings: dict, seed, out: str) -> dict:
     if not np.all(np.isfinite(vol)):
         raise FloatingPointError(f"method {method} produced NaN or Inf voxels on {scan}")
     record = {**made_with({"scan": scan, "method": method, "seed": seed, "settings": settings}),
-              "seconds": seconds, "n_views": sc.n_views}
+              "seconds": seconds, "n_views": sc.n_views, "process_peak_mib": process_peak_mib()}
     if sc.truth is not None:
         record.update(metrics.volume_figures(vol, sc.truth))
     save_volume(folder / "volume.nii.gz", vol, sc.geometry)
     atomic.save_npy(folder / "volume.npy", vol)
     atomic.write_json(folder / RECORD, atomic.json_safe(record))
     return record
+
+
+def process_peak_mib():
+    """This process's peak resident memory so far (MiB; None where the platform does not say): in a
+    worker, the largest of its runs so far plus the worker's own share."""
+    try:
+        import resource
+        import sys
+    except ImportError:  # pragma: no cover - not on every platform
+        return None
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 2**20 if sys.platform == "darwin" else peak / 1024.0
 
 
 def _summary_row(run: dict, status: str, record=None, error=None) -> dict:
