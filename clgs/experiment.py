@@ -130,9 +130,12 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
             plan.append((v, m))
         if ablation_views is not None and v == ablation_views:
             plan += [(v, "init"), (v, "init+shape")]
-    if any(m in SHAPE_METHODS for _, m in plan):
-        load_anatomy_parts(anatomy)  # builds a missing model here, once, before any run needs it
     remote = distributed_wanted(workers, scheduler)
+    if any(m in SHAPE_METHODS for _, m in plan):
+        # builds a missing model here, once, before any run needs it (runs in this process share it)
+        parts = load_anatomy_parts(anatomy)
+        if not remote:
+            _CACHE["parts"] = (("parts", anatomy.name, str(anatomy.model_path)), parts)
     where = anatomy_by_name(anatomy) if remote else anatomy
     order, done, tasks = [], {}, []
     for sid in subjects:

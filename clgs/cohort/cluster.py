@@ -78,8 +78,7 @@ def open_client(workers=None, scheduler=None, echo=print):
     import dask
     from distributed import Client, LocalCluster
 
-    with dask.config.set({"distributed.scheduler.allowed-failures": ALLOWED_FAILURES,
-                          "distributed.worker.daemon": False}):
+    with dask.config.set({"distributed.scheduler.allowed-failures": ALLOWED_FAILURES}):
         if scheduler:
             try:
                 client = Client(scheduler, timeout="20s")
