@@ -286,3 +286,31 @@ def test_help_imports_no_dask():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
+
+
+def test_experiment_and_build_model_take_the_cluster_options(toy, tmp_path):
+    from click.testing import CliRunner
+
+    from clgs.cli.anatomy_group import make_group
+
+    group = make_group(toy)
+    for cmd in (["experiment", "--out", str(tmp_path / "e")], ["build-model", "--out", str(tmp_path / "m.npz")]):
+        res = CliRunner().invoke(group, [*cmd, "--workers", "2", "--scheduler", "tcp://127.0.0.1:1"])
+        assert res.exit_code == 2 and "not both" in res.output, res.output
+        res = CliRunner().invoke(group, [*cmd, "--scheduler", "127.0.0.1:1"])
+        assert res.exit_code == 2 and "tcp://HOST:PORT" in res.output, res.output
+    assert not (tmp_path / "e").exists() and not (tmp_path / "m.npz").exists()
+
+
+def test_bench_cohort_prints_runs_per_minute_for_one_and_two_workers(toy):
+    from click.testing import CliRunner
+
+    from clgs.cli import main
+
+    res = CliRunner().invoke(main, ["bench", "cohort", "--anatomy", "toy", "--views", "3", "--no-per-task",
+                                    "--runs", "2", "--runs-method", "fdk"], catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    rows = [line.split() for line in res.output.splitlines() if line.strip()[:1].isdigit()]
+    assert [r[0] for r in rows] == ["1", "2"], res.output  # one row per worker count, same 2 runs
+    assert all(float(r[2]) > 0 and r[-1].startswith("x") for r in rows)
+    assert rows[0][-1] == "x1.00" and "machine during the run" in res.output
