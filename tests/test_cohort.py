@@ -194,7 +194,7 @@ def test_a_worker_killed_mid_run_costs_that_run_only(scans, cluster, tmp_path):
 
     address, client = cluster
     runs = [{"scan": str(scans / f"toy{s}"), "method": "r2gs", "seed": 2, "out": f"r{s}",
-             "settings": {"iterations": 150, "log_every": 0, "checkpoint_every": 0}} for s in ("08", "09")]
+             "settings": {"iterations": 150, "log_every": 0, "checkpoint_every": 10}} for s in ("08", "09")]
     killed = {}
 
     def kill_a_busy_worker():
@@ -218,6 +218,8 @@ def test_a_worker_killed_mid_run_costs_that_run_only(scans, cluster, tmp_path):
     assert all((tmp_path / f"r{s}" / "run.json").is_file() for s in ("08", "09"))
     pids = client.run(os.getpid)
     assert list(killed.values())[0] not in pids.values()  # the killed process is gone; the nanny started another
+    # the killed attempt's checkpoint did not stop the new one (it started afresh, as a run does)
+    assert all(json.loads((tmp_path / f"r{s}" / "run.json").read_text())["seed"] == 2 for s in ("08", "09"))
 
 
 def test_batch_from_the_command_line_on_a_folder(scans, tmp_path):
@@ -314,3 +316,17 @@ def test_bench_cohort_prints_runs_per_minute_for_one_and_two_workers(toy):
     assert [r[0] for r in rows] == ["1", "2"], res.output  # one row per worker count, same 2 runs
     assert all(float(r[2]) > 0 and r[-1].startswith("x") for r in rows)
     assert rows[0][-1] == "x1.00" and "machine during the run" in res.output
+
+
+def test_a_run_started_again_after_a_lost_attempt_starts_afresh(scans, tmp_path):
+    """A killed worker may leave the run's checkpoint behind without its record: the next attempt
+    does not take it for a finished run, nor for one to refuse."""
+    from clgs.cohort.batch import batch_run
+
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (folder / "checkpoint.pt").write_bytes(b"half a run")
+    rec = batch_run(str(scans / "toy08"), "r2gs", {"iterations": 5, "log_every": 0, "checkpoint_every": 0}, 1,
+                    str(folder))
+    assert rec["psnr3d"] > 5 and (folder / "run.json").is_file()
+    assert not (folder / "checkpoint.pt").exists() or (folder / "checkpoint.pt").read_bytes() != b"half a run"

@@ -186,9 +186,15 @@ def batch_run(scan: str, method: str, settings: dict, seed, out: str) -> dict:
         kwargs["seed"] = int(seed)
     if _accepts(fn, m, "progress"):
         kwargs.setdefault("progress", False)
+    from clgs.fit.config import CHECKPOINT
+
     folder = Path(out)
     sc = Scan.load(scan)
     folder.mkdir(parents=True, exist_ok=True)
+    stale = folder / CHECKPOINT
+    if stale.is_file() and not (folder / RECORD).is_file():
+        # an earlier attempt's (a killed worker, Ctrl-C): this one starts afresh, as any run does
+        stale.unlink()
     t0 = time.perf_counter()
     result = fn(sc, str(folder), **kwargs)
     seconds = time.perf_counter() - t0
