@@ -14,6 +14,10 @@ scored with 3D PSNR / SSIM and the distance (mm) from its outer bone surface to 
 its wall time is kept. Every finished run is saved at once (``runs/<subject>_<views>_<method>.json``
 plus its surface STL), so an interrupted experiment resumes where it stopped.
 
+Each run is an independent task (:mod:`clgs.cohort`): it simulates its scan (seeded), reconstructs
+and writes its record itself, here or in a Dask worker process (``workers``, ``scheduler``); the
+tables are gathered from the records. A run that fails is listed with its error, the others go on.
+
 Outputs (rewritten after every run, so they always show what is done): ``results.csv`` (one row
 per run), ``table.md`` (per subject and mean, as the paper's
 Table 1, plus the ablation), ``curves.png`` (3D PSNR against seconds, both methods, every subject),
@@ -66,15 +70,17 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
             "model_surface": model_surface}
 
 
-def _made_with(method: str, iterations: int, seed: int, settings: dict) -> dict:
-    """What a run's result depends on besides the scan, as kept in its record: a resumed
-    experiment reuses a record only when these match (else its table would mix runs)."""
+def _made_with(method: str, iterations: int, seed: int, settings: dict, simulation: str = "fine") -> dict:
+    """What a run's result depends on besides the subject, as kept in its record: a resumed
+    experiment reuses a record only when these match (else its table would mix runs). Records
+    made before the simulation protocol was a choice used ``"same"`` and do not name it."""
+    sim = {} if simulation == "same" else {"simulation": simulation}
     if method == "fdk":
-        return {"iterations": 0}
+        return {"iterations": 0, **sim}
     key = "r2gs" if method == "r2gs" else "shape"
     chosen = {k: v for k, v in settings.get(key, {}).items() if k not in _BOOKKEEPING}
     return {"iterations": iterations, "seed": seed,
-            "settings": json.loads(json.dumps(chosen, sort_keys=True, default=str))}
+            "settings": json.loads(json.dumps(chosen, sort_keys=True, default=str)), **sim}
 
 
 # settings that change how often a run logs or saves, not its result
@@ -94,21 +100,27 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
                 f"{_OPTION[key]} to resume, or another --out folder")
 
 
+SHAPE_METHODS = ("init", "init+shape", "shape")  # the runs that need the anatomy's model and atlas
+
+
 def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: int = 1000,
                    ablation_views: int | None = 5, methods=("fdk", "r2gs", "shape"), seed: int = 0,
-                   progress: bool = True, settings: dict | None = None, echo=print, simulation: str = "fine") -> dict:
+                   progress: bool = True, settings: dict | None = None, echo=print, workers: int | None = None,
+                   scheduler: str | None = None, simulation: str = "fine") -> dict:
     """Run (or resume) the experiment; returns the summary dict also written to ``summary.json``.
 
     ``simulation``: how the scans are made (:mod:`clgs.ct.simulation_grid`): ``"fine"`` (default,
-    projections from a grid twice as fine) or ``"same"`` (R2-Gaussian's same-grid protocol)."""
-    from clgs.anatomy.evaluation import bone_surface, evaluate_volume, surface_level
-    from clgs.io import atomic
-    from clgs.io.mesh import save_mesh
-    from clgs.io.volume import save_volume
-    from clgs.metrics import surface_distance
-    from clgs.methods.shape_guided import load_anatomy_parts
-    from clgs.anatomy.simulation import simulate_subject
+    projections from a grid twice as fine) or ``"same"`` (R2-Gaussian's same-grid protocol).
 
+    Every run is a task of :func:`clgs.cohort.run_tasks`: here, one after another (``workers``
+    None or 0, the default), on a local Dask cluster of ``workers`` processes, or on the running
+    cluster at ``scheduler``. A run's record does not depend on where it ran. A run that fails is
+    listed with its error under ``failed`` in the summary; the others go on."""
+    from clgs.cohort import Task, run_tasks
+    from clgs.cohort.cluster import check_choice, distributed_wanted
+    from clgs.methods.shape_guided import load_anatomy_parts
+
+    check_choice(workers, scheduler)
     out = Path(out_dir)
     (out / "runs").mkdir(parents=True, exist_ok=True)
     settings = dict(settings or {})
@@ -117,62 +129,139 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
     leaked = population & set(subjects)
     if leaked:
         raise InputError(f"subjects {sorted(leaked)} are in the model's population: evaluate on held-out subjects only")
-    parts = load_anatomy_parts(anatomy)
     plan = []
     for v in views:
         for m in methods:
             plan.append((v, m))
         if ablation_views is not None and v == ablation_views:
             plan += [(v, "init"), (v, "init+shape")]
-    rows = []
+    remote = distributed_wanted(workers, scheduler)
+    if any(m in SHAPE_METHODS for _, m in plan):
+        # builds a missing model here, once, before any run needs it (runs in this process share it)
+        parts = load_anatomy_parts(anatomy)
+        if not remote:
+            _CACHE["parts"] = (("parts", anatomy.name, str(anatomy.model_path)), parts)
+    where = anatomy_by_name(anatomy) if remote else anatomy
+    order, done, tasks = [], {}, []
     for sid in subjects:
-        subject = anatomy.load_subject(sid)
         for v in sorted(set(p[0] for p in plan)):
-            scan = simulate_subject(anatomy, subject, v, math.pi, True, seed, protocol=simulation)
             for vv, method in plan:
                 if vv != v:
                     continue
                 tag = f"{sid}_{v}_{method.replace('+', '-')}"
+                order.append(tag)
                 record_path = out / "runs" / f"{tag}.json"
-                made_with = _made_with(method, iterations, seed, settings)
-                if simulation != "same":  # records made before the choice existed used "same"
-                    made_with["simulation"] = simulation
+                made_with = _made_with(method, iterations, seed, settings, simulation)
                 if record_path.is_file():
                     row = json.loads(record_path.read_text())
                     _check_same_run(record_path, row, made_with)
-                    rows.append(row)
+                    done[tag] = row
                     echo(f"{tag}: done before, kept")
                     continue
-                echo(f"{tag}: reconstructing ({METHOD_LABELS[method]}, {v} views)")
-                run = _run_one(method, scan, parts, iterations, seed, progress, settings)
-                metrics = evaluate_volume(anatomy, scan, run["volume"])
-                save_volume(out / "runs" / f"{tag}.nii.gz", run["volume"], scan.geometry)
-                mesh = bone_surface(run["volume"], scan.geometry, surface_level(anatomy, scan.truth))
-                surf = None if mesh is None else save_mesh(out / "runs" / f"{tag}.stl", mesh.vertices, mesh.faces)
-                if run["model_surface"] is not None and scan.surface is not None:
-                    # the shape model's own bone surface: the template moved by the fitted alpha
-                    sd = surface_distance(run["model_surface"], scan.surface)
-                    metrics.update({f"model_surface_{k}_mm": v for k, v in sd.items()})
-                    save_mesh(out / "runs" / f"{tag}_model.stl", *run["model_surface"])
-                row = {"subject": sid, "views": v, "method": method, "seconds": run["seconds"], **made_with,
-                       **{k: (float(x) if isinstance(x, (int, float, np.floating)) else x) for k, x in metrics.items()},
-                       "surface_file": None if surf is None else str(surf),
-                       "history": [{k: r.get(k) for k in ("iteration", "seconds", "psnr3d", "ssim3d")}
-                                   for r in run["history"]]}
-                atomic.write_json(record_path, row)
-                rows.append(row)
-                write_reports(out, rows, summarise(rows, views, ablation_views), views, ablation_views)
-                psnr, ssim = row.get("psnr3d", float("nan")), row.get("ssim3d", float("nan"))
-                echo(f"  {tag}: PSNR {psnr:.2f} dB, SSIM {ssim:.4f}, "
-                     f"surface {row.get('surface_mean_mm', float('nan')):.2f} mm, {row['seconds']:.0f} s")
-    summary = summarise(rows, views, ablation_views)
+                tasks.append(Task(tag, run_and_record, kwargs=dict(
+                    anatomy=where, subject_id=sid, views=v, method=method, iterations=iterations, seed=seed,
+                    settings=settings, out_dir=str(out), progress=progress and not remote,
+                    echo=None if remote else echo, simulation=simulation)))
+    failed = {}
+
+    def finished(outcome):
+        if outcome.ok:
+            row = done[outcome.key] = outcome.result
+            psnr, ssim = row.get("psnr3d", float("nan")), row.get("ssim3d", float("nan"))
+            echo(f"  {outcome.key}: PSNR {psnr:.2f} dB, SSIM {ssim:.4f}, "
+                 f"surface {row.get('surface_mean_mm', float('nan')):.2f} mm, {row['seconds']:.0f} s")
+        else:
+            failed[outcome.key] = outcome.error
+            echo(f"  {outcome.key}: FAILED: {outcome.error}")
+        rows = [done[t] for t in order if t in done]
+        write_reports(out, rows, summarise(rows, views, ablation_views, failed), views, ablation_views)
+
+    run_tasks(tasks, workers=workers, scheduler=scheduler, on_outcome=finished, desc="experiment runs",
+              progress=remote or not progress, echo=echo)
+    rows = [done[t] for t in order if t in done]
+    summary = summarise(rows, views, ablation_views, failed)
     write_reports(out, rows, summary, views, ablation_views)
     return summary
 
 
-def summarise(rows, views, ablation_views) -> dict:
-    """Mean PSNR / SSIM / surface distance / seconds per (views, method), and the gains."""
-    out = {"per_method": {}, "gain_db": {}}
+def anatomy_by_name(anatomy) -> str:
+    """The name under which worker processes find ``anatomy`` (an installed plugin): they load it,
+    its model and its subjects themselves instead of receiving them pickled."""
+    from clgs.anatomy import plugins
+
+    try:
+        plugins.get_anatomy(anatomy.name)
+    except LookupError as exc:
+        raise InputError(f"the {anatomy.name!r} anatomy is not an installed plugin, so worker processes cannot "
+                         f"load it: install its package, or run without --workers/--scheduler ({exc})") from exc
+    return anatomy.name
+
+
+# the latest scan and model of this process (kind -> (key, value)): consecutive runs of one
+# subject and view count simulate its scan once, as the experiment's loop did before it had tasks
+_CACHE: dict = {}
+
+
+def _cached(key, make):
+    kind = key[0]
+    if _CACHE.get(kind, (None,))[0] != key:
+        _CACHE.pop(kind, None)  # let the old one go before the new one is made
+        _CACHE[kind] = (key, make())
+    return _CACHE[kind][1]
+
+
+def run_and_record(anatomy, subject_id, views, method, iterations, seed, settings, out_dir, progress=False,
+                   echo=None, simulation: str = "fine") -> dict:
+    """One run of the experiment, start to finish, wherever it runs: simulate the subject's scan
+    (seeded: the same everywhere), reconstruct, score, write the volume, the surfaces and the
+    record ``runs/<tag>.json`` (atomically, last); returns the record. ``anatomy`` is an
+    :class:`clgs.anatomy.Anatomy` or the name of an installed one (worker processes)."""
+    from clgs.anatomy.evaluation import bone_surface, evaluate_volume, surface_level
+    from clgs.anatomy.simulation import simulate_subject
+    from clgs.io import atomic
+    from clgs.io.mesh import save_mesh
+    from clgs.io.volume import save_volume
+    from clgs.methods.shape_guided import load_anatomy_parts
+    from clgs.metrics import surface_distance
+
+    if isinstance(anatomy, str):
+        from clgs.anatomy import plugins
+
+        anatomy = plugins.get_anatomy(anatomy)
+    out = Path(out_dir)
+    v = int(views)
+    tag = f"{subject_id}_{v}_{method.replace('+', '-')}"
+    if echo is not None:
+        echo(f"{tag}: reconstructing ({METHOD_LABELS[method]}, {v} views)")
+    scan = _cached(("scan", anatomy.name, subject_id, v, seed, simulation), lambda: simulate_subject(
+        anatomy, anatomy.load_subject(subject_id), v, math.pi, True, seed, protocol=simulation))
+    parts = None
+    if method in SHAPE_METHODS:
+        parts = _cached(("parts", anatomy.name, str(anatomy.model_path)), lambda: load_anatomy_parts(anatomy))
+    made_with = _made_with(method, iterations, seed, settings, simulation)
+    run = _run_one(method, scan, parts, iterations, seed, progress, settings)
+    metrics = evaluate_volume(anatomy, scan, run["volume"])
+    save_volume(out / "runs" / f"{tag}.nii.gz", run["volume"], scan.geometry)
+    mesh = bone_surface(run["volume"], scan.geometry, surface_level(anatomy, scan.truth))
+    surf = None if mesh is None else save_mesh(out / "runs" / f"{tag}.stl", mesh.vertices, mesh.faces)
+    if run["model_surface"] is not None and scan.surface is not None:
+        # the shape model's own bone surface: the template moved by the fitted alpha
+        sd = surface_distance(run["model_surface"], scan.surface)
+        metrics.update({f"model_surface_{k}_mm": x for k, x in sd.items()})
+        save_mesh(out / "runs" / f"{tag}_model.stl", *run["model_surface"])
+    row = {"subject": subject_id, "views": v, "method": method, "seconds": run["seconds"], **made_with,
+           **{k: (float(x) if isinstance(x, (int, float, np.floating)) else x) for k, x in metrics.items()},
+           "surface_file": None if surf is None else str(surf),
+           "history": [{k: r.get(k) for k in ("iteration", "seconds", "psnr3d", "ssim3d")}
+                       for r in run["history"]]}
+    atomic.write_json(out / "runs" / f"{tag}.json", row)
+    return row
+
+
+def summarise(rows, views, ablation_views, failed=None) -> dict:
+    """Mean PSNR / SSIM / surface distance / seconds per (views, method), the gains, and the runs
+    that failed (``failed``: run tag -> error)."""
+    out = {"per_method": {}, "gain_db": {}, "failed": dict(sorted((failed or {}).items()))}
     for v in views:
         for m in sorted({r["method"] for r in rows if r["views"] == v}):
             sel = [r for r in rows if r["views"] == v and r["method"] == m]
@@ -238,6 +327,9 @@ def markdown_tables(rows, summary, views, ablation_views) -> str:
         text += ["", "Shape-guided minus R2-Gaussian, 3D PSNR (dB): " + "; ".join(
             f"{v} views: mean {g['mean']:+.2f}, worst {g['min']:+.2f}, ahead on {g['subjects_ahead']}/{g['subjects']}"
             for v, g in summary["gain_db"].items())]
+    if summary.get("failed"):
+        text += ["", "## Failed runs", "", "| run | error |", "|---|---|"]
+        text += [f"| {tag} | {err.replace('|', '/')} |" for tag, err in summary["failed"].items()]
     if ablation_views is not None:
         text += ["", f"## Ablation at {ablation_views} views (mean over subjects)", "",
                  "| variant | 3D PSNR | 3D SSIM | surface mean (mm) | seconds |", "|---|---|---|---|---|"]

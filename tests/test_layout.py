@@ -28,7 +28,7 @@ LAYERS = [
     ["clgs.shape"],
     ["clgs.anatomy"],
     ["clgs.methods"],
-    ["clgs.experiment"],
+    ["clgs.cohort", "clgs.experiment"],
     ["clgs.api", "clgs.bench"],
     ["clgs.cli", "clgs.__main__"],
 ]

@@ -27,6 +27,7 @@ COMMANDS = {
     "anatomies": "clgs.cli.anatomies:anatomies",
     "import": "clgs.cli.import_raw:import_raw",
     "convert": "clgs.cli.convert:convert",
+    "batch": "clgs.cli.batch:batch",
 }
 
 

@@ -19,6 +19,7 @@ import time
 
 import click
 
+from clgs.cli.cohort_options import check_cohort_options, cohort_options
 from clgs.cli.common import check_memory, check_not_input, exit_if_interrupted
 from clgs.cli.options import FiniteFloat, Seed
 from clgs.cli.settings import check_settings, parse_settings
@@ -319,6 +320,13 @@ def _reconstruct_command(anatomy) -> click.Command:
     return reconstruct
 
 
+def _takes(fn, keyword: str) -> bool:
+    import inspect
+
+    params = inspect.signature(fn).parameters
+    return keyword in params or any(p.kind == p.VAR_KEYWORD for p in params.values())
+
+
 def _build_model_command(anatomy) -> click.Command:
     """``clgs <anatomy> build-model``."""
     name = anatomy.name
@@ -329,12 +337,23 @@ def _build_model_command(anatomy) -> click.Command:
     @click.option("--n-modes", type=int, default=None, help="keep exactly this many modes")
     @click.option("--max-cells", type=int, default=None, help="velocity grid cells along the longest side")
     @click.option("--force", is_flag=True, help="rebuild even if an up-to-date model exists")
-    def build_model_cmd(out_path, variance, n_modes, max_cells, force):
+    @cohort_options
+    def build_model_cmd(out_path, variance, n_modes, max_cells, force, workers, scheduler):
         """Register the population to the template, PCA of the velocities, density atlas."""
+        check_cohort_options(workers, scheduler)
         settings = {k: v for k, v in dict(variance=variance, n_modes=n_modes, max_cells=max_cells).items()
                     if v is not None}
+        if workers or scheduler:
+            from clgs.cohort.registration import registration_runner
+            from clgs.experiment import anatomy_by_name
+
+            settings["run_registrations"] = registration_runner(anatomy_by_name(anatomy), workers or None, scheduler,
+                                                                echo=click.echo)
         t0 = time.perf_counter()
         if anatomy.build_model is not None:
+            if "run_registrations" in settings and not _takes(anatomy.build_model, "run_registrations"):
+                raise click.UsageError(f"the {name} plugin's build_model takes no run_registrations: it cannot "
+                                       "register on --workers/--scheduler; build without them")
             kwargs = dict(settings, force=force)
             if out_path:
                 kwargs["out_path"] = out_path
@@ -458,11 +477,14 @@ def _experiment_command(anatomy) -> click.Command:
                   help="fine: projections from a grid twice as fine as the reconstruction grid; same: on the "
                        "reconstruction grid itself (R2-Gaussian's protocol, flatters FDK and SART)")
     @click.option("--progress/--no-progress", default=True, help="progress bar per run")
-    def experiment(views, more_views, subjects, iterations, ablation_views, out, seed, log_every, progress, protocol):
+    @cohort_options
+    def experiment(views, more_views, subjects, iterations, ablation_views, out, seed, log_every, progress, protocol,
+                   workers, scheduler):
         """The seed paper's experiment: R2-Gaussian vs shape-guided on every held-out subject,
         the ablation, error against run time, surfaces; writes table.md, results.csv, curves.png."""
         from clgs.experiment import run_experiment
 
+        check_cohort_options(workers, scheduler)
         views = tuple(views) + tuple(more_views) or (5, 10)  # `--views 5 10`: the 10 arrives as an argument
         ids = [s.strip() for s in subjects.split(",")] if subjects else None
         if ids is not None:
@@ -476,11 +498,15 @@ def _experiment_command(anatomy) -> click.Command:
         per_run = {"log_every": log_every, "checkpoint_every": 0}
         summary = run_experiment(anatomy, out, views=views, subjects=ids, iterations=iterations,
                                  ablation_views=ablation_views or None, seed=seed, progress=progress,
-                                 settings={"r2gs": per_run, "shape": per_run}, echo=click.echo, simulation=protocol)
+                                 settings={"r2gs": per_run, "shape": per_run}, echo=click.echo,
+                                 workers=workers or None, scheduler=scheduler, simulation=protocol)
         click.echo(open(os.path.join(out, "table.md")).read())
         for v, g in summary["gain_db"].items():
             click.echo(f"{v} views: shape-guided minus R2-Gaussian {g['mean']:+.2f} dB (ahead on "
                        f"{g['subjects_ahead']}/{g['subjects']} subjects)")
+        if summary.get("failed"):
+            raise click.ClickException(f"{len(summary['failed'])} run(s) failed (listed in {out}/table.md and "
+                                       "summary.json); the others are done: run the same command again to retry them")
 
     return experiment
 

@@ -54,6 +54,72 @@ def _subject_items(subjects):
     return items
 
 
+
+def _safe(sid: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in sid)
+
+
+def template_distance(template: Template, max_cells: int) -> np.ndarray:
+    """The template's distance from its own surface on the model grid, computed exactly as the
+    subjects' are (resampling template.sdf would add interpolation differences)."""
+    mshape, msp, morg = template.model_grid(max_cells)
+    return mesh_to_sdf(template.vertices, template.faces, mshape, msp, morg)
+
+
+def read_cache_entry(path, sid: str, mshape) -> Optional[dict]:
+    """A subject's cached registration (arrays by name), or None when absent, damaged or stale."""
+    if not os.path.exists(path):
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            record = {k: z[k] for k in z.files}
+        meta = json_from_array(record["metadata"])
+        if meta.get("id") != sid or tuple(record["velocity"].shape) != (3,) + tuple(mshape):
+            return None
+    except Exception:  # a damaged cache entry is simply redone
+        return None
+    return record
+
+
+def register_subject(template: Template, subject: Subject, sid: str, path, max_cells: int, reg, atlas: bool,
+                     threads: Optional[int] = 1, fixed: Optional[np.ndarray] = None) -> dict:
+    """Register one subject to the template and write its cache entry ``path`` atomically (velocity,
+    the CT pulled back into template space when ``atlas``, metadata); returns the entry. The same
+    wherever it runs: a build's worker processes call it with the build's settings."""
+    import torch
+
+    from clgs.shape.model import exp_velocity, sample_field
+    from clgs.shape.registration import RegistrationSettings, register
+
+    reg = reg if isinstance(reg, RegistrationSettings) else RegistrationSettings.from_dict(reg)
+    mshape, msp, morg = template.model_grid(max_cells)
+    if fixed is None:
+        fixed = template_distance(template, max_cells)
+    if subject.id != sid:
+        raise InputError(f"loader for {sid!r} returned subject {subject.id!r}")
+    lo = np.minimum(subject.vertices.min(0), template.bounds()[0]) - 4 * msp[0]
+    hi = np.maximum(subject.vertices.max(0), template.bounds()[1]) + 4 * msp[0]
+    gshape, gsp, gorg = box_grid(lo, hi, spacing=msp[0])
+    moving = subject.sdf_on(gshape, gsp, gorg)
+    result = register(fixed, msp, morg, moving, gsp, gorg, settings=reg, surface_points=template.vertices,
+                      threads=threads)
+    record = {"velocity": result.velocity}
+    if atlas and subject.volume is not None:
+        tpoints = grid_points(template.shape, template.spacing, template.origin).reshape(-1, 3)
+        with torch.no_grad():
+            u = exp_velocity(torch.as_tensor(result.velocity), msp)
+            p = torch.as_tensor(tpoints, dtype=torch.float32)
+            mapped = (p + sample_field(u, p, msp, morg)).numpy()
+        # a CT grid ends where the scan did, not where the body does: points warped past
+        # its border take the border value (clamped), not air, which would inflate the
+        # atlas variance in the template's first and last slices
+        record["warped_ct"] = subject.volume_at(mapped, fill=None).reshape(template.shape)
+    record["metadata"] = json_array({"id": sid, "residuals": result.residuals,
+                                      "subject_hash": subject.content_hash()})
+    save_npz_atomic(path, record)
+    return record
+
+
 def population_pca(velocities: np.ndarray, variance: Optional[float] = 0.95, n_modes: Optional[int] = None):
     """PCA of flattened fields (n, D): (mean (D,), modes (M, D) orthonormal, sigma (M,), explained
     fraction of the total variance kept, all singular variances).
@@ -92,7 +158,8 @@ def build_model(template: Template, subjects: Union[Iterable[Subject], Mapping],
                 variance: float = 0.95, n_modes: Optional[int] = None, max_cells: int = 64,
                 registration: Optional[dict] = None, atlas: bool = True, force: bool = False,
                 keep_cache: bool = False, progress: bool = True, extra_meta: Optional[dict] = None,
-                on_subject: Optional[Callable] = None, threads: Optional[int] = 1) -> str:
+                on_subject: Optional[Callable] = None, threads: Optional[int] = 1,
+                run_registrations: Optional[Callable] = None) -> str:
     """Register every subject to the template, PCA the velocities, average the CTs; write one file.
 
     template: the reference :class:`Template`. subjects: Subjects, or a mapping id -> Subject or
@@ -102,17 +169,20 @@ def build_model(template: Template, subjects: Union[Iterable[Subject], Mapping],
     settings of :class:`clgs.shape.registration.RegistrationSettings`. atlas: build the density atlas
     from subjects' CT volumes (skipped with a note when no subject has one). force: rebuild even
     if an up-to-date file exists. on_subject(i, id): called after each subject (tests use it).
-    threads: torch threads per registration (1: small fields, and a shared machine). Returns out_path.
+    threads: torch threads per registration (1: small fields, and a shared machine).
+    run_registrations(jobs): registers the subjects not cached yet elsewhere (e.g. as tasks on a
+    Dask cluster, :mod:`clgs.cohort.registration`): each job (a dict: id, cache_path, max_cells,
+    registration, atlas, threads, template_hash) is done by :func:`register_subject` on the same
+    template and writes its cache entry; the build then reads them. Returns out_path.
 
     Long because it is the pipeline's script: cache check, registration of every subject,
     PCA, atlas and metadata, each a call to a helper, with progress and caching around them.
     """
-    import torch
     from clgs.progress import progress_bar
 
-    from clgs.shape.registration import RegistrationSettings, register
-    from clgs.shape.model import (ModelFileError, ShapeModel, DensityAtlas, exp_velocity, read_metadata,
-                                  sample_field, save_model)
+    from clgs.shape.registration import RegistrationSettings
+    from clgs.shape.model import (ModelFileError, ShapeModel, DensityAtlas, read_metadata,
+                                  save_model)
 
     out_path = os.fspath(out_path)
     items = _subject_items(subjects)
@@ -139,49 +209,22 @@ def build_model(template: Template, subjects: Union[Iterable[Subject], Mapping],
     cache = out_path + ".cache"
     os.makedirs(cache, exist_ok=True)
     reg_hash = _hash(reg_key)
-    # the template's distance from its own surface, computed on the model grid exactly as the
-    # subjects' are (resampling template.sdf would add interpolation differences)
-    fixed = mesh_to_sdf(template.vertices, template.faces, mshape, msp, morg)
-    tpoints = grid_points(template.shape, template.spacing, template.origin).reshape(-1, 3)
+    fixed = template_distance(template, max_cells)
     velocities, residuals, warped_sum, warped_sq, n_ct = [], {}, None, None, 0
+    paths = {sid: os.path.join(cache, f"{_safe(sid)}-{reg_hash}.npz") for sid, _ in items}
+    if run_registrations is not None:
+        missing = [sid for sid, _ in items if read_cache_entry(paths[sid], sid, mshape) is None]
+        if missing:  # elsewhere (e.g. worker processes), each writing its cache entry
+            run_registrations([{"id": sid, "cache_path": paths[sid], "max_cells": int(max_cells),
+                                "registration": reg.to_dict(), "atlas": bool(atlas), "threads": threads,
+                                "template_hash": template.content_hash()} for sid in missing])
     bar = progress_bar(items, desc=f"registering to {template.name or 'template'}", unit="subject",
                        disable=not progress)
     for i, (sid, loader) in enumerate(bar):
-        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in sid)
-        path = os.path.join(cache, f"{safe}-{reg_hash}.npz")
-        record = None
-        if os.path.exists(path):
-            try:
-                with np.load(path, allow_pickle=False) as z:
-                    record = {k: z[k] for k in z.files}
-                meta = json_from_array(record["metadata"])
-                if meta.get("id") != sid or tuple(record["velocity"].shape) != (3,) + tuple(mshape):
-                    record = None
-            except Exception:  # a damaged cache entry is simply redone
-                record = None
+        path = paths[sid]
+        record = read_cache_entry(path, sid, mshape)
         if record is None:
-            subject = loader()
-            if subject.id != sid:
-                raise InputError(f"loader for {sid!r} returned subject {subject.id!r}")
-            lo = np.minimum(subject.vertices.min(0), template.bounds()[0]) - 4 * msp[0]
-            hi = np.maximum(subject.vertices.max(0), template.bounds()[1]) + 4 * msp[0]
-            gshape, gsp, gorg = box_grid(lo, hi, spacing=msp[0])
-            moving = subject.sdf_on(gshape, gsp, gorg)
-            result = register(fixed, msp, morg, moving, gsp, gorg, settings=reg, surface_points=template.vertices,
-                              threads=threads)
-            record = {"velocity": result.velocity}
-            if atlas and subject.volume is not None:
-                with torch.no_grad():
-                    u = exp_velocity(torch.as_tensor(result.velocity), msp)
-                    p = torch.as_tensor(tpoints, dtype=torch.float32)
-                    mapped = (p + sample_field(u, p, msp, morg)).numpy()
-                # a CT grid ends where the scan did, not where the body does: points warped past
-                # its border take the border value (clamped), not air, which would inflate the
-                # atlas variance in the template's first and last slices
-                record["warped_ct"] = subject.volume_at(mapped, fill=None).reshape(template.shape)
-            record["metadata"] = json_array({"id": sid, "residuals": result.residuals,
-                                              "subject_hash": subject.content_hash()})
-            save_npz_atomic(path, record)
+            record = register_subject(template, loader(), sid, path, max_cells, reg, atlas, threads, fixed=fixed)
         meta = json_from_array(record["metadata"])
         velocities.append(np.asarray(record["velocity"], np.float32).reshape(-1))
         residuals[sid] = meta["residuals"]

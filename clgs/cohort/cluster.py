@@ -1,0 +1,111 @@
+"""Starting or joining a Dask cluster, with the cores shared between its worker processes.
+
+Each worker process builds its own OpenCL context on its first task (nothing OpenCL is ever
+pickled). Its share of the cores is set before that happens, through environment variables that
+PoCL reads when its platform starts (``POCL_MAX_PTHREAD_COUNT``, ``POCL_CPU_MAX_CU_NUM``), those of
+Intel's CPU runtime (``DPCPP_CPU_NUM_CUS``, ``CL_CONFIG_CPU_TBB_NUM_WORKERS``) and the usual thread
+counts of numpy's and torch's libraries; PoCL's thread pinning is turned off, since
+workers pinning their threads to the same first cores would share them.
+
+A local cluster's workers each advertise one ``clgs-run`` resource and every task asks for it, so a
+worker runs one task at a time with all of its threads. On a running cluster the same happens
+where its workers were started with ``--resources clgs-run=1``; elsewhere a worker may run as many
+tasks at once as it has threads.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+
+from clgs.errors import InputError
+
+RESOURCE = "clgs-run"
+# worker deaths (a killed process, lost memory) a task may see before it counts as failed
+ALLOWED_FAILURES = 3
+
+
+def thread_env(threads: int) -> dict:
+    """Environment variables that hold a process's compute libraries to ``threads`` threads."""
+    n = str(max(1, int(threads)))
+    return {"POCL_MAX_PTHREAD_COUNT": n, "POCL_CPU_MAX_CU_NUM": n, "POCL_AFFINITY": "0", "OMP_NUM_THREADS": n,
+            "MKL_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n,
+            # Intel's CPU OpenCL runtime (oneTBB underneath)
+            "DPCPP_CPU_NUM_CUS": n, "CL_CONFIG_CPU_TBB_NUM_WORKERS": n}
+
+
+def cores() -> int:
+    """Cores this process may use (its affinity mask)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+def check_choice(workers, scheduler) -> None:
+    """``workers`` and ``scheduler`` are two ways to pick a cluster: at most one, and sensible."""
+    if workers is not None and scheduler:
+        raise InputError("give --workers N (a local cluster) or --scheduler ADDRESS (a running one), not both")
+    if workers is not None and (isinstance(workers, bool) or int(workers) != workers or workers < 0):
+        raise InputError(f"workers must be a whole number >= 0 (0: run here, one after another), got {workers!r}")
+    if scheduler is not None and (not isinstance(scheduler, str) or "://" not in scheduler):
+        raise InputError(f"scheduler {scheduler!r} is not an address: give it as tcp://HOST:PORT")
+
+
+def distributed_wanted(workers, scheduler) -> bool:
+    return bool(scheduler) or bool(workers)
+
+
+def thread_share_plugin():
+    """A Dask worker plugin that sets :func:`thread_env` in each worker of a running cluster (one
+    this module did not start) before its first task: the worker's own thread count (``dask worker
+    --nthreads``) is the share of the cores its runs use."""
+    from distributed import WorkerPlugin
+
+    class ThreadShare(WorkerPlugin):
+        name = "clgs-thread-share"
+
+        def setup(self, worker):
+            for k, v in thread_env(worker.state.nthreads).items():
+                os.environ.setdefault(k, v)
+
+    return ThreadShare()
+
+
+@contextlib.contextmanager
+def open_client(workers=None, scheduler=None, echo=print):
+    """A ``distributed.Client``: on a new local cluster of ``workers`` processes, or connected to
+    ``scheduler``. Yields (client, resources for each task or None). Prints the dashboard link."""
+    check_choice(workers, scheduler)
+    import dask
+    from distributed import Client, LocalCluster
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": ALLOWED_FAILURES}):
+        if scheduler:
+            try:
+                client = Client(scheduler, timeout="20s")
+            except (OSError, TimeoutError) as exc:
+                raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {exc}; start one "
+                                 "(`dask scheduler`, then `dask worker ADDRESS`) or use --workers N") from exc
+            cluster = None
+        else:
+            n = int(workers)
+            threads = max(1, cores() // n)
+            cluster = LocalCluster(n_workers=n, threads_per_worker=threads, processes=True,
+                                   resources={RESOURCE: 1}, env=thread_env(threads),
+                                   dashboard_address=":0", silence_logs=40)
+            client = Client(cluster)
+        try:
+            if scheduler:
+                client.register_plugin(thread_share_plugin())
+                info = client.scheduler_info().get("workers", {})
+                resources = {RESOURCE: 1} if info and all(
+                    RESOURCE in (w.get("resources") or {}) for w in info.values()) else None
+            else:
+                resources = {RESOURCE: 1}
+            link = getattr(client, "dashboard_link", None)
+            if link and echo is not None:
+                echo(f"Dask dashboard: {link}")
+            yield client, resources
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
