@@ -172,8 +172,12 @@ def _breakdown(trainer, n: int = 10) -> dict:
                    "anatomy's held-out subject (--anatomy, --subject; --views counts its projections)")
 @click.option("--anatomy", default="femur", show_default=True, help="with --method shape")
 @click.option("--subject", default=None, help="with --method shape: a held-out subject [default: the demo's]")
+@click.option("--alternate", "rounds", type=click.IntRange(min=0), default=0, show_default=True,
+              help="with --method shape: also time each speed step against the code before it, side by side "
+                   "on the same trainer, in this many alternating pairs of 5-iteration blocks (0: skip)")
 @device_option
-def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, seed, method, anatomy, subject, devices):
+def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, seed, method, anatomy, subject, rounds,
+         devices):
     """Training iterations per second (OpenCL vs plain torch on the CPU, same iteration), and
     where an iteration goes."""
     runs = []  # torch is timed once, on the first device's run: it does not depend on the device
@@ -181,7 +185,7 @@ def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, se
     def one():
         runs.append(None)
         if method == "shape":
-            return _bench_shape(anatomy, subject, n_views or 5, iterations, seed)
+            return _bench_shape(anatomy, subject, n_views or 5, iterations, seed, rounds)
         torch_its = torch_iterations if len(runs) == 1 else 0
         return _bench(n, n_detector, n_voxel, n_views or 50, mode, iterations, torch_its, seed)
 
@@ -234,7 +238,7 @@ def _bench(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, 
     return {"training iteration": (t_cl * 1e3, 1.0 / t_cl)}
 
 
-def _bench_shape(anatomy_name, subject, n_views, iterations, seed):
+def _bench_shape(anatomy_name, subject, n_views, iterations, seed, rounds=0):
     """The shape-guided method's iteration on a held-out subject, as the demo trains it."""
     import math
     import os
@@ -267,8 +271,20 @@ def _bench_shape(anatomy_name, subject, n_views, iterations, seed):
     click.echo(f"shape-guided: {1.0 / t:.1f} it/s ({t * 1e3:.1f} ms / it; target >= 60 it/s); "
                f"30 000 iterations would take {30_000 * t / 60:.1f} min here")
     _echo_profile(trainer, t)
+    if rounds:
+        _echo_alternate(trainer, rounds)
     click.echo(watch.summary())
     return {"training iteration": (t * 1e3, 1.0 / t)}
+
+
+def _echo_alternate(trainer, rounds: int) -> None:
+    from clgs.bench.switches import alternate
+
+    click.echo(f"each speed step against the code before it, side by side ({rounds} alternating pairs of "
+               "5-iteration blocks on the same trainer; ms per iteration, and the median of the pairs' ratios):")
+    click.echo(f"  {'step':66s}{'before':>8s}{'after':>8s}{'ratio':>8s}")
+    for name, before, after, ratio in alternate(trainer, rounds):
+        click.echo(f"  {name:66s}{before:8.1f}{after:8.1f}{ratio:7.2f}x")
 
 
 def profile_iteration(trainer, n: int = 20) -> dict:

@@ -76,6 +76,7 @@ import torch
 
 from clgs import runtime
 from clgs.ops.operator import Operator
+from clgs.ops.sorting import stable_order
 from clgs.geometry import Grid
 from clgs.runtime import round_up
 from clgs.errors import InputError
@@ -215,7 +216,7 @@ class _PointBins:
                     break
             size *= 1.5
         ncells = int(nc.prod())
-        order = np.argsort(cell, kind="stable")
+        order = stable_order(cell)
         counts = np.bincount(cell, minlength=ncells)
         padded = (counts + 7) // 8 * 8
         pstart = np.zeros(ncells + 1, np.int64)

@@ -8,7 +8,9 @@ import torch
 import torch.nn.functional as F
 
 from clgs.fit.gaussians import GaussianSet
+from clgs.ops.fixed_points import FixedPointSampler
 from clgs.shape.model import exp_velocity
+from clgs.shape.template import zyx_triple
 
 
 class ShapeGuidedSet(GaussianSet):
@@ -17,6 +19,9 @@ class ShapeGuidedSet(GaussianSet):
     Leaves: ``alpha`` (M,), raw scales, quaternions, raw densities. ``p_ref`` is fixed."""
 
     MIN_SQUARINGS = 2
+    # the centres through a sparse matrix built once (clgs.ops.fixed_points); False: grid_sample
+    # each time (kept for side-by-side timing, ``clgs bench train --method shape --alternate``)
+    FIXED_POINTS = True
 
     def __init__(self, p_ref_mm, scales, quats, densities, *, shape_model, geometry, box, scale_bounds,
                  schedules, alpha=None, name: str = "shape", raw: bool = False, sampler=None):
@@ -33,6 +38,7 @@ class ShapeGuidedSet(GaussianSet):
         a = torch.zeros(self.shape_model.n_modes, dtype=dt) if alpha is None else torch.as_tensor(alpha, dtype=dt)
         self.params = {"alpha": a.detach().clone().requires_grad_(True), **self.params}
         self.last_u = None  # the latest displacement field (detached), for the density prior
+        self._at_ref = None  # FixedPointSampler at p_ref, built on first use
 
     def __len__(self):
         return int(self.p_ref.shape[0])
@@ -53,11 +59,22 @@ class ShapeGuidedSet(GaussianSet):
 
     def centres_mm(self, u=None) -> torch.Tensor:
         u = self.displacement() if u is None else u
-        # torch here: the field's gradient at these ~35k scattered points is faster with grid_sample
-        # (``clgs bench kernels``, deformation rows: 7 ms against 9-11 for the OpenCL gather, which
-        # sorts the points and passes over the whole grid); the exponentiation and the forward-only
-        # samples are faster in OpenCL
-        return self.p_ref + self.shape_model.sample(u, self.p_ref)
+        # p_ref never moves, so its trilinear weights are built once into a sparse matrix: the
+        # samples and their gradient wrt u are two sparse products (2-3x faster than grid_sample,
+        # which recomputes the weights and the unneeded gradient wrt the points; faster too than
+        # the OpenCL gather, which sorts the points and passes over the whole grid)
+        if not self.FIXED_POINTS or u.dtype != self.p_ref.dtype:
+            return self.p_ref + self.shape_model.sample(u, self.p_ref)
+        return self.p_ref + self._ref_sampler()(u)
+
+    def _ref_sampler(self) -> FixedPointSampler:
+        if self._at_ref is None:
+            m = self.shape_model
+            origin = torch.tensor(zyx_triple("origin", m.origin)[::-1], dtype=torch.float64)
+            step = torch.tensor(zyx_triple("spacing", m.spacing)[::-1], dtype=torch.float64)
+            vox = (self.p_ref.double() - origin) / step
+            self._at_ref = FixedPointSampler(vox, tuple(m.mean.shape[1:]), self.p_ref.dtype)
+        return self._at_ref
 
     def tensors(self):
         p = self.params
@@ -85,6 +102,7 @@ class ShapeGuidedSet(GaussianSet):
 
     def load_state_dict(self, state: dict) -> None:
         self.p_ref = state["p_ref"].clone()
+        self._at_ref = None
         for k in self.params:
             self.params[k] = state[k].detach().clone().requires_grad_(True)
         self.last_u = None
