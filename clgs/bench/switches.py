@@ -20,9 +20,15 @@ def steps() -> dict:
     def fixed_points(on):
         ShapeGuidedSet.FIXED_POINTS = on
 
+    tol = ShapeGuidedSet.LINEAR_TOL if ShapeGuidedSet.LINEAR_TOL is not None else 0.05
+
+    def linear(on):
+        ShapeGuidedSet.LINEAR_TOL = tol if on else None
+
     return {
         "cell order by a sort of packed keys (field sampler, voxelizer)": argsort,
         "centres by a sparse matrix built once": fixed_points,
+        "deformation linearised in alpha between refreshes": linear,
     }
 
 
