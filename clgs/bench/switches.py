@@ -13,6 +13,7 @@ def steps() -> dict:
     """name -> a function that turns the step on (True) or off (False, the code before it)."""
     from clgs.ops import sorting
     from clgs.shape.gaussian_set import ShapeGuidedSet
+    from clgs.shape.priors import DensityPrior
 
     def argsort(on):
         sorting.USE_ARGSORT = not on
@@ -22,6 +23,9 @@ def steps() -> dict:
 
     tol = ShapeGuidedSet.LINEAR_TOL if ShapeGuidedSet.LINEAR_TOL is not None else 0.05
 
+    def atlas(on):
+        DensityPrior.ONE_ATLAS_PASS = on
+
     def linear(on):
         ShapeGuidedSet.LINEAR_TOL = tol if on else None
 
@@ -29,6 +33,7 @@ def steps() -> dict:
         "cell order by a sort of packed keys (field sampler, voxelizer)": argsort,
         "centres by a sparse matrix built once": fixed_points,
         "deformation linearised in alpha between refreshes": linear,
+        "atlas mean and variance in one pass": atlas,
     }
 
 
