@@ -175,9 +175,12 @@ def _breakdown(trainer, n: int = 10) -> dict:
 @click.option("--alternate", "rounds", type=click.IntRange(min=0), default=0, show_default=True,
               help="with --method shape: also time each speed step against the code before it, side by side "
                    "on the same trainer, in this many alternating pairs of 5-iteration blocks (0: skip)")
+@click.option("--at-iteration", "at_iteration", type=click.IntRange(min=0), default=0, show_default=True,
+              help="with --method shape: time the iterations as the default 30 000-iteration run has them from this "
+                   "iteration on (learning rates from their schedules there: late, alpha moves slowly)")
 @device_option
 def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, seed, method, anatomy, subject, rounds,
-         devices):
+         at_iteration, devices):
     """Training iterations per second (OpenCL vs plain torch on the CPU, same iteration), and
     where an iteration goes."""
     runs = []  # torch is timed once, on the first device's run: it does not depend on the device
@@ -185,7 +188,7 @@ def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, se
     def one():
         runs.append(None)
         if method == "shape":
-            return _bench_shape(anatomy, subject, n_views or 5, iterations, seed, rounds)
+            return _bench_shape(anatomy, subject, n_views or 5, iterations, seed, rounds, at_iteration)
         torch_its = torch_iterations if len(runs) == 1 else 0
         return _bench(n, n_detector, n_voxel, n_views or 50, mode, iterations, torch_its, seed)
 
@@ -238,7 +241,7 @@ def _bench(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, 
     return {"training iteration": (t_cl * 1e3, 1.0 / t_cl)}
 
 
-def _bench_shape(anatomy_name, subject, n_views, iterations, seed, rounds=0):
+def _bench_shape(anatomy_name, subject, n_views, iterations, seed, rounds=0, at_iteration=0):
     """The shape-guided method's iteration on a held-out subject, as the demo trains it."""
     import math
     import os
@@ -260,11 +263,14 @@ def _bench_shape(anatomy_name, subject, n_views, iterations, seed, rounds=0):
     cfg = ShapeGuidedConfig(iterations=30_000, seed=seed, log_every=0, checkpoint_every=0)
     trainer = build_trainer(scan, load_anatomy_parts(anatomy), cfg)
     trainer.evaluate = None
+    trainer.iteration = at_iteration
     counts = " + ".join(str(len(s)) for s in trainer.sets) + " Gaussians"
     grid = "x".join(map(str, scan.geometry.nVoxel))
     click.echo(f"scene: {anatomy_name} subject {subject}, {views} views, {counts}; {grid} "
                f"volume, {'x'.join(map(str, scan.geometry.nDetector))} detector; the shape-guided loss (L1 + D-SSIM + "
                "TV + shape prior + density prior), Adam")
+    if at_iteration:
+        click.echo(f"timed from iteration {at_iteration} of 30 000 on (the learning rates there)")
     click.echo(f"device: {runtime.device_label()}; torch threads: {torch.get_num_threads()}; "
                f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (others' work slows every figure)")
     t = time_steps(trainer, iterations, warmup=5)
