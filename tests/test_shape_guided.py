@@ -188,8 +188,12 @@ def test_ablation_switches_change_the_model(template, shape_model, atlas):
     assert not ({"shape", "density"} & {x.name for x in t.losses})
 
 
-def test_resume_is_bitwise(template, shape_model, atlas, tmp_path):
+@pytest.mark.parametrize("linear_tol", [0.05, 1.0])  # 1.0: the linearised centres on every iteration
+def test_resume_is_bitwise(template, shape_model, atlas, tmp_path, monkeypatch, linear_tol):
     from clgs.methods.shape_guided import reconstruct_shape_guided
+    from clgs.shape.gaussian_set import ShapeGuidedSet
+
+    monkeypatch.setattr(ShapeGuidedSet, "LINEAR_TOL", linear_tol)
 
     scan = _scan(template, shape_model=shape_model)
     parts = (template, shape_model, atlas)

@@ -154,7 +154,13 @@ class ShapeGuidedSet(GaussianSet):
         return out
 
     def state_dict(self) -> dict:
-        return {**super().state_dict(), "p_ref": self.p_ref.clone()}
+        # the linearisation's anchor and the latest step: a resumed run rebuilds the same
+        # linearisation from a0 (deterministic) and continues bit for bit
+        empty = torch.zeros(0, dtype=self.alpha.dtype)
+        linear = {"linear_a0": self._linear[0].clone() if self._linear is not None else empty,
+                  "linear_prev": self._prev_alpha.clone() if self._prev_alpha is not None else empty,
+                  "linear_step": torch.tensor(self._step, dtype=torch.float64)}
+        return {**super().state_dict(), "p_ref": self.p_ref.clone(), **linear}
 
     def load_state_dict(self, state: dict) -> None:
         self.p_ref = state["p_ref"].clone()
@@ -163,3 +169,9 @@ class ShapeGuidedSet(GaussianSet):
         for k in self.params:
             self.params[k] = state[k].detach().clone().requires_grad_(True)
         self.last_u = None
+        if "linear_step" in state:  # checkpoints from before the linearisation have none
+            self._step = float(state["linear_step"])
+            if state["linear_prev"].numel():
+                self._prev_alpha = state["linear_prev"].clone()
+            if state["linear_a0"].numel() and self.LINEAR_TOL is not None:
+                self._linear = self._linearise(state["linear_a0"].clone())
