@@ -393,7 +393,7 @@ def test_density_prior_field(template, shape_model, atlas, tissue_atlas):
 def test_bench_alternation_times_every_step_and_switches_them_back_on(template, shape_model, atlas):
     from clgs.bench.switches import alternate, steps
     from clgs.methods.shape_guided import ShapeGuidedConfig, build_trainer
-    from clgs.ops import sorting
+    from clgs.ops import sorting, voxelizer
     from clgs.shape.gaussian_set import ShapeGuidedSet
     from clgs.shape.priors import DensityPrior
 
@@ -406,4 +406,4 @@ def test_bench_alternation_times_every_step_and_switches_them_back_on(template, 
     assert all(before > 0 and after > 0 and ratio > 0 for _, before, after, ratio in rows)
     assert t.iteration == 2 * 2 * len(rows)
     assert not sorting.USE_ARGSORT and ShapeGuidedSet.FIXED_POINTS and DensityPrior.ONE_ATLAS_PASS
-    assert ShapeGuidedSet.LINEAR_TOL == 0.05
+    assert ShapeGuidedSet.LINEAR_TOL == 0.05 and voxelizer._SMALL_PAIRS == 1 << 19

@@ -11,7 +11,7 @@ from contextlib import contextmanager
 
 def steps() -> dict:
     """name -> a function that turns the step on (True) or off (False, the code before it)."""
-    from clgs.ops import sorting
+    from clgs.ops import sorting, voxelizer
     from clgs.shape.gaussian_set import ShapeGuidedSet
     from clgs.shape.priors import DensityPrior
 
@@ -22,6 +22,9 @@ def steps() -> dict:
         ShapeGuidedSet.FIXED_POINTS = on
 
     tol = ShapeGuidedSet.LINEAR_TOL if ShapeGuidedSet.LINEAR_TOL is not None else 0.05
+
+    def parallel_bins(on):
+        voxelizer._SMALL_PAIRS = (1 << 19) if on else (1 << 22)
 
     def atlas(on):
         DensityPrior.ONE_ATLAS_PASS = on
@@ -34,6 +37,7 @@ def steps() -> dict:
         "centres by a sparse matrix built once": fixed_points,
         "deformation linearised in alpha between refreshes": linear,
         "atlas mean and variance in one pass": atlas,
+        "density sub-grid binned by the parallel counting sort": parallel_bins,
     }
 
 
