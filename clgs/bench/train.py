@@ -5,7 +5,10 @@ times the shape-guided method on an anatomy's held-out subject as ``clgs <anatom
 (the femur: 35k shape-guided + 15k free Gaussians, 5 views). Both print where an iteration goes:
 torch's profiler over a few iterations, each OpenCL operator's forward and backward (the autograd
 functions named after them), torch's own operations, Adam, and the rest (Python, autograd's
-bookkeeping), per iteration; and the process's peak resident memory.
+bookkeeping), per iteration; and the process's peak resident memory. With ``--method shape``,
+``--alternate N`` also times each speed step of that iteration against the code before it, side by
+side on the same trainer (``clgs.bench.switches``), and ``--at-iteration K`` times the iterations
+as the 30 000-iteration run has them from iteration K on (late, alpha's learning rate is low).
 
 One iteration is exactly what ``clgs reconstruct --method r2gs`` runs: learning rates from their
 schedules, one view, projection, L1 + 0.25 D-SSIM + 0.05 TV on a voxelised random 32^3 patch,
@@ -183,6 +186,8 @@ def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, se
          at_iteration, devices):
     """Training iterations per second (OpenCL vs plain torch on the CPU, same iteration), and
     where an iteration goes."""
+    if method != "shape" and (rounds or at_iteration):
+        raise click.UsageError("--alternate and --at-iteration go with --method shape")
     runs = []  # torch is timed once, on the first device's run: it does not depend on the device
 
     def one():

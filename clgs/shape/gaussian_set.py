@@ -26,9 +26,10 @@ class ShapeGuidedSet(GaussianSet):
     # of u over alpha_m = a0_m +- LINEAR_TOL, refreshed (2M + 1 forward-only exponentiations, no
     # backward) once some |alpha_m - a0_m| exceeds LINEAR_TOL. While alpha moves fast (the last
     # step over LINEAR_TOL / 4: early, when its learning rate is high) a linearisation would last
-    # a few iterations only, so there the exact path runs. On the femur at LINEAR_TOL = 0.05 the
-    # centres are within 0.0006 mm (0.0002 voxel) of the exact map and d centres / d alpha within
-    # 1.2 % (tests/test_fixed_points.py). None: the exact path every iteration.
+    # a few iterations only, so there the exact path runs. Measured on the femur model at
+    # LINEAR_TOL = 0.05: the centres within 0.0006 mm (0.0002 voxel) of the exact map, d centres /
+    # d alpha within about 1 % (README; tests/test_fixed_points.py checks a small model). None:
+    # the exact path every iteration.
     LINEAR_TOL = 0.05
 
     def __init__(self, p_ref_mm, scales, quats, densities, *, shape_model, geometry, box, scale_bounds,
@@ -68,20 +69,20 @@ class ShapeGuidedSet(GaussianSet):
         return u
 
     def centres_mm(self, u=None) -> torch.Tensor:
-        if u is None and self.LINEAR_TOL is not None and self.FIXED_POINTS and self._exact_dtype():
+        if u is None and self.LINEAR_TOL is not None and self.FIXED_POINTS and self._one_dtype():
             out = self._linear_centres()
             if out is not None:
                 return out
         u = self.displacement() if u is None else u
         # p_ref never moves, so its trilinear weights are built once into a sparse matrix: the
         # samples and their gradient wrt u are two sparse products (2-3x faster than grid_sample,
-        # which recomputes the weights and the unneeded gradient wrt the points; faster too than
-        # the OpenCL gather, which sorts the points and passes over the whole grid)
+        # which recomputes the weights and the unneeded gradient wrt the points; the OpenCL
+        # gather, which sorts the points and passes over the whole grid, was slower than that)
         if not self.FIXED_POINTS or u.dtype != self.p_ref.dtype:
             return self.p_ref + self.shape_model.sample(u, self.p_ref)
         return self.p_ref + self._ref_sampler()(u)
 
-    def _exact_dtype(self) -> bool:
+    def _one_dtype(self) -> bool:
         return self.shape_model.mean.dtype == self.p_ref.dtype
 
     def _linear_centres(self):
