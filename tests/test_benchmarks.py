@@ -129,3 +129,9 @@ def test_bench_scaling_prints_both_series_the_fit_and_draws_the_plot(tmp_path):
     assert len(re.findall(r"N\s+(500|1000), 256\^2:\s+[0-9.]+ ms / it", out)) == 2
     assert len(re.findall(r"N\s+50000, (32|48)\^2:\s+[0-9.]+ ms / it", out)) == 2
     assert "linear fit over N" in out and plot.is_file() and plot.stat().st_size > 1000
+
+
+def test_bench_train_refuses_the_shape_only_options_for_r2gs():
+    for extra in (["--alternate", "2"], ["--at-iteration", "100"]):
+        res = CliRunner().invoke(cli, ["bench", "train", "--gaussians", "300", *extra])
+        assert res.exit_code == 2 and "go with --method shape" in res.output

@@ -188,8 +188,12 @@ def test_ablation_switches_change_the_model(template, shape_model, atlas):
     assert not ({"shape", "density"} & {x.name for x in t.losses})
 
 
-def test_resume_is_bitwise(template, shape_model, atlas, tmp_path):
+@pytest.mark.parametrize("linear_tol", [0.05, 1.0])  # 1.0: the linearised centres on every iteration
+def test_resume_is_bitwise(template, shape_model, atlas, tmp_path, monkeypatch, linear_tol):
     from clgs.methods.shape_guided import reconstruct_shape_guided
+    from clgs.shape.gaussian_set import ShapeGuidedSet
+
+    monkeypatch.setattr(ShapeGuidedSet, "LINEAR_TOL", linear_tol)
 
     scan = _scan(template, shape_model=shape_model)
     parts = (template, shape_model, atlas)
@@ -384,3 +388,22 @@ def test_density_prior_field(template, shape_model, atlas, tissue_atlas):
     assert field == "shape" and g == 0
     field, _ = prior_grads((template, shape_model, atlas), "all")
     assert field == "shape"
+
+
+def test_bench_alternation_times_every_step_and_switches_them_back_on(template, shape_model, atlas):
+    from clgs.bench.switches import alternate, steps
+    from clgs.methods.shape_guided import ShapeGuidedConfig, build_trainer
+    from clgs.ops import sorting, voxelizer
+    from clgs.shape.gaussian_set import ShapeGuidedSet
+    from clgs.shape.priors import DensityPrior
+
+    scan = _scan(template, shape_model=shape_model)
+    t = build_trainer(scan, (template, shape_model, atlas),
+                      ShapeGuidedConfig(**{k: v for k, v in _small(iterations=40).items() if k != "progress"}))
+    t.evaluate = None
+    rows = alternate(t, rounds=2, block=1)
+    assert [r[0] for r in rows] == [*steps(), "all of them"]
+    assert all(before > 0 and after > 0 and ratio > 0 for _, before, after, ratio in rows)
+    assert t.iteration == 2 * 2 * len(rows)
+    assert not sorting.USE_ARGSORT and ShapeGuidedSet.FIXED_POINTS and DensityPrior.ONE_ATLAS_PASS
+    assert ShapeGuidedSet.LINEAR_TOL == 0.05 and voxelizer._SMALL_PAIRS == 1 << 19

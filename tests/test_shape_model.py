@@ -279,3 +279,14 @@ def test_anatomies_lists_an_unreadable_model_as_such(tmp_path, monkeypatch):
     out = CliRunner().invoke(anatomies, []).output
     assert "model (unreadable)" in out and "rebuild it" in out
     assert '"built": false' in CliRunner().invoke(anatomies, ["--json"]).output
+
+
+def test_density_atlas_mean_and_var_in_one_pass_give_the_same_bits(rng):
+    mean = rng.random((5, 6, 7)).astype(np.float32)
+    atlas = DensityAtlas(mean, 0.3 * mean ** 2, (2.0, 2.0, 2.0), (10.0, 0.0, -4.0))
+    lo = np.array([-4.0, 0.0, 10.0]) - 3.0  # (x, y, z): some points outside the grid
+    pts = torch.as_tensor(lo + rng.random((3000, 3)) * (np.array([12.0, 10.0, 8.0]) + 6.0))
+    for dt in (torch.float64, torch.float32):
+        m, v = atlas.mean_var_at(pts.to(dt))
+        assert torch.equal(m, atlas.mean_at(pts.to(dt))) and torch.equal(v, atlas.var_at(pts.to(dt)))
+        assert (m == 0).any() and (m > 0).any()

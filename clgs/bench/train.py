@@ -5,7 +5,10 @@ times the shape-guided method on an anatomy's held-out subject as ``clgs <anatom
 (the femur: 35k shape-guided + 15k free Gaussians, 5 views). Both print where an iteration goes:
 torch's profiler over a few iterations, each OpenCL operator's forward and backward (the autograd
 functions named after them), torch's own operations, Adam, and the rest (Python, autograd's
-bookkeeping), per iteration; and the process's peak resident memory.
+bookkeeping), per iteration; and the process's peak resident memory. With ``--method shape``,
+``--alternate N`` also times each speed step of that iteration against the code before it, side by
+side on the same trainer (``clgs.bench.switches``), and ``--at-iteration K`` times the iterations
+as the 30 000-iteration run has them from iteration K on (late, alpha's learning rate is low).
 
 One iteration is exactly what ``clgs reconstruct --method r2gs`` runs: learning rates from their
 schedules, one view, projection, L1 + 0.25 D-SSIM + 0.05 TV on a voxelised random 32^3 patch,
@@ -172,16 +175,25 @@ def _breakdown(trainer, n: int = 10) -> dict:
                    "anatomy's held-out subject (--anatomy, --subject; --views counts its projections)")
 @click.option("--anatomy", default="femur", show_default=True, help="with --method shape")
 @click.option("--subject", default=None, help="with --method shape: a held-out subject [default: the demo's]")
+@click.option("--alternate", "rounds", type=click.IntRange(min=0), default=0, show_default=True,
+              help="with --method shape: also time each speed step against the code before it, side by side "
+                   "on the same trainer, in this many alternating pairs of 5-iteration blocks (0: skip)")
+@click.option("--at-iteration", "at_iteration", type=click.IntRange(min=0), default=0, show_default=True,
+              help="with --method shape: time the iterations as the default 30 000-iteration run has them from this "
+                   "iteration on (learning rates from their schedules there: late, alpha moves slowly)")
 @device_option
-def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, seed, method, anatomy, subject, devices):
+def main(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, seed, method, anatomy, subject, rounds,
+         at_iteration, devices):
     """Training iterations per second (OpenCL vs plain torch on the CPU, same iteration), and
     where an iteration goes."""
+    if method != "shape" and (rounds or at_iteration):
+        raise click.UsageError("--alternate and --at-iteration go with --method shape")
     runs = []  # torch is timed once, on the first device's run: it does not depend on the device
 
     def one():
         runs.append(None)
         if method == "shape":
-            return _bench_shape(anatomy, subject, n_views or 5, iterations, seed)
+            return _bench_shape(anatomy, subject, n_views or 5, iterations, seed, rounds, at_iteration)
         torch_its = torch_iterations if len(runs) == 1 else 0
         return _bench(n, n_detector, n_voxel, n_views or 50, mode, iterations, torch_its, seed)
 
@@ -234,7 +246,7 @@ def _bench(n, n_detector, n_voxel, n_views, mode, iterations, torch_iterations, 
     return {"training iteration": (t_cl * 1e3, 1.0 / t_cl)}
 
 
-def _bench_shape(anatomy_name, subject, n_views, iterations, seed):
+def _bench_shape(anatomy_name, subject, n_views, iterations, seed, rounds=0, at_iteration=0):
     """The shape-guided method's iteration on a held-out subject, as the demo trains it."""
     import math
     import os
@@ -256,19 +268,34 @@ def _bench_shape(anatomy_name, subject, n_views, iterations, seed):
     cfg = ShapeGuidedConfig(iterations=30_000, seed=seed, log_every=0, checkpoint_every=0)
     trainer = build_trainer(scan, load_anatomy_parts(anatomy), cfg)
     trainer.evaluate = None
+    trainer.iteration = at_iteration
     counts = " + ".join(str(len(s)) for s in trainer.sets) + " Gaussians"
     grid = "x".join(map(str, scan.geometry.nVoxel))
     click.echo(f"scene: {anatomy_name} subject {subject}, {views} views, {counts}; {grid} "
                f"volume, {'x'.join(map(str, scan.geometry.nDetector))} detector; the shape-guided loss (L1 + D-SSIM + "
                "TV + shape prior + density prior), Adam")
+    if at_iteration:
+        click.echo(f"timed from iteration {at_iteration} of 30 000 on (the learning rates there)")
     click.echo(f"device: {runtime.device_label()}; torch threads: {torch.get_num_threads()}; "
                f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (others' work slows every figure)")
     t = time_steps(trainer, iterations, warmup=5)
     click.echo(f"shape-guided: {1.0 / t:.1f} it/s ({t * 1e3:.1f} ms / it; target >= 60 it/s); "
                f"30 000 iterations would take {30_000 * t / 60:.1f} min here")
     _echo_profile(trainer, t)
+    if rounds:
+        _echo_alternate(trainer, rounds)
     click.echo(watch.summary())
     return {"training iteration": (t * 1e3, 1.0 / t)}
+
+
+def _echo_alternate(trainer, rounds: int) -> None:
+    from clgs.bench.switches import alternate
+
+    click.echo(f"each speed step against the code before it, side by side ({rounds} alternating pairs of "
+               "5-iteration blocks on the same trainer; ms per iteration, and the median of the pairs' ratios):")
+    click.echo(f"  {'step':66s}{'before':>8s}{'after':>8s}{'ratio':>8s}")
+    for name, before, after, ratio in alternate(trainer, rounds):
+        click.echo(f"  {name:66s}{before:8.1f}{after:8.1f}{ratio:7.2f}x")
 
 
 def profile_iteration(trainer, n: int = 20) -> dict:

@@ -24,6 +24,7 @@ import torch
 
 from clgs import runtime
 from clgs.ops.operator import Operator
+from clgs.ops.sorting import stable_order
 from clgs.runtime import round_up
 from clgs.errors import InputError
 
@@ -84,8 +85,7 @@ class FieldSampler(Operator):
         of the first ``n_points`` points."""
         C, Z, Y, X = (int(n) for n in shape)
         n_cells = (X - 1) * (Y - 1) * (Z - 1)
-        # numpy's stable sort is adaptive: displaced grid points come nearly sorted
-        order = np.argsort(cells[:n_points], kind="stable").astype(np.int32)
+        order = stable_order(cells[:n_points]).astype(np.int32)
         start = np.zeros(n_cells + 1, np.int32)
         np.cumsum(np.bincount(cells[:n_points], minlength=n_cells), out=start[1:])
         gfield = np.empty((C, Z, Y, X), gout.dtype)

@@ -76,6 +76,7 @@ import torch
 
 from clgs import runtime
 from clgs.ops.operator import Operator
+from clgs.ops.sorting import stable_order
 from clgs.geometry import Grid
 from clgs.runtime import round_up
 from clgs.errors import InputError
@@ -97,9 +98,13 @@ _LOCAL = 8  # one work-group size for every kernel: PoCL recompiles per (kernel,
 _MIN_CHUNK = 256  # Gaussians per binning work-item, at least
 _MAX_HIST = 1 << 22  # cap on (cells x chunks) histogram entries
 # small grids (a TV patch): bin by one work-item in one launch below these many bricks and
-# bricks x Gaussians (the list's room); in the backward, no sort below this many bytes of dL/dfield
+# bricks x Gaussians (the list's room); in the backward, no sort below this many bytes of dL/dfield.
+# 2^19 pairs (8k Gaussians on 64 bricks): past about 4-8k Gaussians on a 32^3 grid the parallel
+# counting sort, round trip included, wins (measured on the shape-guided density prior's
+# sub-grid, 50k Gaussians: 8 against 10 ms at load 6, best of three; ``clgs bench train
+# --method shape --alternate``); the same bits either way
 SMALL_CELLS = 512
-_SMALL_PAIRS = 1 << 22
+_SMALL_PAIRS = 1 << 19
 _UNSORTED_BYTES = 1 << 20
 
 
@@ -215,7 +220,7 @@ class _PointBins:
                     break
             size *= 1.5
         ncells = int(nc.prod())
-        order = np.argsort(cell, kind="stable")
+        order = stable_order(cell)
         counts = np.bincount(cell, minlength=ncells)
         padded = (counts + 7) // 8 * 8
         pstart = np.zeros(ncells + 1, np.int64)

@@ -8,7 +8,9 @@ import torch
 import torch.nn.functional as F
 
 from clgs.fit.gaussians import GaussianSet
-from clgs.shape.model import exp_velocity
+from clgs.ops.fixed_points import FixedPointSampler
+from clgs.shape.model import exp_velocity, squarings_for
+from clgs.shape.template import zyx_triple
 
 
 class ShapeGuidedSet(GaussianSet):
@@ -17,6 +19,18 @@ class ShapeGuidedSet(GaussianSet):
     Leaves: ``alpha`` (M,), raw scales, quaternions, raw densities. ``p_ref`` is fixed."""
 
     MIN_SQUARINGS = 2
+    # the centres through a sparse matrix built once (clgs.ops.fixed_points); False: grid_sample
+    # each time (kept for side-by-side timing, ``clgs bench train --method shape --alternate``)
+    FIXED_POINTS = True
+    # The centres between refreshes of exp(v): u(alpha) = u(a0) + J (alpha - a0), J the secant
+    # of u over alpha_m = a0_m +- LINEAR_TOL, refreshed (2M + 1 forward-only exponentiations, no
+    # backward) once some |alpha_m - a0_m| exceeds LINEAR_TOL. While alpha moves fast (the last
+    # step over LINEAR_TOL / 4: early, when its learning rate is high) a linearisation would last
+    # a few iterations only, so there the exact path runs. Measured on the femur model at
+    # LINEAR_TOL = 0.05: the centres within 0.0006 mm (0.0002 voxel) of the exact map, d centres /
+    # d alpha within about 1 % (README; tests/test_fixed_points.py checks a small model). None:
+    # the exact path every iteration.
+    LINEAR_TOL = 0.05
 
     def __init__(self, p_ref_mm, scales, quats, densities, *, shape_model, geometry, box, scale_bounds,
                  schedules, alpha=None, name: str = "shape", raw: bool = False, sampler=None):
@@ -33,6 +47,9 @@ class ShapeGuidedSet(GaussianSet):
         a = torch.zeros(self.shape_model.n_modes, dtype=dt) if alpha is None else torch.as_tensor(alpha, dtype=dt)
         self.params = {"alpha": a.detach().clone().requires_grad_(True), **self.params}
         self.last_u = None  # the latest displacement field (detached), for the density prior
+        self._at_ref = None  # FixedPointSampler at p_ref, built on first use
+        self._linear = None  # (a0, u0 grid, J grid, centre offsets at a0, their J): the linearised map
+        self._prev_alpha, self._step = None, 0.0  # the latest alpha seen and its step from the one before
 
     def __len__(self):
         return int(self.p_ref.shape[0])
@@ -52,12 +69,69 @@ class ShapeGuidedSet(GaussianSet):
         return u
 
     def centres_mm(self, u=None) -> torch.Tensor:
+        if u is None and self.LINEAR_TOL is not None and self.FIXED_POINTS and self._one_dtype():
+            out = self._linear_centres()
+            if out is not None:
+                return out
         u = self.displacement() if u is None else u
-        # torch here: the field's gradient at these ~35k scattered points is faster with grid_sample
-        # (``clgs bench kernels``, deformation rows: 7 ms against 9-11 for the OpenCL gather, which
-        # sorts the points and passes over the whole grid); the exponentiation and the forward-only
-        # samples are faster in OpenCL
-        return self.p_ref + self.shape_model.sample(u, self.p_ref)
+        # p_ref never moves, so its trilinear weights are built once into a sparse matrix: the
+        # samples and their gradient wrt u are two sparse products (2-3x faster than grid_sample,
+        # which recomputes the weights and the unneeded gradient wrt the points; the OpenCL
+        # gather, which sorts the points and passes over the whole grid, was slower than that)
+        if not self.FIXED_POINTS or u.dtype != self.p_ref.dtype:
+            return self.p_ref + self.shape_model.sample(u, self.p_ref)
+        return self.p_ref + self._ref_sampler()(u)
+
+    def _one_dtype(self) -> bool:
+        return self.shape_model.mean.dtype == self.p_ref.dtype
+
+    def _linear_centres(self):
+        """``p_ref + u(a0)(p_ref) + Jc (alpha - a0)``, differentiable in alpha; refreshed at the
+        current alpha when it has left the box of half-width LINEAR_TOL around a0; None (the
+        exact path) while alpha moves fast."""
+        a = self.alpha
+        now = a.detach().clone()
+        if self._prev_alpha is None or not torch.equal(now, self._prev_alpha):  # a new alpha: its step
+            step = 0.0 if self._prev_alpha is None else float((now - self._prev_alpha).abs().max())
+            self._prev_alpha, self._step = now, step
+        tol = float(self.LINEAR_TOL)
+        if self._linear is None or float((now - self._linear[0]).abs().max()) > tol:
+            if self._step > tol / 4:
+                self._linear = None
+                return None
+            self._linear = self._linearise(now)
+        a0, u0, J, c0, Jc = self._linear
+        delta = a - a0
+        self.last_u = u0 + torch.tensordot(J, delta.detach(), dims=1)
+        return self.p_ref + c0 + torch.tensordot(Jc, delta, dims=1)
+
+    def _linearise(self, a0: torch.Tensor):
+        """(a0, u(a0), J, their samples at p_ref): u on the model grid (3, Z, Y, X), J
+        (M, 3, Z, Y, X) the central secants over +- LINEAR_TOL, all with the squaring count of a0."""
+        m, h = self.shape_model, float(self.LINEAR_TOL)
+        with torch.no_grad():
+            v0 = m.velocity(a0)
+            n = squarings_for(v0, m.spacing, self.MIN_SQUARINGS)
+
+            def exp(a):
+                return exp_velocity(m.velocity(a), m.spacing, n_squarings=n, sampler=self.sampler)
+
+            u0 = exp_velocity(v0, m.spacing, n_squarings=n, sampler=self.sampler)
+            eye = torch.eye(len(a0), dtype=a0.dtype) * h
+            J = torch.stack([(exp(a0 + e) - exp(a0 - e)) / (2 * h) for e in eye])
+            at = self._ref_sampler()
+            c0 = at(u0)
+            Jc = torch.stack([at(j) for j in J], -1)  # (N, 3, M)
+        return a0, u0, J.movedim(0, -1), c0, Jc
+
+    def _ref_sampler(self) -> FixedPointSampler:
+        if self._at_ref is None:
+            m = self.shape_model
+            origin = torch.tensor(zyx_triple("origin", m.origin)[::-1], dtype=torch.float64)
+            step = torch.tensor(zyx_triple("spacing", m.spacing)[::-1], dtype=torch.float64)
+            vox = (self.p_ref.double() - origin) / step
+            self._at_ref = FixedPointSampler(vox, tuple(m.mean.shape[1:]), self.p_ref.dtype)
+        return self._at_ref
 
     def tensors(self):
         p = self.params
@@ -81,10 +155,24 @@ class ShapeGuidedSet(GaussianSet):
         return out
 
     def state_dict(self) -> dict:
-        return {**super().state_dict(), "p_ref": self.p_ref.clone()}
+        # the linearisation's anchor and the latest step: a resumed run rebuilds the same
+        # linearisation from a0 (deterministic) and continues bit for bit
+        empty = torch.zeros(0, dtype=self.alpha.dtype)
+        linear = {"linear_a0": self._linear[0].clone() if self._linear is not None else empty,
+                  "linear_prev": self._prev_alpha.clone() if self._prev_alpha is not None else empty,
+                  "linear_step": torch.tensor(self._step, dtype=torch.float64)}
+        return {**super().state_dict(), "p_ref": self.p_ref.clone(), **linear}
 
     def load_state_dict(self, state: dict) -> None:
         self.p_ref = state["p_ref"].clone()
+        self._at_ref = self._linear = self._prev_alpha = None
+        self._step = 0.0
         for k in self.params:
             self.params[k] = state[k].detach().clone().requires_grad_(True)
         self.last_u = None
+        if "linear_step" in state:  # checkpoints from before the linearisation have none
+            self._step = float(state["linear_step"])
+            if state["linear_prev"].numel():
+                self._prev_alpha = state["linear_prev"].clone()
+            if state["linear_a0"].numel() and self.LINEAR_TOL is not None:
+                self._linear = self._linearise(state["linear_a0"].clone())
