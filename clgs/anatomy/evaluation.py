@@ -73,8 +73,11 @@ def evaluate_volume(anatomy, scan, volume) -> dict:
     if scan.surface is not None:
         from clgs.mesh.surface import SurfaceError
 
-        level = surface_level(anatomy, scan.truth)
         try:
+            try:
+                level = surface_level(anatomy, scan.truth)
+            except ValueError as exc:  # a truth with fewer than three values has no bone level
+                raise SurfaceError(f"no bone level in the truth ({exc})") from None
             mesh = bone_surface(vol, scan.geometry, level)
             if mesh is None:
                 raise SurfaceError(f"no bone surface: no voxel of the reconstruction is above the level {level:.4g} "

@@ -189,6 +189,34 @@ def _echo_metrics(m: dict):
             click.echo(f"  {k:22s} {v}")
 
 
+def _view_set_option(text):
+    """``--angles``: None, or a :class:`clgs.anatomy.views.ViewSet` (a usage error otherwise)."""
+    if text is None:
+        return None
+    from clgs.anatomy.views import CLINICAL_SETS, parse_degrees, view_set
+
+    try:
+        return view_set(text if text in CLINICAL_SETS else ",".join(str(d) for d in parse_degrees(text)) + ",")
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--angles")
+
+
+def _detector_option(text):
+    """``--detector-mm``: None or (V, U) mm at the isocentre (a usage error otherwise)."""
+    if text is None:
+        return None
+    import math
+
+    try:
+        vals = [float(x) for x in str(text).split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) not in (1, 2) or not all(math.isfinite(v) and v > 0 for v in vals):
+        raise click.BadParameter(f"{text!r}: give one or two positive sizes in mm, e.g. 300 or 300,300",
+                                 param_hint="--detector-mm")
+    return (vals[0], vals[-1])
+
+
 # --------------------------------------------------------------------------------------- group
 def _simulate_command(anatomy) -> click.Command:
     """``clgs <anatomy> simulate``."""
@@ -203,21 +231,35 @@ def _simulate_command(anatomy) -> click.Command:
                   help="number of projections")
     @click.option("--arc", type=FiniteFloat(min=0, min_open=True, max=360), default=float(scene.get("arc_deg", 180.0)),
                   show_default=True, help="arc in degrees (0 < arc <= 360)")
+    @click.option("--angles", default=None, metavar="DEG,DEG,...",
+                  help="explicit view angles in degrees, e.g. 0,90 (lateral + AP), 0,45,90, or a named set: "
+                       "ap-lat, ap-oblique-lat, carm5 (5 views over 90); replaces --views/--arc")
+    @click.option("--detector-mm", default=None, metavar="MM[,MM]",
+                  help="a smaller detector: its field of view at the isocentre in mm (V,U, or one number for a "
+                       "square), e.g. 300 for a C-arm; the bone beyond it is truncated [default: sees it whole]")
+    @click.option("--units", type=click.Choice(["mm", "cm", "m", "in"]), default="mm", show_default=True,
+                  help="length unit of the --mesh file (rescaled to mm)")
     @click.option("--noise/--no-noise", default=True, show_default=True, help="Poisson + electronic noise")
     @click.option("--seed", type=Seed(), default=0, show_default=True, help="noise seed, 0 to 2**64 - 1")
     @click.option("--force", is_flag=True, help="replace an existing scan folder")
     @click.option("--overwrite", "force_alias", is_flag=True, hidden=True)  # the flag's earlier name
-    def simulate(subject_id, mesh, out, views, arc, noise, seed, force, force_alias):
+    def simulate(subject_id, mesh, out, views, arc, angles, detector_mm, units, noise, seed, force, force_alias):
         """Simulate a CT scan of a subject (default: the first held-out one) or of a surface file."""
         import math
 
         if subject_id and mesh:
             raise click.UsageError("give --subject or --mesh, not both")
+        if units != "mm" and not mesh:
+            raise click.UsageError("--units is the unit of a --mesh file")
+        view_set = _view_set_option(angles)
+        fov = _detector_option(detector_mm)
+        if view_set is not None:
+            views = view_set.n_views
         _check_scan_memory(anatomy, views)
         if mesh:
             from clgs.anatomy.simulation import subject_from_mesh_file
 
-            subject = subject_from_mesh_file(anatomy, mesh, seed=seed)
+            subject = subject_from_mesh_file(anatomy, mesh, seed=seed, units=units)
         else:
             if not subject_id:
                 held = _need(anatomy, "test_subjects", "pick a held-out subject")()
@@ -225,13 +267,17 @@ def _simulate_command(anatomy) -> click.Command:
                     raise click.UsageError("the plugin has no held-out subjects: give --subject or --mesh")
                 subject_id = held[0]
             subject = _load_subject(anatomy, subject_id)
-        scan = _simulate(anatomy, subject, views, math.radians(arc), noise, seed)
+        scan = _simulate(anatomy, subject, views, math.radians(arc), noise, seed,
+                         angles=None if view_set is None else view_set.radians, detector_mm=fov)
         try:
             scan.save(out, overwrite=force or force_alias)
         except FileExistsError:
             raise click.ClickException(f"{out} exists: pass --force to replace it")
-        click.echo(f"{name}: subject {subject.id} -> {out} ({views} views over {arc:g} deg, "
-                   f"{'noisy' if noise else 'noiseless'})")
+        what = view_set.describe() if view_set is not None else f"{views} views over {arc:g} deg"
+        g = scan.geometry
+        click.echo(f"{name}: subject {subject.id} -> {out} ({what}, {'noisy' if noise else 'noiseless'}; "
+                   f"grid {' x '.join(str(n) for n in g.nVoxel)} voxels, detector {g.nDetector[0]} x "
+                   f"{g.nDetector[1]} pixels{' (truncated field of view)' if fov is not None else ''})")
 
     return simulate
 

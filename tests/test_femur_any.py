@@ -1,0 +1,128 @@
+"""Any femur a user brings: 350-550 mm, left or right, any frame, units checked, shapes unlike a
+femur warned; the CT grid and the detector follow the subject. Synthetic variants of LLP26's
+held-out subject 22 (scaled, mirrored, rotated, in metres)."""
+import warnings
+
+import numpy as np
+import pytest
+
+clgs_femur = pytest.importorskip("clgs_femur", reason="install with: pip install -e anatomies/femur")
+
+from clgs.io.mesh import save_mesh  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def femur():
+    return clgs_femur.population_model()
+
+
+@pytest.fixture(scope="module")
+def subject22(femur):
+    from clgs.anatomy.population import surface_length
+
+    v, f = femur.mesh("22")
+    return v, f, surface_length(v)
+
+
+def _rotation(deg, axis):
+    a = np.deg2rad(deg)
+    c, s = np.cos(a), np.sin(a)
+    i, j = [k for k in range(3) if k != axis]
+    r = np.eye(3)
+    r[i, i], r[i, j], r[j, i], r[j, j] = c, -s, s, c
+    return r
+
+
+def _on_template_lattice(femur, grid):
+    off = (np.asarray(grid.origin) - np.asarray(femur.grid.origin)) / np.asarray(femur.grid.spacing)
+    return np.allclose(off, np.round(off), atol=1e-6)
+
+
+@pytest.mark.parametrize("length", [350.0, 550.0])
+def test_a_femur_of_any_adult_length_gets_a_grid_and_detector_that_see_it_whole(femur, subject22, length, tmp_path):
+    from clgs.anatomy.simulation import scan_geometry, simulate_subject
+
+    v, f, own = subject22
+    save_mesh(tmp_path / "f.stl", v * (length / own), f)
+    messages = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a scaled real femur is a femur: no warning
+        subject, al = femur.subject_from_mesh(tmp_path / "f.stl", seed=3, echo=messages.append)
+    from clgs.anatomy.alignment import align_rigid
+    from clgs.anatomy.population import surface_length
+
+    direct = align_rigid(v, femur.template_mesh()[0], allow_mirror=False, allow_scale=True)
+    assert al.scale * length == pytest.approx(direct.scale * own, rel=0.01)  # its size found, and kept:
+    assert surface_length(subject.vertices) == pytest.approx(length, rel=1e-3)
+    assert al.shape_rms_mm < femur.plausible_rms_mm() / 2
+    assert f"length {length:.0f} mm" in messages[0] and "extrapolates" in messages[0]  # beyond 404-462 mm
+    shape = np.asarray(subject.volume.shape)
+    if length <= 480.0:  # fits the template's grid (480 mm along the leg): the grid is the template's
+        assert tuple(shape) == tuple(femur.grid.shape)
+    else:  # grown (along the leg, and across it where its limb needs room), on the template's
+        # lattice, centred on the rotation axis
+        assert shape[0] > femur.grid.shape[0] and np.all(shape[1:] >= femur.grid.shape[1:])
+    from clgs.geometry import Grid
+
+    grid = Grid(tuple(shape), tuple(np.asarray(subject.origin)[::-1]), tuple(np.asarray(subject.spacing)[::-1]))
+    assert _on_template_lattice(femur, grid)
+    lo = np.asarray(grid.origin)
+    hi = lo + (np.asarray(grid.shape[::-1]) - 1) * np.asarray(grid.spacing)
+    assert np.all(subject.vertices.min(0) >= lo + [40, 40, 9]) and np.all(subject.vertices.max(0) <= hi - [40, 40, 9])
+    geo = scan_geometry(femur.anatomy(), subject, 2, np.pi)
+    assert np.allclose(geo.offOrigin, 0.0, atol=1e-9)
+    scan = simulate_subject(femur.anatomy(), subject, angles=[0.0, np.pi / 2], noise=False)
+    p = np.asarray(scan.projections)
+    # the detector sees the whole limb across (air in its outer columns) and the bone's both ends
+    assert p[:, :, :3].max() < 1e-3 and p[:, :, -3:].max() < 1e-3
+    assert p.max() > 2.0  # a thigh and a femur in the beam
+
+
+def test_a_right_femur_rotated_anywhere_and_in_metres(femur, subject22, tmp_path):
+    from scipy.spatial import cKDTree
+
+    v, f, _ = subject22
+    right = (v * [-1.0, 1.0, 1.0]) @ (_rotation(40, 0) @ _rotation(-70, 2)).T + [500.0, -200.0, 30.0]
+    save_mesh(tmp_path / "right_m.stl", right / 1000.0, f[:, ::-1])
+    with pytest.raises(ValueError, match=r"0\.45\d* units long.*looks like metres: scale it by 1000.*--units m"):
+        femur.subject_from_mesh(tmp_path / "right_m.stl", echo=None)
+    subject, al = femur.subject_from_mesh(tmp_path / "right_m.stl", echo=None, units="m")
+    assert al.mirrored and subject.meta["mirrored"] and subject.meta["unit_factor"] == 1000.0
+    assert np.asarray(subject.meta["matrix"]).shape == (4, 4)
+    assert cKDTree(v).query(subject.vertices)[0].max() < 3.0  # lands where left femur 22 sits
+    assert tuple(subject.volume.shape) == tuple(femur.grid.shape)
+
+
+def test_inches_are_named_and_units_are_checked(femur, subject22, tmp_path):
+    v, f, _ = subject22
+    save_mesh(tmp_path / "in.stl", v / 25.4, f)
+    with pytest.raises(ValueError, match="looks like inches: scale it by 25.4.*--units in"):
+        femur.subject_from_mesh(tmp_path / "in.stl", echo=None)
+    with pytest.raises(ValueError, match="units 'feet'"):
+        femur.subject_from_mesh(tmp_path / "in.stl", echo=None, units="feet")
+
+
+def test_a_box_of_a_femurs_size_is_warned_with_both_residuals(femur, tmp_path):
+    import trimesh
+
+    box = trimesh.creation.box((80.0, 80.0, 400.0))
+    save_mesh(tmp_path / "box.stl", box.vertices, box.faces)
+    worst = max(femur.population_fit()["shape_rms_mm"].values())
+    assert 1.0 < worst < 8.0  # LLP26's own femurs
+    with pytest.warns(UserWarning, match=rf"fits the femur template poorly: its shape is \d+\.\d mm RMS.*within "
+                                         rf"{worst:.1f} mm"):
+        femur.subject_from_mesh(tmp_path / "box.stl", echo=None)
+
+
+def test_a_constant_truth_leaves_the_anatomy_evaluation_undefined_not_failed(femur):
+    from clgs.anatomy.evaluation import evaluate_volume
+    from clgs.geometry import Geometry
+    from clgs.io.scan import Scan
+
+    geo = Geometry.default(n_views=2, n_voxel=8, n_detector=16, volume_mm=64.0)
+    v, f = femur.mesh("22")
+    scan = Scan(geo, np.zeros((2, 16, 16), np.float32), truth=np.full((8, 8, 8), 0.02, np.float32),
+                surface=(v * 0.1, f))
+    out = evaluate_volume(femur.anatomy(), scan, np.full((8, 8, 8), 0.01, np.float32))
+    assert out["psnr3d"] is None and "constant" in out["metrics_undefined"]
+    assert "no bone level" in out["surface_error"]
