@@ -19,8 +19,9 @@ class Alignment:
     rms_mm: float
     iterations: int
     #: with ``allow_scale``: the factor that brings the surface to the reference's size (the
-    #: similarity's; 1 / its size relative to the reference), and the RMS distance left once it is scaled to the reference's size (its shape
-    #: alone, size set aside); 1.0 and ``rms_mm`` otherwise
+    #: similarity's; 1 / its size relative to the reference), and the RMS distance left once it
+    #: is scaled to the reference's size (its shape alone, size set aside); 1.0 and ``rms_mm``
+    #: otherwise
     scale: float = 1.0
     shape_rms_mm: float | None = None
 
