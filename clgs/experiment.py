@@ -42,7 +42,7 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
     """One reconstruction: volume, seconds, error-against-time history and, for the methods bound
     to the shape model, the template surface carried by the fitted alpha."""
     t0 = time.perf_counter()
-    history, model_surface = [], None
+    history, model_surface, jac_min = [], None, None
     if method == "fdk":
         from clgs.ct.fdk import fdk
 
@@ -62,8 +62,11 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
                                        **flags, **settings.get("shape", {}))
         volume, history = res.volume, res.log.rows
         model_surface = deformed_template_surface(anatomy[0], res.trainer.sets[0])
-    return {"volume": volume, "seconds": time.perf_counter() - t0, "history": history,
-            "model_surface": model_surface}
+        if model_surface is not None and anatomy[1] is not None:  # the deformation must never fold
+            jac_min = float(np.min(anatomy[1].jacobian_determinant(res.trainer.sets[0].alpha.detach())))
+    seconds = time.perf_counter() - t0
+    return {"volume": volume, "seconds": seconds, "history": history,
+            "model_surface": model_surface, "jacobian_min": jac_min}
 
 
 def _made_with(method: str, iterations: int, seed: int, settings: dict) -> dict:
@@ -79,13 +82,26 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict) -> dict:
 
 # settings that change how often a run logs or saves, not its result
 _BOOKKEEPING = {"log_every", "checkpoint_every", "checkpoint_dir", "progress"}
-_OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings"}
+_OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings", "detector_fov_mm": "--detector-mm"}
+
+
+def load_experiment_subject(anatomy, sid, meshes, seed: int):
+    """A held-out subject of the anatomy, or with ``meshes`` ({id: (file, units)}) the user's
+    surface ``sid`` made a subject (aligned, its CT simulated with a density seeded by its id)."""
+    if not meshes:
+        return anatomy.load_subject(sid)
+    import zlib
+
+    from clgs.anatomy.simulation import subject_from_mesh_file
+
+    path, units = meshes[sid]
+    return subject_from_mesh_file(anatomy, path, seed=zlib.crc32(f"{anatomy.name}/{sid}".encode()), units=units)
 
 
 def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
     """ValueError if the kept record ``row`` was made with other settings than ``made_with``
     (records from before seeds and settings were kept count as seed 0 and no settings)."""
-    defaults = {"seed": 0, "settings": {}}
+    defaults = {"seed": 0, "settings": {}, "detector_fov_mm": None}
     for key, want in made_with.items():
         had = row.get(key, defaults.get(key, want))
         if had != want:
@@ -94,10 +110,33 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
                 f"{_OPTION[key]} to resume, or another --out folder")
 
 
+def view_plan(views) -> dict:
+    """The experiment's view sets by key: a count ``n`` is the papers' set (n views over 180
+    degrees, key ``n``, simulated as before); any other spec of :func:`clgs.anatomy.views.view_set`
+    (``ap-lat``, ``ap-oblique-lat``, ``carm5``, or degrees ``0,90``) is a clinical set, simulated
+    at its own angles (key: its name). Returns {key: radians, or None for a count}."""
+    from clgs.anatomy.views import view_set
+
+    plan = {}
+    for spec in views:
+        if isinstance(spec, (int, np.integer)) or str(spec).strip().isdigit():
+            plan[int(spec)] = None
+        else:
+            vs = view_set(spec)
+            plan[vs.key] = vs.radians
+    return plan
+
+
 def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: int = 1000,
                    ablation_views: int | None = 5, methods=("fdk", "r2gs", "shape"), seed: int = 0,
-                   progress: bool = True, settings: dict | None = None, echo=print) -> dict:
-    """Run (or resume) the experiment; returns the summary dict also written to ``summary.json``."""
+                   progress: bool = True, settings: dict | None = None, echo=print, detector_mm=None,
+                   meshes=None) -> dict:
+    """Run (or resume) the experiment; returns the summary dict also written to ``summary.json``.
+
+    ``views``: counts and view sets (:func:`view_plan`); ``detector_mm``: every scan made with a
+    detector of that field of view (mm at the isocentre, truncated projections; see
+    :func:`clgs.anatomy.simulation.scan_geometry`); ``meshes``: {id: surface file} of the user's
+    own subjects instead of the anatomy's held-out ones."""
     from clgs.anatomy.evaluation import bone_surface, evaluate_volume, surface_level
     from clgs.io import atomic
     from clgs.io.mesh import save_mesh
@@ -109,12 +148,19 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
     out = Path(out_dir)
     (out / "runs").mkdir(parents=True, exist_ok=True)
     settings = dict(settings or {})
-    subjects = list(subjects) if subjects else list(anatomy.test_subjects())
-    population = set(anatomy.population()) if anatomy.population else set()
-    leaked = population & set(subjects)
-    if leaked:
-        raise InputError(f"subjects {sorted(leaked)} are in the model's population: evaluate on held-out subjects only")
+    if meshes:
+        subjects = list(meshes)
+    else:
+        subjects = list(subjects) if subjects else list(anatomy.test_subjects())
+        population = set(anatomy.population()) if anatomy.population else set()
+        leaked = population & set(subjects)
+        if leaked:
+            raise InputError(f"subjects {sorted(leaked)} are in the model's population: evaluate on held-out "
+                             "subjects only")
     parts = load_anatomy_parts(anatomy)
+    view_angles = view_plan(views)
+    fov = None if detector_mm is None else [float(x) for x in np.broadcast_to(np.asarray(detector_mm, float), (2,))]
+    views = list(view_angles)
     plan = []
     for v in views:
         for m in methods:
@@ -123,15 +169,16 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
             plan += [(v, "init"), (v, "init+shape")]
     rows = []
     for sid in subjects:
-        subject = anatomy.load_subject(sid)
-        for v in sorted(set(p[0] for p in plan)):
-            scan = simulate_subject(anatomy, subject, v, math.pi, True, seed)
+        subject = load_experiment_subject(anatomy, sid, meshes, seed)
+        for v in list(dict.fromkeys(p[0] for p in plan)):
+            scan = simulate_subject(anatomy, subject, v if view_angles[v] is None else len(view_angles[v]), math.pi,
+                                    True, seed, angles=view_angles[v], detector_mm=detector_mm)
             for vv, method in plan:
                 if vv != v:
                     continue
                 tag = f"{sid}_{v}_{method.replace('+', '-')}"
                 record_path = out / "runs" / f"{tag}.json"
-                made_with = _made_with(method, iterations, seed, settings)
+                made_with = dict(_made_with(method, iterations, seed, settings), detector_fov_mm=fov)
                 if record_path.is_file():
                     row = json.loads(record_path.read_text())
                     _check_same_run(record_path, row, made_with)
@@ -149,7 +196,14 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
                     sd = surface_distance(run["model_surface"], scan.surface)
                     metrics.update({f"model_surface_{k}_mm": v for k, v in sd.items()})
                     save_mesh(out / "runs" / f"{tag}_model.stl", *run["model_surface"])
+                from clgs.anatomy.surface_figure import reconstruction_figure
+
+                reconstruction_figure(out / "runs" / f"{tag}_surface.png", anatomy, scan, run["volume"],
+                                      run["model_surface"], mesh=mesh, title=f"{sid}, {views_label(v)}, "
+                                      f"{METHOD_LABELS[method]}")
                 row = {"subject": sid, "views": v, "method": method, "seconds": run["seconds"], **made_with,
+                       "angles_deg": [round(math.degrees(a), 6) for a in scan.geometry.angles],
+                       "jacobian_min": run["jacobian_min"],
                        **{k: (float(x) if isinstance(x, (int, float, np.floating)) else x) for k, x in metrics.items()},
                        "surface_file": None if surf is None else str(surf),
                        "history": [{k: r.get(k) for k in ("iteration", "seconds", "psnr3d", "ssim3d")}
@@ -173,9 +227,12 @@ def summarise(rows, views, ablation_views) -> dict:
             sel = [r for r in rows if r["views"] == v and r["method"] == m]
             out["per_method"][f"{v}/{m}"] = {
                 k: float(np.mean([r[k] for r in sel if r.get(k) is not None]))
-                for k in ("psnr3d", "ssim3d", "surface_mean_mm", "surface_p95_mm", "model_surface_mean_mm",
-                          "model_surface_p95_mm", "seconds")
+                for k in ("psnr3d", "ssim3d", "surface_mean_mm", "surface_p95_mm", "surface_hausdorff_mm",
+                          "model_surface_mean_mm", "model_surface_p95_mm", "model_surface_hausdorff_mm", "seconds")
                 if any(r.get(k) is not None for r in sel)}
+            jac = [r["jacobian_min"] for r in sel if r.get("jacobian_min") is not None]
+            if jac:  # the worst subject: the deformation must never fold (> 0)
+                out["per_method"][f"{v}/{m}"]["jacobian_min"] = float(np.min(jac))
         a = {r["subject"]: r["psnr3d"] for r in rows if r["views"] == v and r["method"] == "shape"}
         b = {r["subject"]: r["psnr3d"] for r in rows if r["views"] == v and r["method"] == "r2gs"}
         common = sorted(set(a) & set(b))
@@ -190,12 +247,26 @@ def write_reports(out: Path, rows, summary, views, ablation_views) -> None:
     from clgs.io import atomic
 
     keys = ["subject", "views", "method", "psnr3d", "ssim3d", "surface_mean_mm", "surface_p95_mm",
-            "model_surface_mean_mm", "model_surface_p95_mm", "seconds", "iterations"]
-    lines = [",".join(keys)] + [",".join("" if r.get(k) is None else str(r.get(k)) for k in keys) for r in rows]
+            "surface_hausdorff_mm", "model_surface_mean_mm", "model_surface_p95_mm", "model_surface_hausdorff_mm",
+            "jacobian_min", "seconds", "iterations", "detector_fov_mm"]
+    def cell(x):
+        return "" if x is None else ("x".join(f"{v:g}" for v in x) if isinstance(x, list) else str(x))
+
+    lines = [",".join(keys)] + [",".join(cell(r.get(k)) for k in keys) for r in rows]
     atomic.write_text(out / "results.csv", "\n".join(lines) + "\n")
     atomic.write_text(out / "table.md", markdown_tables(rows, summary, views, ablation_views))
     atomic.write_json(out / "summary.json", summary)
     plot_curves(out / "curves.png", rows, views)
+
+
+def views_label(v) -> str:
+    """'5 views' for a count over 180 degrees; a clinical set by its name and angles."""
+    if isinstance(v, (int, np.integer)):
+        return f"{v} views"
+    from clgs.anatomy.views import view_set
+
+    vs = view_set(v) if not str(v).startswith("deg") else None
+    return f"{v} ({', '.join(f'{d:g}' for d in vs.degrees)} deg)" if vs is not None else str(v)
 
 
 def markdown_tables(rows, summary, views, ablation_views) -> str:
@@ -205,7 +276,7 @@ def markdown_tables(rows, summary, views, ablation_views) -> str:
     subjects = sorted({r["subject"] for r in rows})
     text = ["## 3D PSNR (dB) / SSIM per held-out subject", ""]
     methods = [m for m in ("fdk", "r2gs", "shape") if any(r["method"] == m for r in rows)]
-    head = "| subject | " + " | ".join(f"{METHOD_LABELS[m]} {v}v" for v in views for m in methods) + " |"
+    head = "| subject | " + " | ".join(f"{METHOD_LABELS[m]} {views_label(v)}" for v in views for m in methods) + " |"
     text += [head, "|" + "---|" * (1 + len(views) * len(methods))]
     for s in subjects + ["mean"]:
         cells = []
@@ -221,17 +292,20 @@ def markdown_tables(rows, summary, views, ablation_views) -> str:
     text += ["", "## Mean surface distance (mm) and run time (s)", "",
              "Volume surface: the outer bone surface of the reconstructed volume. Model surface: the "
              "template carried by the fitted shape coefficients (shape-guided only).", "",
-             "| views | method | volume surface mean / p95 | model surface mean / p95 | seconds |",
-             "|---|---|---|---|---|"]
+             "| views | method | volume surface mean / p95 / Hausdorff | model surface mean / p95 / Hausdorff | "
+             "min det J | seconds |",
+             "|---|---|---|---|---|---|"]
     for v in views:
         for m in methods:
             pm = summary["per_method"].get(f"{v}/{m}", {})
-            text.append(f"| {v} | {METHOD_LABELS[m]} | {fmt(pm.get('surface_mean_mm'))} / "
-                        f"{fmt(pm.get('surface_p95_mm'))} | {fmt(pm.get('model_surface_mean_mm'))} / "
-                        f"{fmt(pm.get('model_surface_p95_mm'))} | {fmt(pm.get('seconds'), 0)} |")
+            text.append(f"| {views_label(v)} | {METHOD_LABELS[m]} | {fmt(pm.get('surface_mean_mm'))} / "
+                        f"{fmt(pm.get('surface_p95_mm'))} / {fmt(pm.get('surface_hausdorff_mm'))} | "
+                        f"{fmt(pm.get('model_surface_mean_mm'))} / {fmt(pm.get('model_surface_p95_mm'))} / "
+                        f"{fmt(pm.get('model_surface_hausdorff_mm'))} | {fmt(pm.get('jacobian_min'), 3)} | "
+                        f"{fmt(pm.get('seconds'), 0)} |")
     if summary["gain_db"]:
         text += ["", "Shape-guided minus R2-Gaussian, 3D PSNR (dB): " + "; ".join(
-            f"{v} views: mean {g['mean']:+.2f}, worst {g['min']:+.2f}, ahead on {g['subjects_ahead']}/{g['subjects']}"
+            f"{views_label(v)}: mean {g['mean']:+.2f}, worst {g['min']:+.2f}, ahead on {g['subjects_ahead']}/{g['subjects']}"
             for v, g in summary["gain_db"].items())]
     if ablation_views is not None:
         text += ["", f"## Ablation at {ablation_views} views (mean over subjects)", "",
@@ -271,7 +345,7 @@ def plot_curves(path, rows, views) -> None:
         ax.legend(uniq.values(), uniq.keys(), fontsize=8)
         ax.set_xlabel("training time (s)")
         ax.set_ylabel("3D PSNR (dB)")
-        ax.set_title(f"{v} views")
+        ax.set_title(views_label(v))
         ax.grid(alpha=0.3)
     fig.tight_layout()
     with atomic.atomic_path(path) as tmp:

@@ -1,4 +1,6 @@
 """Shape-guided initialisation and reconstruction on a small synthetic anatomy (an ellipsoid bone)."""
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -291,6 +293,34 @@ def test_experiment_writes_tables_curves_and_resumes(template, shape_model, atla
     # held-out subjects only
     with pytest.raises(ValueError, match="population"):
         run_experiment(anatomy, tmp_path / "x", views=(3,), subjects=["p"], iterations=2)
+
+
+def test_experiment_takes_clinical_view_sets_and_a_truncating_detector(template, shape_model, atlas, tmp_path):
+    from clgs.experiment import run_experiment
+
+    anatomy = _tiny_anatomy(template, shape_model, atlas)
+    small = {k: v for k, v in _small(log_every=5).items() if k != "progress"}
+    settings = {"r2gs": {"n_gaussians": 800, "log_every": 5, "tv_size": 8}, "shape": small}
+    kw = dict(iterations=5, ablation_views=None, progress=False, settings=settings, subjects=["a"],
+              methods=("r2gs", "shape"))
+    summary = run_experiment(anatomy, tmp_path, views=("ap-lat", "0,60,120"), detector_mm=40.0, **kw)
+    rows = [json.loads(p.read_text()) for p in sorted((tmp_path / "runs").glob("*.json"))]
+    assert sorted((r["views"], r["method"]) for r in rows) == [
+        ("ap-lat", "r2gs"), ("ap-lat", "shape"), ("deg0-60-120", "r2gs"), ("deg0-60-120", "shape")]
+    for r in rows:
+        assert r["angles_deg"] == ([0.0, 90.0] if r["views"] == "ap-lat" else [0.0, 60.0, 120.0])
+        assert r["detector_fov_mm"] == [40.0, 40.0]
+        assert np.isfinite(r["psnr3d"]) and r["surface_hausdorff_mm"] >= r["surface_p95_mm"] >= 0
+        png = tmp_path / "runs" / f"a_{r['views']}_{r['method']}_surface.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        if r["method"] == "shape":  # the deformation never folds
+            assert 0 < r["jacobian_min"] and r["model_surface_hausdorff_mm"] > 0
+    table = (tmp_path / "table.md").read_text()
+    assert "ap-lat (0, 90 deg)" in table and "Hausdorff" in table and "min det J" in table
+    assert set(summary["gain_db"]) == {"ap-lat", "deg0-60-120"}
+    # the detector's size is part of what a kept run was made with
+    with pytest.raises(ValueError, match="detector_fov_mm.*--detector-mm"):
+        run_experiment(anatomy, tmp_path, views=("ap-lat",), **kw)
 
 
 def test_surroundings_share_the_atlas_with_the_bone(template, atlas, tissue_atlas):

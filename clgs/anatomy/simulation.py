@@ -44,9 +44,10 @@ def scan_geometry(anatomy, subject, n_views: int, arc: float, angles=None, detec
 
     The volume grid is the subject's own (nVoxel, dVoxel, and offOrigin = its centre); source,
     detector and mode come from ``anatomy.scene`` (TIGRE names). The scene's detector is used as
-    it is for the grid it was sized for; a subject on another grid (a longer bone) gets a detector
-    of the same pixels sized to see its grid whole, and so does a plugin that gives no detector
-    (DSD/DSO = 1500/1000 mm).
+    it is for the grid it was sized for (its ``nVoxel``; a scene without one keeps its detector for
+    any subject); a subject on another grid (a longer bone) gets a detector of the same pixels
+    sized to see its grid whole, and so does a plugin that gives no detector (DSD/DSO = 1500/1000
+    mm).
 
     ``angles`` (radians): the views, instead of ``n_views`` spread over ``arc`` (end excluded).
     ``detector_mm`` (V, U): the field of view at the isocentre of a smaller detector (a C-arm's),
@@ -69,9 +70,11 @@ def scan_geometry(anatomy, subject, n_views: int, arc: float, angles=None, detec
     d = {k: scene[k] for k in GEOMETRY_KEYS if k in scene}
     d.setdefault("DSO", 1000.0)
     d.setdefault("DSD", 1500.0)
-    own_grid = (tuple(int(s) for s in scene.get("nVoxel", ())) == tuple(int(s) for s in shape)
-                and np.allclose(scene.get("dVoxel", spacing), spacing)
-                and np.allclose(scene.get("offOrigin", centre), centre))
+    # the scene's detector was sized for its grid (nVoxel); a scene that names no grid keeps its
+    # detector whatever the subject's
+    own_grid = "nVoxel" not in scene or (
+        tuple(int(s) for s in scene["nVoxel"]) == tuple(int(s) for s in shape)
+        and np.allclose(scene.get("dVoxel", spacing), spacing) and np.allclose(scene.get("offOrigin", centre), centre))
     if "nDetector" not in d or "dDetector" not in d or not own_grid:
         d["nDetector"], d["dDetector"] = _detector_sized(shape, spacing, centre, d, int(scene.get("n_detector", 256)))
         d["offDetector"] = (0.0, 0.0)

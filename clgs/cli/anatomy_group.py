@@ -97,6 +97,23 @@ def _evaluate(anatomy, scan, volume, folder=None) -> dict:
     return out
 
 
+def _surface_picture(anatomy, scan, volume, folder) -> None:
+    """FOLDER/surface_distance.png: the reconstruction's bone surface (and a shape-guided run's
+    model surface) coloured by distance to the truth, when the scan has a true surface."""
+    from clgs.anatomy.surface_figure import reconstruction_figure
+
+    model = os.path.join(folder, "shape_surface.stl")
+    model_mesh = None
+    if os.path.isfile(model):
+        from clgs.io.mesh import load_mesh
+
+        model_mesh = load_mesh(model)
+    png = reconstruction_figure(os.path.join(folder, "surface_distance.png"), anatomy, scan, volume, model_mesh,
+                                title=f"{anatomy.name} {scan.meta.get('subject', '')}".strip())
+    if png:
+        click.echo(f"  surface picture        {png}")
+
+
 def default_method(anatomy) -> str:
     return "shape" if anatomy.load_shape_model is not None else "r2gs"
 
@@ -217,6 +234,25 @@ def _detector_option(text):
     return (vals[0], vals[-1])
 
 
+MESH_SUFFIXES = (".stl", ".ply", ".obj", ".off", ".npz")
+
+
+def _mesh_folder(folder, units: str) -> dict:
+    """{id (file stem): (path, units)} of the surface files in ``folder``, sorted; a usage error
+    when there is none or two share a stem."""
+    files = sorted(p for p in os.listdir(folder) if p.lower().endswith(MESH_SUFFIXES)
+                   and os.path.isfile(os.path.join(folder, p)))
+    if not files:
+        raise click.BadParameter(f"{folder} holds no surface file ({', '.join(MESH_SUFFIXES)})", param_hint="--meshes")
+    out = {}
+    for name in files:
+        stem = os.path.splitext(name)[0]
+        if stem in out:
+            raise click.BadParameter(f"{folder}: two surfaces are called {stem!r}; rename one", param_hint="--meshes")
+        out[stem] = (os.path.join(folder, name), units)
+    return out
+
+
 # --------------------------------------------------------------------------------------- group
 def _simulate_command(anatomy) -> click.Command:
     """``clgs <anatomy> simulate``."""
@@ -330,6 +366,7 @@ def _reconstruct_command(anatomy) -> click.Command:
         click.echo(f"{name}: {method} reconstruction of {scan.n_views} views in {seconds:.1f} s -> {out}")
         if scan.truth is not None and "volume" in result:
             _echo_metrics(_evaluate(anatomy, scan, result["volume"], out))
+            _surface_picture(anatomy, scan, result["volume"], out)
         exit_if_interrupted(result.get("info"))
 
     return reconstruct
@@ -443,6 +480,7 @@ def _demo_command(anatomy) -> click.Command:
                     f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
         click.echo(f"reconstructed in {elapsed:.1f} s; final error:")
         _echo_metrics(_evaluate(anatomy, scan, result["volume"], os.path.join(work, "recon")))
+        _surface_picture(anatomy, scan, result["volume"], os.path.join(work, "recon"))
         from clgs.bench.train import peak_memory_mib
 
         click.echo(f"peak resident memory: {peak_memory_mib():.0f} MiB")
@@ -460,6 +498,17 @@ def _experiment_command(anatomy) -> click.Command:
     @click.option("--views", multiple=True, type=click.IntRange(min=1),
                   help="view counts, e.g. --views 5 10 [default: 5 10]")
     @click.argument("more_views", nargs=-1, type=click.IntRange(min=1), metavar="")
+    @click.option("--view-sets", "view_sets", multiple=True, metavar="SET",
+                  help="clinical view sets, repeatable: ap-lat (0,90: lateral + AP), ap-oblique-lat (0,45,90), "
+                       "carm5 (5 views over a 90-degree C-arm arc), or degrees such as 0,60,120")
+    @click.option("--detector-mm", default=None, metavar="MM[,MM]",
+                  help="every scan with a smaller detector: its field of view at the isocentre (mm), e.g. 300; "
+                       "the bone beyond it is truncated")
+    @click.option("--meshes", type=click.Path(exists=True, file_okay=False), default=None,
+                  help="a folder of your own surfaces (STL/PLY/OBJ/OFF/npz, either side, any frame) to run the "
+                       "protocol on instead of the held-out subjects")
+    @click.option("--units", type=click.Choice(["mm", "cm", "m", "in"]), default="mm", show_default=True,
+                  help="length unit of the --meshes files")
     @click.option("--subjects", default=None, help="comma-separated held-out subject ids [default: all held out]")
     @click.option("--iterations", default=1000, show_default=True, type=click.IntRange(min=1),
                   help="training iterations of every Gaussian run (the README's table: 1000, a few "
@@ -471,12 +520,21 @@ def _experiment_command(anatomy) -> click.Command:
     @click.option("--seed", type=Seed(), default=0, show_default=True, help="random seed, 0 to 2**64 - 1")
     @click.option("--log-every", default=500, show_default=True, help="evaluate every N iterations (curves)")
     @click.option("--progress/--no-progress", default=True, help="progress bar per run")
-    def experiment(views, more_views, subjects, iterations, ablation_views, out, seed, log_every, progress):
+    def experiment(views, more_views, view_sets, detector_mm, meshes, units, subjects, iterations, ablation_views,
+                   out, seed, log_every, progress):
         """The seed paper's experiment: R2-Gaussian vs shape-guided on every held-out subject,
-        the ablation, error against run time, surfaces; writes table.md, results.csv, curves.png."""
+        the ablation, error against run time, surfaces; writes table.md, results.csv, curves.png.
+        Clinical view sets (--view-sets), a truncating detector (--detector-mm) and your own
+        surfaces (--meshes) run the same protocol."""
         from clgs.experiment import run_experiment
 
-        views = tuple(views) + tuple(more_views) or (5, 10)  # `--views 5 10`: the 10 arrives as an argument
+        views = tuple(views) + tuple(more_views)  # `--views 5 10`: the 10 arrives as an argument
+        sets = [_view_set_option(v) for v in view_sets]
+        views = views + tuple(sets) if (views or sets) else (5, 10)
+        fov = _detector_option(detector_mm)
+        mesh_files = _mesh_folder(meshes, units) if meshes else None
+        if mesh_files and subjects:
+            raise click.UsageError("give --meshes or --subjects, not both")
         ids = [s.strip() for s in subjects.split(",")] if subjects else None
         if ids is not None:
             held = list(anatomy.test_subjects()) if anatomy.test_subjects is not None else []
@@ -489,11 +547,12 @@ def _experiment_command(anatomy) -> click.Command:
         per_run = {"log_every": log_every, "checkpoint_every": 0}
         summary = run_experiment(anatomy, out, views=views, subjects=ids, iterations=iterations,
                                  ablation_views=ablation_views or None, seed=seed, progress=progress,
-                                 settings={"r2gs": per_run, "shape": per_run}, echo=click.echo)
+                                 settings={"r2gs": per_run, "shape": per_run}, echo=click.echo, detector_mm=fov,
+                                 meshes=mesh_files)
         click.echo(open(os.path.join(out, "table.md")).read())
         for v, g in summary["gain_db"].items():
-            click.echo(f"{v} views: shape-guided minus R2-Gaussian {g['mean']:+.2f} dB (ahead on "
-                       f"{g['subjects_ahead']}/{g['subjects']} subjects)")
+            click.echo(f"{v}{' views' if str(v).isdigit() else ''}: shape-guided minus R2-Gaussian "
+                       f"{g['mean']:+.2f} dB (ahead on {g['subjects_ahead']}/{g['subjects']} subjects)")
 
     return experiment
 
