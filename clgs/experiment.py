@@ -261,7 +261,7 @@ def write_reports(out: Path, rows, summary, views, ablation_views) -> None:
 
 def views_label(v) -> str:
     """'5 views' for a count over 180 degrees; a clinical set by its name and angles."""
-    if isinstance(v, (int, np.integer)):
+    if isinstance(v, (int, np.integer)) or str(v).isdigit():
         return f"{v} views"
     from clgs.anatomy.views import view_set
 
@@ -305,7 +305,8 @@ def markdown_tables(rows, summary, views, ablation_views) -> str:
                         f"{fmt(pm.get('seconds'), 0)} |")
     if summary["gain_db"]:
         text += ["", "Shape-guided minus R2-Gaussian, 3D PSNR (dB): " + "; ".join(
-            f"{views_label(v)}: mean {g['mean']:+.2f}, worst {g['min']:+.2f}, ahead on {g['subjects_ahead']}/{g['subjects']}"
+            f"{views_label(v)}: mean {g['mean']:+.2f}, worst {g['min']:+.2f}, ahead on "
+            f"{g['subjects_ahead']}/{g['subjects']}"
             for v, g in summary["gain_db"].items())]
     if ablation_views is not None:
         text += ["", f"## Ablation at {ablation_views} views (mean over subjects)", "",
