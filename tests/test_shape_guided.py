@@ -311,12 +311,14 @@ def test_experiment_takes_clinical_view_sets_and_a_truncating_detector(template,
         assert r["angles_deg"] == ([0.0, 90.0] if r["views"] == "ap-lat" else [0.0, 60.0, 120.0])
         assert r["detector_fov_mm"] == [40.0, 40.0]
         assert np.isfinite(r["psnr3d"]) and r["surface_hausdorff_mm"] >= r["surface_p95_mm"] >= 0
+        assert np.isfinite(r["psnr3d_fov"]) and 0 < r["fov_fraction"] < 1  # judged where it was measured
         png = tmp_path / "runs" / f"a_{r['views']}_{r['method']}_surface.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         if r["method"] == "shape":  # the deformation never folds
             assert 0 < r["jacobian_min"] and r["model_surface_hausdorff_mm"] > 0
     table = (tmp_path / "table.md").read_text()
     assert "ap-lat (0, 90 deg)" in table and "Hausdorff" in table and "min det J" in table
+    assert "field of view" in table
     assert set(summary["gain_db"]) == {"ap-lat", "deg0-60-120"}
     # the detector's size is part of what a kept run was made with
     with pytest.raises(ValueError, match="detector_fov_mm.*--detector-mm"):

@@ -4,7 +4,7 @@ shared by ``clgs <anatomy> ...``, :mod:`clgs.experiment` and :mod:`clgs.methods.
 from __future__ import annotations
 from clgs.errors import InputError
 
-__all__ = ["surface_level", "bone_mask", "bone_surface", "evaluate_volume"]
+__all__ = ["surface_level", "bone_mask", "bone_surface", "evaluate_volume", "truncated_field_of_view"]
 
 
 def surface_level(anatomy, truth) -> float:
@@ -56,6 +56,15 @@ def bone_surface(volume, geometry, level: float | None = None):
     return surface_from_volume(mask, geometry=geometry)
 
 
+def truncated_field_of_view(scan):
+    """(Z, Y, X) bool of :meth:`clgs.geometry.Geometry.field_of_view` for a scan simulated with a
+    smaller detector (``meta['acquisition']['detector_fov_mm']``); None for any other scan."""
+    acq = (scan.meta or {}).get("acquisition") or {}
+    if not acq.get("detector_fov_mm"):
+        return None
+    return scan.geometry.field_of_view()
+
+
 def evaluate_volume(anatomy, scan, volume) -> dict:
     """PSNR/SSIM against the scan's truth and, when the scan has the true surface, the surface
     distance (mm) from the reconstruction's outer bone surface (:func:`bone_mask`) to it."""
@@ -70,6 +79,14 @@ def evaluate_volume(anatomy, scan, volume) -> dict:
     out = metrics.volume_figures(vol, scan.truth)
     if out["psnr3d"] is not None:
         out = metrics.evaluate_volume(vol, scan.truth)
+        fov = truncated_field_of_view(scan)
+        if fov is not None and fov.any():
+            # a truncated scan is judged where it measured every line (the whole-volume figures
+            # include bone that no view saw); evaluate an untruncated reconstruction of the same
+            # subject against this scan to compare the two on the same voxels
+            out.update(psnr3d_fov=float(metrics.masked_psnr3d(vol, scan.truth, fov)),
+                       ssim3d_fov=float(metrics.masked_ssim3d(vol, scan.truth, fov)),
+                       fov_fraction=float(fov.mean()))
     if scan.surface is not None:
         from clgs.mesh.surface import SurfaceError
 
