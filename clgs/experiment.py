@@ -133,9 +133,10 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
                    meshes=None) -> dict:
     """Run (or resume) the experiment; returns the summary dict also written to ``summary.json``.
 
-    ``views``: counts and view sets (:func:`view_plan`); ``detector_mm``: every scan made with a
-    detector of that field of view (mm at the isocentre, truncated projections; see
-    :func:`clgs.anatomy.simulation.scan_geometry`); ``meshes``: {id: surface file} of the user's
+    ``views``: counts and view sets (:func:`view_plan`); ``detector_mm``: every view set scanned
+    twice, whole and with a detector of that field of view (mm at the isocentre, truncated
+    projections; see :func:`clgs.anatomy.simulation.scan_geometry`), both judged also inside that
+    field of view (``psnr3d_fov``, ``ssim3d_fov``); ``meshes``: {id: surface file} of the user's
     own subjects instead of the anatomy's held-out ones."""
     from clgs.anatomy.evaluation import bone_surface, evaluate_volume, surface_level
     from clgs.io import atomic
@@ -160,7 +161,15 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
     parts = load_anatomy_parts(anatomy)
     view_angles = view_plan(views)
     fov = None if detector_mm is None else [float(x) for x in np.broadcast_to(np.asarray(detector_mm, float), (2,))]
-    views = list(view_angles)
+    # acquisitions: every view set with the detector that sees the subject whole and, with a
+    # detector_mm, again truncated by that detector (key "<set>-fov<mm>"); the whole scan is then
+    # also judged inside the truncated one's field of view, so the two compare on the same voxels
+    acquisitions = {}
+    for v, angles in view_angles.items():
+        acquisitions[v] = (angles, None)
+        if fov is not None:
+            acquisitions[f"{v}-fov{fov[1]:g}"] = (angles, fov)
+    views = list(acquisitions)
     plan = []
     for v in views:
         for m in methods:
@@ -171,14 +180,20 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
     for sid in subjects:
         subject = load_experiment_subject(anatomy, sid, meshes, seed)
         for v in list(dict.fromkeys(p[0] for p in plan)):
-            scan = simulate_subject(anatomy, subject, v if view_angles[v] is None else len(view_angles[v]), math.pi,
-                                    True, seed, angles=view_angles[v], detector_mm=detector_mm)
+            angles, det = acquisitions[v]
+            n = v if angles is None else len(angles)
+            scan = simulate_subject(anatomy, subject, n, math.pi, True, seed, angles=angles, detector_mm=det)
+            judge = None
+            if det is None and fov is not None:  # the field of view of this scan's truncated twin
+                from clgs.anatomy.simulation import scan_geometry
+
+                judge = scan_geometry(anatomy, subject, n, math.pi, angles=angles, detector_mm=fov).field_of_view()
             for vv, method in plan:
                 if vv != v:
                     continue
                 tag = f"{sid}_{v}_{method.replace('+', '-')}"
                 record_path = out / "runs" / f"{tag}.json"
-                made_with = dict(_made_with(method, iterations, seed, settings), detector_fov_mm=fov)
+                made_with = dict(_made_with(method, iterations, seed, settings), detector_fov_mm=det)
                 if record_path.is_file():
                     row = json.loads(record_path.read_text())
                     _check_same_run(record_path, row, made_with)
@@ -188,6 +203,12 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
                 echo(f"{tag}: reconstructing ({METHOD_LABELS[method]}, {v} views)")
                 run = _run_one(method, scan, parts, iterations, seed, progress, settings)
                 metrics = evaluate_volume(anatomy, scan, run["volume"])
+                if judge is not None and judge.any() and metrics.get("psnr3d") is not None:
+                    from clgs import metrics as figures
+
+                    metrics.update(psnr3d_fov=float(figures.masked_psnr3d(run["volume"], scan.truth, judge)),
+                                   ssim3d_fov=float(figures.masked_ssim3d(run["volume"], scan.truth, judge)),
+                                   fov_fraction=float(judge.mean()))
                 save_volume(out / "runs" / f"{tag}.nii.gz", run["volume"], scan.geometry)
                 mesh = bone_surface(run["volume"], scan.geometry, surface_level(anatomy, scan.truth))
                 surf = None if mesh is None else save_mesh(out / "runs" / f"{tag}.stl", mesh.vertices, mesh.faces)
@@ -265,6 +286,9 @@ def views_label(v) -> str:
     """'5 views' for a count over 180 degrees; a clinical set by its name and angles."""
     if isinstance(v, (int, np.integer)) or str(v).isdigit():
         return f"{v} views"
+    if "-fov" in str(v):
+        base, mm = str(v).rsplit("-fov", 1)
+        return f"{views_label(int(base) if base.isdigit() else base)}, {mm} mm detector"
     from clgs.anatomy.views import view_set
 
     vs = view_set(v) if not str(v).startswith("deg") else None

@@ -305,24 +305,26 @@ def test_experiment_takes_clinical_view_sets_and_a_truncating_detector(template,
               methods=("r2gs", "shape"))
     summary = run_experiment(anatomy, tmp_path, views=("ap-lat", "0,60,120"), detector_mm=40.0, **kw)
     rows = [json.loads(p.read_text()) for p in sorted((tmp_path / "runs").glob("*.json"))]
-    assert sorted((r["views"], r["method"]) for r in rows) == [
-        ("ap-lat", "r2gs"), ("ap-lat", "shape"), ("deg0-60-120", "r2gs"), ("deg0-60-120", "shape")]
+    sets = ("ap-lat", "ap-lat-fov40", "deg0-60-120", "deg0-60-120-fov40")
+    assert sorted((r["views"], r["method"]) for r in rows) == [(v, m) for v in sets for m in ("r2gs", "shape")]
     for r in rows:
-        assert r["angles_deg"] == ([0.0, 90.0] if r["views"] == "ap-lat" else [0.0, 60.0, 120.0])
-        assert r["detector_fov_mm"] == [40.0, 40.0]
+        assert r["angles_deg"] == ([0.0, 90.0] if r["views"].startswith("ap-lat") else [0.0, 60.0, 120.0])
+        assert r["detector_fov_mm"] == ([40.0, 40.0] if "fov" in r["views"] else None)
         assert np.isfinite(r["psnr3d"]) and r["surface_hausdorff_mm"] >= r["surface_p95_mm"] >= 0
-        assert np.isfinite(r["psnr3d_fov"]) and 0 < r["fov_fraction"] < 1  # judged where it was measured
+        # whole and truncated scans are both judged inside the truncated one's field of view
+        assert np.isfinite(r["psnr3d_fov"]) and 0 < r["fov_fraction"] < 1
         png = tmp_path / "runs" / f"a_{r['views']}_{r['method']}_surface.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         if r["method"] == "shape":  # the deformation never folds
             assert 0 < r["jacobian_min"] and r["model_surface_hausdorff_mm"] > 0
+    frac = {r["views"]: r["fov_fraction"] for r in rows}
+    assert frac["ap-lat"] == frac["ap-lat-fov40"]
     table = (tmp_path / "table.md").read_text()
-    assert "ap-lat (0, 90 deg)" in table and "Hausdorff" in table and "min det J" in table
-    assert "field of view" in table
-    assert set(summary["gain_db"]) == {"ap-lat", "deg0-60-120"}
-    # the detector's size is part of what a kept run was made with
-    with pytest.raises(ValueError, match="detector_fov_mm.*--detector-mm"):
-        run_experiment(anatomy, tmp_path, views=("ap-lat",), **kw)
+    assert "ap-lat (0, 90 deg)" in table and "ap-lat (0, 90 deg), 40 mm detector" in table
+    assert "Hausdorff" in table and "min det J" in table and "field of view" in table
+    assert set(summary["gain_db"]) == set(sets)
+    # a kept run's record says which detector made it
+    assert json.loads((tmp_path / "runs" / "a_ap-lat-fov40_shape.json").read_text())["detector_fov_mm"] == [40.0] * 2
 
 
 def test_surroundings_share_the_atlas_with_the_bone(template, atlas, tissue_atlas):
