@@ -126,3 +126,62 @@ def test_a_constant_truth_leaves_the_anatomy_evaluation_undefined_not_failed(fem
     out = evaluate_volume(femur.anatomy(), scan, np.full((8, 8, 8), 0.01, np.float32))
     assert out["psnr3d"] is None and "constant" in out["metrics_undefined"]
     assert "no bone level" in out["surface_error"]
+
+
+# --------------------------------------------------------------------------------------- command line
+def test_simulate_takes_clinical_angles_and_a_c_arm_detector(tmp_path):
+    from click.testing import CliRunner
+
+    from clgs.cli import main
+    from clgs.io.scan import Scan
+
+    res = CliRunner().invoke(main, ["femur", "simulate", "--subject", "22", "--angles", "0,90", "--detector-mm", "300",
+                                    "--no-noise", "--out", str(tmp_path / "s")])
+    assert res.exit_code == 0, res.output
+    assert "2 views at 0, 90 deg" in res.output and "truncated field of view" in res.output
+    scan = Scan.load(tmp_path / "s")
+    assert np.allclose(scan.geometry.angles, [0.0, np.pi / 2])
+    # 300 mm at the isocentre, magnified 1.5 onto 3 mm pixels: 150 x 150; the femur (480 mm grid)
+    # runs off its top and bottom, the thigh stays inside across it
+    assert tuple(scan.geometry.nDetector) == (150, 150)
+    assert scan.meta["acquisition"]["detector_fov_mm"] == [300.0, 300.0]
+    p = np.asarray(scan.projections)
+    assert p[:, 0, :].max() > 1.0 and p[:, -1, :].max() > 1.0 and p[:, :, :2].max() < 1e-3
+    fov = scan.geometry.field_of_view()
+    assert 0.3 < fov.mean() < 0.8  # about 300 / 480 of the grid along the leg (less the cone's corners)
+    res = CliRunner().invoke(main, ["femur", "simulate", "--angles", "carm5", "--no-noise", "--views", "9",
+                                    "--out", str(tmp_path / "c")])
+    assert res.exit_code == 0, res.output
+    assert np.allclose(np.degrees(Scan.load(tmp_path / "c").geometry.angles), [0, 22.5, 45, 67.5, 90])
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--angles", "0,ninety"], ["--angles", "0,ninety", "degrees"]),
+    (["--angles", "0,360"], ["--angles", "repeated"]),
+    (["--detector-mm", "-3"], ["--detector-mm", "positive"]),
+    (["--units", "m"], ["--units", "--mesh"]),
+])
+def test_simulate_refuses_bad_view_and_detector_options_before_any_work(tmp_path, args, words):
+    from click.testing import CliRunner
+
+    from clgs.cli import main
+
+    res = CliRunner().invoke(main, ["femur", "simulate", *args, "--out", str(tmp_path / "s")])
+    assert res.exit_code == 2, res.output
+    for w in words:
+        assert w in res.output
+    assert "Traceback" not in res.output and not (tmp_path / "s").exists()
+
+
+def test_experiment_meshes_folder_needs_surfaces(tmp_path):
+    from click.testing import CliRunner
+
+    from clgs.cli import main
+
+    (tmp_path / "m").mkdir()
+    (tmp_path / "m" / "notes.txt").write_text("no surface here")
+    res = CliRunner().invoke(main, ["femur", "experiment", "--meshes", str(tmp_path / "m"), "--out", str(tmp_path / "e")])
+    assert res.exit_code == 2 and "holds no surface file" in res.output
+    res = CliRunner().invoke(main, ["femur", "experiment", "--meshes", str(tmp_path / "m"), "--subjects", "20",
+                                    "--out", str(tmp_path / "e")])
+    assert res.exit_code != 0 and ("holds no surface file" in res.output or "not both" in res.output)

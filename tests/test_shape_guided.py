@@ -327,6 +327,30 @@ def test_experiment_takes_clinical_view_sets_and_a_truncating_detector(template,
     assert json.loads((tmp_path / "runs" / "a_ap-lat-fov40_shape.json").read_text())["detector_fov_mm"] == [40.0] * 2
 
 
+def test_experiment_runs_on_a_folder_of_the_users_surfaces(template, shape_model, atlas, tmp_path):
+    """``--meshes DIR``: each surface file becomes a subject (here the ellipsoid, moved away from
+    the template's frame, made a CT by the generic uniform fill), with the same rows and pictures."""
+    from clgs.cli.anatomy_group import _mesh_folder
+    from clgs.experiment import run_experiment
+    from clgs.io.mesh import save_mesh
+
+    anatomy = _tiny_anatomy(template, shape_model, atlas)
+    (tmp_path / "mine").mkdir()
+    save_mesh(tmp_path / "mine" / "left_one.stl", template.vertices + [2.0, 0.0, -1.0], template.faces)
+    (tmp_path / "mine" / "readme.txt").write_text("not a surface")
+    meshes = _mesh_folder(tmp_path / "mine", "mm")
+    assert list(meshes) == ["left_one"]
+    small = {k: v for k, v in _small(log_every=5).items() if k != "progress"}
+    summary = run_experiment(anatomy, tmp_path / "e", views=("ap-lat",), iterations=5, ablation_views=None,
+                             progress=False, methods=("fdk", "shape"), meshes=meshes,
+                             settings={"shape": small}, echo=lambda *_: None)
+    rows = [json.loads(p.read_text()) for p in sorted((tmp_path / "e" / "runs").glob("*.json"))]
+    assert [(r["subject"], r["method"]) for r in rows] == [("left_one", "fdk"), ("left_one", "shape")]
+    assert all(np.isfinite(r["psnr3d"]) and np.isfinite(r["surface_mean_mm"]) for r in rows)  # 5 iterations: finite
+    assert (tmp_path / "e" / "runs" / "left_one_ap-lat_shape_surface.png").is_file()
+    assert np.isfinite(summary["per_method"]["ap-lat/shape"]["model_surface_mean_mm"])
+
+
 def test_surroundings_share_the_atlas_with_the_bone(template, atlas, tissue_atlas):
     from clgs.shape.initialise import initialise_surroundings
 

@@ -8,7 +8,8 @@ __all__ = ["surface_level", "bone_mask", "bone_surface", "evaluate_volume", "tru
 
 
 def surface_level(anatomy, truth) -> float:
-    """The bone iso-level: ``scene['surface_level']`` or the upper of 3-class Otsu thresholds."""
+    """The bone iso-level: ``scene['surface_level']`` or the upper of 3-class Otsu thresholds (Otsu's
+    threshold for a truth of two values; a ValueError for a constant one)."""
     level = (anatomy.scene or {}).get("surface_level")
     if level is not None:
         return float(level)
@@ -16,7 +17,15 @@ def surface_level(anatomy, truth) -> float:
     from skimage.filters import threshold_multiotsu
 
     t = np.asarray(truth, np.float32)
-    return float(threshold_multiotsu(t[:: max(1, t.shape[0] // 64)], classes=3)[-1])
+    sub = t[:: max(1, t.shape[0] // 64)]
+    try:
+        return float(threshold_multiotsu(sub, classes=3)[-1])
+    except ValueError:  # two values only (a surface filled with one density): bone against air
+        from skimage.filters import threshold_otsu
+
+        if float(sub.min()) == float(sub.max()):
+            raise
+        return float(threshold_otsu(sub))
 
 
 def bone_mask(volume, level: float, min_piece: float = 0.1):
