@@ -180,7 +180,8 @@ def test_experiment_meshes_folder_needs_surfaces(tmp_path):
 
     (tmp_path / "m").mkdir()
     (tmp_path / "m" / "notes.txt").write_text("no surface here")
-    res = CliRunner().invoke(main, ["femur", "experiment", "--meshes", str(tmp_path / "m"), "--out", str(tmp_path / "e")])
+    res = CliRunner().invoke(main, ["femur", "experiment", "--meshes", str(tmp_path / "m"),
+                                    "--out", str(tmp_path / "e")])
     assert res.exit_code == 2 and "holds no surface file" in res.output
     res = CliRunner().invoke(main, ["femur", "experiment", "--meshes", str(tmp_path / "m"), "--subjects", "20",
                                     "--out", str(tmp_path / "e")])
