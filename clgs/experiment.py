@@ -345,7 +345,8 @@ def markdown_tables(rows, summary, views, ablation_views) -> str:
             f"{views_label(v)}: mean {g['mean']:+.2f}, worst {g['min']:+.2f}, ahead on "
             f"{g['subjects_ahead']}/{g['subjects']}"
             for v, g in summary["gain_db"].items())]
-    if ablation_views is not None:
+    if ablation_views is not None and any(f"{ablation_views}/{m}" in summary["per_method"]
+                                          for m in ("init", "init+shape")):
         text += ["", f"## Ablation at {ablation_views} views (mean over subjects)", "",
                  "| variant | 3D PSNR | 3D SSIM | surface mean (mm) | seconds |", "|---|---|---|---|---|"]
         for m in ("init", "init+shape", "shape"):
