@@ -392,7 +392,9 @@ def test_atlas_start_beats_the_fdk_start_at_few_views(template, shape_model, tis
     parts = (template, shape_model, tissue_atlas)
     t_atlas, v_atlas = _start_volume(scan, parts, free_init="atlas", alpha_init_iterations=0)
     t_fdk, v_fdk = _start_volume(scan, parts, free_init="fdk", alpha_init_iterations=0)
-    assert psnr3d(v_atlas, scan.truth) > psnr3d(v_fdk, scan.truth) + 3.0
+    # (the soft-tissue cylinder is wider than this detector: its rows are truncated, and the FDK
+    # start extends them before filtering, which raised it by more than 0.5 dB; measured +2.54 dB)
+    assert psnr3d(v_atlas, scan.truth) > psnr3d(v_fdk, scan.truth) + 2.0
     # the free set starts outside the bone in both cases
     for t in (t_atlas, t_fdk):
         free = t.sets[1].to_numpy()
