@@ -261,7 +261,8 @@ def _simulate_command(anatomy) -> click.Command:
 
     @click.command(cls=AnatomyCommand)
     @click.option("--subject", "subject_id", help="subject id (held-out ones: see `info`)")
-    @click.option("--mesh", type=click.Path(exists=True, dir_okay=False), help="a surface file (mm) instead")
+    @click.option("--mesh", type=click.Path(exists=True, dir_okay=False),
+                  help="a surface file instead (mm, or see --units; either side, any frame)")
     @click.option("--out", required=True, type=click.Path(file_okay=False), help="scan folder to write")
     @click.option("--views", default=int(scene.get("n_views", 50)), show_default=True, type=click.IntRange(min=1),
                   help="number of projections")
