@@ -186,3 +186,33 @@ def test_experiment_meshes_folder_needs_surfaces(tmp_path):
     res = CliRunner().invoke(main, ["femur", "experiment", "--meshes", str(tmp_path / "m"), "--subjects", "20",
                                     "--out", str(tmp_path / "e")])
     assert res.exit_code != 0 and ("holds no surface file" in res.output or "not both" in res.output)
+
+
+def test_a_reconstruction_with_a_true_surface_writes_its_distance_picture(tmp_path):
+    """`clgs <anatomy> reconstruct` of a scan with a true surface: OUT/surface_distance.png, the
+    bone surface coloured by distance to the truth (a ball here, FDK of 12 views)."""
+    import trimesh
+    from click.testing import CliRunner
+
+    from clgs.anatomy import Anatomy
+    from clgs.anatomy.surface_figure import vertex_distances
+    from clgs.cli.anatomy_group import make_group
+    from clgs.geometry import Geometry
+    from clgs.io.scan import Scan
+    from clgs.ops.ct_projector import CTProjector
+
+    geo = Geometry.default(n_views=12, n_voxel=24, n_detector=40, volume_mm=64.0)
+    pts = geo.volume_grid(scene=False).points()
+    truth = np.where(np.linalg.norm(pts, axis=-1) < 18.0, 0.02, 0.0).astype(np.float32)
+    proj = np.asarray(CTProjector(geo).forward(truth), np.float32)
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=18.0)
+    Scan(geo, proj, truth=truth, surface=(ball.vertices, ball.faces)).save(tmp_path / "scan")
+    group = make_group(Anatomy(name="bare", summary="a bare anatomy"))
+    res = CliRunner().invoke(group, ["reconstruct", str(tmp_path / "scan"), "--method", "fdk", "--out",
+                                     str(tmp_path / "rec")])
+    assert res.exit_code == 0, res.output
+    png = tmp_path / "rec" / "surface_distance.png"
+    assert "surface picture" in res.output and png.read_bytes()[:4] == b"\x89PNG"
+    # the distances it colours: a sphere 1 mm larger lies 1 mm from the truth everywhere
+    d = vertex_distances((ball.vertices * 19.0 / 18.0, ball.faces), (ball.vertices, ball.faces))
+    assert np.allclose(d, 1.0, atol=0.05)
