@@ -46,7 +46,7 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
     """One reconstruction: volume, seconds, error-against-time history and, for the methods bound
     to the shape model, the template surface carried by the fitted alpha."""
     t0 = time.perf_counter()
-    history, model_surface = [], None
+    history, model_surface, jac_min = [], None, None
     if method == "fdk":
         from clgs.ct.fdk import fdk
 
@@ -66,8 +66,11 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
                                        **flags, **settings.get("shape", {}))
         volume, history = res.volume, res.log.rows
         model_surface = deformed_template_surface(anatomy[0], res.trainer.sets[0])
-    return {"volume": volume, "seconds": time.perf_counter() - t0, "history": history,
-            "model_surface": model_surface}
+        if model_surface is not None and anatomy[1] is not None:  # the deformation must never fold
+            jac_min = float(np.min(anatomy[1].jacobian_determinant(res.trainer.sets[0].alpha.detach())))
+    seconds = time.perf_counter() - t0
+    return {"volume": volume, "seconds": seconds, "history": history,
+            "model_surface": model_surface, "jacobian_min": jac_min}
 
 
 def _made_with(method: str, iterations: int, seed: int, settings: dict, simulation: str = "fine") -> dict:
@@ -85,13 +88,29 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
 
 # settings that change how often a run logs or saves, not its result
 _BOOKKEEPING = {"log_every", "checkpoint_every", "checkpoint_dir", "progress"}
-_OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings"}
+_OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings", "detector_fov_mm": "--detector-mm",
+           "simulation": "--simulation"}
+
+
+def load_experiment_subject(anatomy, sid, meshes, seed: int):
+    """A held-out subject of the anatomy, or with ``meshes`` ({id: (file, units)}) the user's
+    surface ``sid`` made a subject (aligned, its CT simulated with a density seeded by its id)."""
+    if not meshes:
+        return anatomy.load_subject(sid)
+    import zlib
+
+    from clgs.anatomy.simulation import subject_from_mesh_file
+
+    path, units = meshes[sid]
+    return subject_from_mesh_file(anatomy, path, seed=zlib.crc32(f"{anatomy.name}/{sid}".encode()), units=units)
 
 
 def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
     """ValueError if the kept record ``row`` was made with other settings than ``made_with``
-    (records from before seeds and settings were kept count as seed 0 and no settings)."""
-    defaults = {"seed": 0, "settings": {}}
+    (records from before seeds, settings, detectors and simulation protocols were kept count as
+    seed 0, no settings, the whole detector and the same-grid protocol)."""
+    defaults = {"seed": 0, "settings": {}, "detector_fov_mm": None, "simulation": "same"}
+    made_with = {"simulation": "same", **made_with}
     for key, want in made_with.items():
         had = row.get(key, defaults.get(key, want))
         if had != want:
@@ -103,11 +122,34 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
 SHAPE_METHODS = ("init", "init+shape", "shape")  # the runs that need the anatomy's model and atlas
 
 
+def view_plan(views) -> dict:
+    """The experiment's view sets by key: a count ``n`` is the papers' set (n views over 180
+    degrees, key ``n``, simulated as before); any other spec of :func:`clgs.anatomy.views.view_set`
+    (``ap-lat``, ``ap-oblique-lat``, ``carm5``, or degrees ``0,90``) is a clinical set, simulated
+    at its own angles (key: its name). Returns {key: radians, or None for a count}."""
+    from clgs.anatomy.views import view_set
+
+    plan = {}
+    for spec in views:
+        if isinstance(spec, (int, np.integer)) or str(spec).strip().isdigit():
+            plan[int(spec)] = None
+        else:
+            vs = view_set(spec)
+            plan[vs.key] = vs.radians
+    return plan
+
+
 def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: int = 1000,
                    ablation_views: int | None = 5, methods=("fdk", "r2gs", "shape"), seed: int = 0,
                    progress: bool = True, settings: dict | None = None, echo=print, workers: int | None = None,
-                   scheduler: str | None = None, simulation: str = "fine") -> dict:
+                   scheduler: str | None = None, simulation: str = "fine", detector_mm=None, meshes=None) -> dict:
     """Run (or resume) the experiment; returns the summary dict also written to ``summary.json``.
+
+    ``views``: counts and view sets (:func:`view_plan`); ``detector_mm``: every view set scanned
+    twice, whole and with a detector of that field of view (mm at the isocentre, truncated
+    projections; see :func:`clgs.anatomy.simulation.scan_geometry`), both judged also inside that
+    field of view (``psnr3d_fov``, ``ssim3d_fov``); ``meshes``: {id: (surface file, units)} of the
+    user's own subjects instead of the anatomy's held-out ones.
 
     ``simulation``: how the scans are made (:mod:`clgs.ct.simulation_grid`): ``"fine"`` (default,
     projections from a grid twice as fine) or ``"same"`` (R2-Gaussian's same-grid protocol).
@@ -124,11 +166,26 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
     out = Path(out_dir)
     (out / "runs").mkdir(parents=True, exist_ok=True)
     settings = dict(settings or {})
-    subjects = list(subjects) if subjects else list(anatomy.test_subjects())
-    population = set(anatomy.population()) if anatomy.population else set()
-    leaked = population & set(subjects)
-    if leaked:
-        raise InputError(f"subjects {sorted(leaked)} are in the model's population: evaluate on held-out subjects only")
+    if meshes:
+        subjects = list(meshes)
+    else:
+        subjects = list(subjects) if subjects else list(anatomy.test_subjects())
+        population = set(anatomy.population()) if anatomy.population else set()
+        leaked = population & set(subjects)
+        if leaked:
+            raise InputError(f"subjects {sorted(leaked)} are in the model's population: evaluate on held-out "
+                             "subjects only")
+    view_angles = view_plan(views)
+    fov = None if detector_mm is None else [float(x) for x in np.broadcast_to(np.asarray(detector_mm, float), (2,))]
+    # acquisitions: every view set with the detector that sees the subject whole and, with a
+    # detector_mm, again truncated by that detector (key "<set>-fov<mm>"); the whole scan is then
+    # also judged inside the truncated one's field of view, so the two compare on the same voxels
+    acquisitions = {}
+    for v, angles in view_angles.items():
+        acquisitions[v] = (angles, None)
+        if fov is not None:
+            acquisitions[f"{v}-fov{fov[1]:g}"] = (angles, fov)
+    views = list(acquisitions)
     plan = []
     for v in views:
         for m in methods:
@@ -144,14 +201,15 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
     where = anatomy_by_name(anatomy) if remote else anatomy
     order, done, tasks = [], {}, []
     for sid in subjects:
-        for v in sorted(set(p[0] for p in plan)):
+        for v in list(dict.fromkeys(p[0] for p in plan)):
+            angles, det = acquisitions[v]
             for vv, method in plan:
                 if vv != v:
                     continue
                 tag = f"{sid}_{v}_{method.replace('+', '-')}"
                 order.append(tag)
                 record_path = out / "runs" / f"{tag}.json"
-                made_with = _made_with(method, iterations, seed, settings, simulation)
+                made_with = dict(_made_with(method, iterations, seed, settings, simulation), detector_fov_mm=det)
                 if record_path.is_file():
                     row = json.loads(record_path.read_text())
                     _check_same_run(record_path, row, made_with)
@@ -161,7 +219,9 @@ def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: i
                 tasks.append(Task(tag, run_and_record, kwargs=dict(
                     anatomy=where, subject_id=sid, views=v, method=method, iterations=iterations, seed=seed,
                     settings=settings, out_dir=str(out), progress=progress and not remote,
-                    echo=None if remote else echo, simulation=simulation)))
+                    echo=None if remote else echo, simulation=simulation,
+                    angles=None if angles is None else [float(a) for a in angles], detector_mm=det,
+                    judge_fov=fov if det is None else None, meshes=meshes)))
     failed = {}
 
     def finished(outcome):
@@ -211,13 +271,18 @@ def _cached(key, make):
 
 
 def run_and_record(anatomy, subject_id, views, method, iterations, seed, settings, out_dir, progress=False,
-                   echo=None, simulation: str = "fine") -> dict:
+                   echo=None, simulation: str = "fine", angles=None, detector_mm=None, judge_fov=None,
+                   meshes=None) -> dict:
     """One run of the experiment, start to finish, wherever it runs: simulate the subject's scan
-    (seeded: the same everywhere), reconstruct, score, write the volume, the surfaces and the
-    record ``runs/<tag>.json`` (atomically, last); returns the record. ``anatomy`` is an
-    :class:`clgs.anatomy.Anatomy` or the name of an installed one (worker processes)."""
+    (seeded: the same everywhere), reconstruct, score, write the volume, the surfaces, the surface
+    picture and the record ``runs/<tag>.json`` (atomically, last); returns the record. ``anatomy``
+    is an :class:`clgs.anatomy.Anatomy` or the name of an installed one (worker processes).
+    ``views`` is a view count or a view-set key (then ``angles``, radians, are its views);
+    ``detector_mm``: a truncating detector; ``judge_fov``: also score inside that detector's field
+    of view (the untruncated twin of a truncated scan); ``meshes``: the user's own subjects."""
     from clgs.anatomy.evaluation import bone_surface, evaluate_volume, surface_level
-    from clgs.anatomy.simulation import simulate_subject
+    from clgs.anatomy.simulation import scan_geometry, simulate_subject
+    from clgs.anatomy.surface_figure import reconstruction_figure
     from clgs.io import atomic
     from clgs.io.mesh import save_mesh
     from clgs.io.volume import save_volume
@@ -229,18 +294,32 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
 
         anatomy = plugins.get_anatomy(anatomy)
     out = Path(out_dir)
-    v = int(views)
+    v = views if isinstance(views, str) and not views.isdigit() else int(views)
+    n = v if angles is None else len(angles)
     tag = f"{subject_id}_{v}_{method.replace('+', '-')}"
     if echo is not None:
-        echo(f"{tag}: reconstructing ({METHOD_LABELS[method]}, {v} views)")
-    scan = _cached(("scan", anatomy.name, subject_id, v, seed, simulation), lambda: simulate_subject(
-        anatomy, anatomy.load_subject(subject_id), v, math.pi, True, seed, protocol=simulation))
+        echo(f"{tag}: reconstructing ({METHOD_LABELS[method]}, {views_label(v)})")
+    det_key = None if detector_mm is None else tuple(detector_mm)
+    ang_key = None if angles is None else tuple(angles)
+    subject = _cached(("subject", anatomy.name, subject_id, bool(meshes)),
+                      lambda: load_experiment_subject(anatomy, subject_id, meshes, seed))
+    scan = _cached(("scan", anatomy.name, subject_id, n, ang_key, det_key, seed, simulation), lambda: simulate_subject(
+        anatomy, subject, n, math.pi, True, seed, protocol=simulation, angles=angles, detector_mm=detector_mm))
     parts = None
     if method in SHAPE_METHODS:
         parts = _cached(("parts", anatomy.name, str(anatomy.model_path)), lambda: load_anatomy_parts(anatomy))
-    made_with = _made_with(method, iterations, seed, settings, simulation)
+    made_with = dict(_made_with(method, iterations, seed, settings, simulation),
+                     detector_fov_mm=None if detector_mm is None else [float(x) for x in detector_mm])
     run = _run_one(method, scan, parts, iterations, seed, progress, settings)
     metrics = evaluate_volume(anatomy, scan, run["volume"])
+    if judge_fov is not None and metrics.get("psnr3d") is not None:
+        judge = scan_geometry(anatomy, subject, n, math.pi, angles=angles, detector_mm=judge_fov).field_of_view()
+        if judge.any():
+            from clgs import metrics as figures
+
+            metrics.update(psnr3d_fov=float(figures.masked_psnr3d(run["volume"], scan.truth, judge)),
+                           ssim3d_fov=float(figures.masked_ssim3d(run["volume"], scan.truth, judge)),
+                           fov_fraction=float(judge.mean()))
     save_volume(out / "runs" / f"{tag}.nii.gz", run["volume"], scan.geometry)
     mesh = bone_surface(run["volume"], scan.geometry, surface_level(anatomy, scan.truth))
     surf = None if mesh is None else save_mesh(out / "runs" / f"{tag}.stl", mesh.vertices, mesh.faces)
@@ -249,7 +328,11 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
         sd = surface_distance(run["model_surface"], scan.surface)
         metrics.update({f"model_surface_{k}_mm": x for k, x in sd.items()})
         save_mesh(out / "runs" / f"{tag}_model.stl", *run["model_surface"])
+    reconstruction_figure(out / "runs" / f"{tag}_surface.png", anatomy, scan, run["volume"], run["model_surface"],
+                          mesh=mesh, title=f"{subject_id}, {views_label(v)}, {METHOD_LABELS[method]}")
     row = {"subject": subject_id, "views": v, "method": method, "seconds": run["seconds"], **made_with,
+           "angles_deg": [round(math.degrees(a), 6) for a in scan.geometry.angles],
+           "jacobian_min": run["jacobian_min"],
            **{k: (float(x) if isinstance(x, (int, float, np.floating)) else x) for k, x in metrics.items()},
            "surface_file": None if surf is None else str(surf),
            "history": [{k: r.get(k) for k in ("iteration", "seconds", "psnr3d", "ssim3d")}
@@ -267,9 +350,13 @@ def summarise(rows, views, ablation_views, failed=None) -> dict:
             sel = [r for r in rows if r["views"] == v and r["method"] == m]
             out["per_method"][f"{v}/{m}"] = {
                 k: float(np.mean([r[k] for r in sel if r.get(k) is not None]))
-                for k in ("psnr3d", "ssim3d", "surface_mean_mm", "surface_p95_mm", "model_surface_mean_mm",
-                          "model_surface_p95_mm", "seconds")
+                for k in ("psnr3d", "ssim3d", "psnr3d_fov", "ssim3d_fov", "surface_mean_mm", "surface_p95_mm",
+                          "surface_hausdorff_mm",
+                          "model_surface_mean_mm", "model_surface_p95_mm", "model_surface_hausdorff_mm", "seconds")
                 if any(r.get(k) is not None for r in sel)}
+            jac = [r["jacobian_min"] for r in sel if r.get("jacobian_min") is not None]
+            if jac:  # the worst subject: the deformation must never fold (> 0)
+                out["per_method"][f"{v}/{m}"]["jacobian_min"] = float(np.min(jac))
         a = {r["subject"]: r["psnr3d"] for r in rows if r["views"] == v and r["method"] == "shape"}
         b = {r["subject"]: r["psnr3d"] for r in rows if r["views"] == v and r["method"] == "r2gs"}
         common = sorted(set(a) & set(b))
@@ -283,13 +370,31 @@ def summarise(rows, views, ablation_views, failed=None) -> dict:
 def write_reports(out: Path, rows, summary, views, ablation_views) -> None:
     from clgs.io import atomic
 
-    keys = ["subject", "views", "method", "psnr3d", "ssim3d", "surface_mean_mm", "surface_p95_mm",
-            "model_surface_mean_mm", "model_surface_p95_mm", "seconds", "iterations"]
-    lines = [",".join(keys)] + [",".join("" if r.get(k) is None else str(r.get(k)) for k in keys) for r in rows]
+    keys = ["subject", "views", "method", "psnr3d", "ssim3d", "psnr3d_fov", "ssim3d_fov", "surface_mean_mm",
+            "surface_p95_mm",
+            "surface_hausdorff_mm", "model_surface_mean_mm", "model_surface_p95_mm", "model_surface_hausdorff_mm",
+            "jacobian_min", "seconds", "iterations", "detector_fov_mm"]
+    def cell(x):
+        return "" if x is None else ("x".join(f"{v:g}" for v in x) if isinstance(x, list) else str(x))
+
+    lines = [",".join(keys)] + [",".join(cell(r.get(k)) for k in keys) for r in rows]
     atomic.write_text(out / "results.csv", "\n".join(lines) + "\n")
     atomic.write_text(out / "table.md", markdown_tables(rows, summary, views, ablation_views))
     atomic.write_json(out / "summary.json", summary)
     plot_curves(out / "curves.png", rows, views)
+
+
+def views_label(v) -> str:
+    """'5 views' for a count over 180 degrees; a clinical set by its name and angles."""
+    if isinstance(v, (int, np.integer)) or str(v).isdigit():
+        return f"{v} views"
+    if "-fov" in str(v):
+        base, mm = str(v).rsplit("-fov", 1)
+        return f"{views_label(int(base) if base.isdigit() else base)}, {mm} mm detector"
+    from clgs.anatomy.views import view_set
+
+    vs = view_set(v) if not str(v).startswith("deg") else None
+    return f"{v} ({', '.join(f'{d:g}' for d in vs.degrees)} deg)" if vs is not None else str(v)
 
 
 def markdown_tables(rows, summary, views, ablation_views) -> str:
@@ -299,7 +404,7 @@ def markdown_tables(rows, summary, views, ablation_views) -> str:
     subjects = sorted({r["subject"] for r in rows})
     text = ["## 3D PSNR (dB) / SSIM per held-out subject", ""]
     methods = [m for m in ("fdk", "r2gs", "shape") if any(r["method"] == m for r in rows)]
-    head = "| subject | " + " | ".join(f"{METHOD_LABELS[m]} {v}v" for v in views for m in methods) + " |"
+    head = "| subject | " + " | ".join(f"{METHOD_LABELS[m]} {views_label(v)}" for v in views for m in methods) + " |"
     text += [head, "|" + "---|" * (1 + len(views) * len(methods))]
     for s in subjects + ["mean"]:
         cells = []
@@ -315,22 +420,38 @@ def markdown_tables(rows, summary, views, ablation_views) -> str:
     text += ["", "## Mean surface distance (mm) and run time (s)", "",
              "Volume surface: the outer bone surface of the reconstructed volume. Model surface: the "
              "template carried by the fitted shape coefficients (shape-guided only).", "",
-             "| views | method | volume surface mean / p95 | model surface mean / p95 | seconds |",
-             "|---|---|---|---|---|"]
+             "| views | method | volume surface mean / p95 / Hausdorff | model surface mean / p95 / Hausdorff | "
+             "min det J | seconds |",
+             "|---|---|---|---|---|---|"]
     for v in views:
         for m in methods:
             pm = summary["per_method"].get(f"{v}/{m}", {})
-            text.append(f"| {v} | {METHOD_LABELS[m]} | {fmt(pm.get('surface_mean_mm'))} / "
-                        f"{fmt(pm.get('surface_p95_mm'))} | {fmt(pm.get('model_surface_mean_mm'))} / "
-                        f"{fmt(pm.get('model_surface_p95_mm'))} | {fmt(pm.get('seconds'), 0)} |")
+            text.append(f"| {views_label(v)} | {METHOD_LABELS[m]} | {fmt(pm.get('surface_mean_mm'))} / "
+                        f"{fmt(pm.get('surface_p95_mm'))} / {fmt(pm.get('surface_hausdorff_mm'))} | "
+                        f"{fmt(pm.get('model_surface_mean_mm'))} / {fmt(pm.get('model_surface_p95_mm'))} / "
+                        f"{fmt(pm.get('model_surface_hausdorff_mm'))} | {fmt(pm.get('jacobian_min'), 3)} | "
+                        f"{fmt(pm.get('seconds'), 0)} |")
+    if any(r.get("psnr3d_fov") is not None for r in rows):
+        text += ["", "## Inside the detector's field of view (truncated scans)", "",
+                 "3D PSNR / SSIM over the voxels every view measured whole (the rest of the bone was "
+                 "outside the detector in some views).", "", "| views | method | 3D PSNR / SSIM in the field of view |",
+                 "|---|---|---|"]
+        for v in views:
+            for m in methods:
+                pm = summary["per_method"].get(f"{v}/{m}", {})
+                if pm.get("psnr3d_fov") is not None:
+                    text.append(f"| {views_label(v)} | {METHOD_LABELS[m]} | {fmt(pm.get('psnr3d_fov'))} / "
+                                f"{fmt(pm.get('ssim3d_fov'), 3)} |")
     if summary["gain_db"]:
         text += ["", "Shape-guided minus R2-Gaussian, 3D PSNR (dB): " + "; ".join(
-            f"{v} views: mean {g['mean']:+.2f}, worst {g['min']:+.2f}, ahead on {g['subjects_ahead']}/{g['subjects']}"
+            f"{views_label(v)}: mean {g['mean']:+.2f}, worst {g['min']:+.2f}, ahead on "
+            f"{g['subjects_ahead']}/{g['subjects']}"
             for v, g in summary["gain_db"].items())]
     if summary.get("failed"):
         text += ["", "## Failed runs", "", "| run | error |", "|---|---|"]
         text += [f"| {tag} | {err.replace('|', '/')} |" for tag, err in summary["failed"].items()]
-    if ablation_views is not None:
+    if ablation_views is not None and any(f"{ablation_views}/{m}" in summary["per_method"]
+                                          for m in ("init", "init+shape")):
         text += ["", f"## Ablation at {ablation_views} views (mean over subjects)", "",
                  "| variant | 3D PSNR | 3D SSIM | surface mean (mm) | seconds |", "|---|---|---|---|---|"]
         for m in ("init", "init+shape", "shape"):
@@ -368,7 +489,7 @@ def plot_curves(path, rows, views) -> None:
         ax.legend(uniq.values(), uniq.keys(), fontsize=8)
         ax.set_xlabel("training time (s)")
         ax.set_ylabel("3D PSNR (dB)")
-        ax.set_title(f"{v} views")
+        ax.set_title(views_label(v))
         ax.grid(alpha=0.3)
     fig.tight_layout()
     with atomic.atomic_path(path) as tmp:

@@ -217,3 +217,24 @@ def test_offsets_are_honoured(mode):
     rec = fdk(ph.project([ph.ball(centre, 10.0, 0.02)], g), g)
     assert abs(rec[interior(g, 6.0, centre)].mean() / 0.02 - 1) < 0.01
     assert np.abs(rec[~interior(g, 13.0, centre)]).mean() < 0.03 * 0.02
+
+
+def test_a_truncated_detector_leaves_no_rim_inside_its_field_of_view():
+    """A ball wider than the detector (rows cut at both sides): zero-padded filtering leaves the
+    classic bright rim and cupping inside the field of view; rows extended smoothly past the
+    edges (the default for truncated rows) stay close to the untruncated reconstruction."""
+    big = [ph.ball((0.0, 0.0, 0.0), 17.0, 0.02)]
+    g_full = geom("cone")
+    g_cut = geom("cone", nDetector=(56, 24))  # 24 mm across the detector, 16 mm at the isocentre
+    full = fdk(ph.project(big, g_full), g_full)
+    p_cut = ph.project(big, g_cut)
+    from clgs.ct.fdk import is_truncated
+
+    assert is_truncated(p_cut) and not is_truncated(ph.project(big, g_full))
+    fov = g_cut.field_of_view()
+    assert 0.02 < fov.mean() < 0.3 and fov[18, 20, 20] and not fov[18, 20, 2]
+    err_ext = np.abs(fdk(p_cut, g_cut)[fov] - full[fov]).mean()
+    err_zero = np.abs(fdk(p_cut, g_cut, truncation=False)[fov] - full[fov]).mean()
+    assert err_ext < 0.12 * 0.02 and err_ext < 0.2 * err_zero  # measured: 10 % and 72 % of the density
+    # an untruncated scan is filtered as before, bit for bit
+    np.testing.assert_array_equal(fdk(ph.project(big, g_full), g_full, truncation=False), full)

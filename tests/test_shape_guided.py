@@ -1,4 +1,6 @@
 """Shape-guided initialisation and reconstruction on a small synthetic anatomy (an ellipsoid bone)."""
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -297,6 +299,62 @@ def test_experiment_writes_tables_curves_and_resumes(template, shape_model, atla
         run_experiment(anatomy, tmp_path / "x", views=(3,), subjects=["p"], iterations=2)
 
 
+def test_experiment_takes_clinical_view_sets_and_a_truncating_detector(template, shape_model, atlas, tmp_path):
+    from clgs.experiment import run_experiment
+
+    anatomy = _tiny_anatomy(template, shape_model, atlas)
+    small = {k: v for k, v in _small(log_every=5).items() if k != "progress"}
+    settings = {"r2gs": {"n_gaussians": 800, "log_every": 5, "tv_size": 8}, "shape": small}
+    kw = dict(iterations=5, ablation_views=None, progress=False, settings=settings, subjects=["a"],
+              methods=("r2gs", "shape"))
+    summary = run_experiment(anatomy, tmp_path, views=("ap-lat", "0,60,120"), detector_mm=40.0, **kw)
+    rows = [json.loads(p.read_text()) for p in sorted((tmp_path / "runs").glob("*.json"))]
+    sets = ("ap-lat", "ap-lat-fov40", "deg0-60-120", "deg0-60-120-fov40")
+    assert sorted((r["views"], r["method"]) for r in rows) == [(v, m) for v in sets for m in ("r2gs", "shape")]
+    for r in rows:
+        assert r["angles_deg"] == ([0.0, 90.0] if r["views"].startswith("ap-lat") else [0.0, 60.0, 120.0])
+        assert r["detector_fov_mm"] == ([40.0, 40.0] if "fov" in r["views"] else None)
+        assert np.isfinite(r["psnr3d"]) and r["surface_hausdorff_mm"] >= r["surface_p95_mm"] >= 0
+        # whole and truncated scans are both judged inside the truncated one's field of view
+        assert np.isfinite(r["psnr3d_fov"]) and 0 < r["fov_fraction"] < 1
+        png = tmp_path / "runs" / f"a_{r['views']}_{r['method']}_surface.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        if r["method"] == "shape":  # the deformation never folds
+            assert 0 < r["jacobian_min"] and r["model_surface_hausdorff_mm"] > 0
+    frac = {r["views"]: r["fov_fraction"] for r in rows}
+    assert frac["ap-lat"] == frac["ap-lat-fov40"]
+    table = (tmp_path / "table.md").read_text()
+    assert "ap-lat (0, 90 deg)" in table and "ap-lat (0, 90 deg), 40 mm detector" in table
+    assert "Hausdorff" in table and "min det J" in table and "field of view" in table
+    assert set(summary["gain_db"]) == set(sets)
+    # a kept run's record says which detector made it
+    assert json.loads((tmp_path / "runs" / "a_ap-lat-fov40_shape.json").read_text())["detector_fov_mm"] == [40.0] * 2
+
+
+def test_experiment_runs_on_a_folder_of_the_users_surfaces(template, shape_model, atlas, tmp_path):
+    """``--meshes DIR``: each surface file becomes a subject (here the ellipsoid, moved away from
+    the template's frame, made a CT by the generic uniform fill), with the same rows and pictures."""
+    from clgs.cli.anatomy_group import _mesh_folder
+    from clgs.experiment import run_experiment
+    from clgs.io.mesh import save_mesh
+
+    anatomy = _tiny_anatomy(template, shape_model, atlas)
+    (tmp_path / "mine").mkdir()
+    save_mesh(tmp_path / "mine" / "left_one.stl", template.vertices + [2.0, 0.0, -1.0], template.faces)
+    (tmp_path / "mine" / "readme.txt").write_text("not a surface")
+    meshes = _mesh_folder(tmp_path / "mine", "mm")
+    assert list(meshes) == ["left_one"]
+    small = {k: v for k, v in _small(log_every=5).items() if k != "progress"}
+    summary = run_experiment(anatomy, tmp_path / "e", views=("ap-lat",), iterations=5, ablation_views=None,
+                             progress=False, methods=("fdk", "shape"), meshes=meshes,
+                             settings={"shape": small}, echo=lambda *_: None)
+    rows = [json.loads(p.read_text()) for p in sorted((tmp_path / "e" / "runs").glob("*.json"))]
+    assert [(r["subject"], r["method"]) for r in rows] == [("left_one", "fdk"), ("left_one", "shape")]
+    assert all(np.isfinite(r["psnr3d"]) and np.isfinite(r["surface_mean_mm"]) for r in rows)  # 5 iterations: finite
+    assert (tmp_path / "e" / "runs" / "left_one_ap-lat_shape_surface.png").is_file()
+    assert np.isfinite(summary["per_method"]["ap-lat/shape"]["model_surface_mean_mm"])
+
+
 def test_surroundings_share_the_atlas_with_the_bone(template, atlas, tissue_atlas):
     from clgs.shape.initialise import initialise_surroundings
 
@@ -338,7 +396,9 @@ def test_atlas_start_beats_the_fdk_start_at_few_views(template, shape_model, tis
     parts = (template, shape_model, tissue_atlas)
     t_atlas, v_atlas = _start_volume(scan, parts, free_init="atlas", alpha_init_iterations=0)
     t_fdk, v_fdk = _start_volume(scan, parts, free_init="fdk", alpha_init_iterations=0)
-    assert psnr3d(v_atlas, scan.truth) > psnr3d(v_fdk, scan.truth) + 3.0
+    # (the soft-tissue cylinder is wider than this detector: its rows are truncated, and the FDK
+    # start extends them before filtering, which raised it by more than 0.5 dB; measured +2.54 dB)
+    assert psnr3d(v_atlas, scan.truth) > psnr3d(v_fdk, scan.truth) + 2.0
     # the free set starts outside the bone in both cases
     for t in (t_atlas, t_fdk):
         free = t.sets[1].to_numpy()

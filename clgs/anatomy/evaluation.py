@@ -4,11 +4,12 @@ shared by ``clgs <anatomy> ...``, :mod:`clgs.experiment` and :mod:`clgs.methods.
 from __future__ import annotations
 from clgs.errors import InputError
 
-__all__ = ["surface_level", "bone_mask", "bone_surface", "evaluate_volume"]
+__all__ = ["surface_level", "bone_mask", "bone_surface", "evaluate_volume", "truncated_field_of_view"]
 
 
 def surface_level(anatomy, truth) -> float:
-    """The bone iso-level: ``scene['surface_level']`` or the upper of 3-class Otsu thresholds."""
+    """The bone iso-level: ``scene['surface_level']`` or the upper of 3-class Otsu thresholds (Otsu's
+    threshold for a truth of two values; a ValueError for a constant one)."""
     level = (anatomy.scene or {}).get("surface_level")
     if level is not None:
         return float(level)
@@ -16,7 +17,15 @@ def surface_level(anatomy, truth) -> float:
     from skimage.filters import threshold_multiotsu
 
     t = np.asarray(truth, np.float32)
-    return float(threshold_multiotsu(t[:: max(1, t.shape[0] // 64)], classes=3)[-1])
+    sub = t[:: max(1, t.shape[0] // 64)]
+    try:
+        return float(threshold_multiotsu(sub, classes=3)[-1])
+    except ValueError:  # two values only (a surface filled with one density): bone against air
+        from skimage.filters import threshold_otsu
+
+        if float(sub.min()) == float(sub.max()):
+            raise
+        return float(threshold_otsu(sub))
 
 
 def bone_mask(volume, level: float, min_piece: float = 0.1):
@@ -56,6 +65,15 @@ def bone_surface(volume, geometry, level: float | None = None):
     return surface_from_volume(mask, geometry=geometry)
 
 
+def truncated_field_of_view(scan):
+    """(Z, Y, X) bool of :meth:`clgs.geometry.Geometry.field_of_view` for a scan simulated with a
+    smaller detector (``meta['acquisition']['detector_fov_mm']``); None for any other scan."""
+    acq = (scan.meta or {}).get("acquisition") or {}
+    if not acq.get("detector_fov_mm"):
+        return None
+    return scan.geometry.field_of_view()
+
+
 def evaluate_volume(anatomy, scan, volume) -> dict:
     """PSNR/SSIM against the scan's truth and, when the scan has the true surface, the surface
     distance (mm) from the reconstruction's outer bone surface (:func:`bone_mask`) to it."""
@@ -70,11 +88,22 @@ def evaluate_volume(anatomy, scan, volume) -> dict:
     out = metrics.volume_figures(vol, scan.truth)
     if out["psnr3d"] is not None:
         out = metrics.evaluate_volume(vol, scan.truth)
+        fov = truncated_field_of_view(scan)
+        if fov is not None and fov.any():
+            # a truncated scan is judged where it measured every line (the whole-volume figures
+            # include bone that no view saw); evaluate an untruncated reconstruction of the same
+            # subject against this scan to compare the two on the same voxels
+            out.update(psnr3d_fov=float(metrics.masked_psnr3d(vol, scan.truth, fov)),
+                       ssim3d_fov=float(metrics.masked_ssim3d(vol, scan.truth, fov)),
+                       fov_fraction=float(fov.mean()))
     if scan.surface is not None:
         from clgs.mesh.surface import SurfaceError
 
-        level = surface_level(anatomy, scan.truth)
         try:
+            try:
+                level = surface_level(anatomy, scan.truth)
+            except ValueError as exc:  # a truth with fewer than three values has no bone level
+                raise SurfaceError(f"no bone level in the truth ({exc})") from None
             mesh = bone_surface(vol, scan.geometry, level)
             if mesh is None:
                 raise SurfaceError(f"no bone surface: no voxel of the reconstruction is above the level {level:.4g} "

@@ -15,6 +15,38 @@ from clgs.mesh.voxels import as_grid, mesh_to_label, signed_distance
 from clgs.errors import InputError
 
 
+#: version of :meth:`SurfacePopulation.population_fit`'s record (a new one is computed when it changes)
+FIT_VERSION = 1
+
+#: length units a surface file may be in, and their size in mm
+UNIT_NAMES = {"millimetres": 1.0, "centimetres": 10.0, "metres": 1000.0, "inches": 25.4}
+_UNIT_KEYS = {"mm": "millimetres", "cm": "centimetres", "m": "metres", "in": "inches"}
+
+
+def unit_key(name: str) -> str:
+    return {v: k for k, v in _UNIT_KEYS.items()}[name]
+
+
+def unit_factor(units: str) -> float:
+    """mm per unit of ``units`` ("mm", "cm", "m", "in")."""
+    if units not in _UNIT_KEYS:
+        raise InputError(f"units {units!r}: give one of {', '.join(_UNIT_KEYS)}")
+    return UNIT_NAMES[_UNIT_KEYS[units]]
+
+
+def surface_length(vertices) -> float:
+    """A surface's length (mm) along its longest principal axis: the same in any frame."""
+    from clgs.anatomy.alignment import principal_axes
+
+    p = np.asarray(vertices, float)
+    return float(np.ptp(p @ principal_axes(p)[:, 0]))
+
+
+def _limb_reaches_border(tissue) -> bool:
+    """Whether anything but air touches the grid's sides across the leg (x and y faces)."""
+    return bool(tissue[:, :, 0].any() or tissue[:, :, -1].any() or tissue[:, 0, :].any() or tissue[:, -1, :].any())
+
+
 def cache_dir() -> str:
     """Where clgs keeps built models: ``$CLGS_CACHE_DIR``, else ``$XDG_CACHE_HOME/clgs``, else
     ``~/.cache/clgs``."""
@@ -251,67 +283,146 @@ class SurfacePopulation:
         """Rigidly align a user's surface (any frame, mm; left or right) to the template:
         returns (vertices, faces in the anatomy frame, Alignment)."""
         tv, _ = self.template_mesh()
-        al = align_rigid(vertices, tv, allow_mirror=allow_mirror)
+        al = align_rigid(vertices, tv, allow_mirror=allow_mirror, allow_scale=True)
         v, f = al.apply_mesh(vertices, faces)
         return v, f, al
 
     def _template_length(self) -> float:
         tv, _ = self.template_mesh()
-        return float(np.max(np.ptp(np.asarray(tv, float), axis=0)))
+        return surface_length(tv)
 
     def check_mesh_size(self, vertices, path) -> None:
-        """Refuse a surface whose size says wrong units (metres, cm) or a different object: its
-        longest side must lie within a factor of 3 of the template's."""
-        length = float(np.max(np.ptp(np.asarray(vertices, float), axis=0)))
+        """Refuse a surface whose size says wrong units (metres, centimetres, inches) or a different
+        object: its longest side must lie within a factor of 3 of the template's. The message names
+        the unit that would make it a plausible size (0.6 to 1.5 times the template's length) and
+        the ``units`` option (``--units``) that rescales it."""
+        length = surface_length(vertices)
         ref = self._template_length()
         if not (ref / 3 <= length <= ref * 3):
             hint = ""
-            for unit, factor in (("metres", 1000.0), ("centimetres", 10.0)):
-                if ref / 3 <= length * factor <= ref * 3:
-                    hint = f"; it looks like {unit}: scale it by {factor:g} to millimetres"
+            for unit, factor in UNIT_NAMES.items():
+                if factor != 1.0 and 0.6 * ref <= length * factor <= 1.5 * ref:
+                    hint = (f"; it looks like {unit}: scale it by {factor:g} to millimetres, or give "
+                            f"--units {unit_key(unit)} (units={unit_key(unit)!r} in Python)")
             raise InputError(f"{os.fspath(path)}: the surface is {length:.4g} units long, a {self.name} of this "
                              f"population about {ref:.0f} mm{hint}")
 
-    def plausible_rms_mm(self) -> float:
-        """The alignment RMS beyond which a surface is unlike this population's: 3 % of the
-        template's length, at least 10 mm (real femurs align within about 2.5 mm, a box of the
-        same size about 100 mm)."""
-        return max(10.0, 0.03 * self._template_length())
+    def population_fit(self) -> dict:
+        """How the population's own surfaces fit the template, measured as a user's surface is
+        (:func:`align_rigid` with scale): ``shape_rms_mm`` per subject and the range of lengths.
+        Kept in the cache folder beside the model (about 20 s to compute)."""
+        import json
 
-    def subject_from_mesh(self, path, seed: int = 0, align: bool = True, sid: str | None = None, echo=print):
-        """A simulated CT subject from a mesh file (STL/PLY/OBJ/npz, mm, either side, any frame),
+        path = os.path.join(cache_dir(), "models", f"{self.name}-{self.settings_hash()}-fit{FIT_VERSION}.json")
+        if os.path.isfile(path):
+            try:
+                with open(path) as fh:
+                    return json.load(fh)
+            except (OSError, ValueError):
+                pass
+        tv, _ = self.template_mesh()
+        rms, lengths = {}, {}
+        for sid in self.population():
+            v, _ = self.mesh(sid)
+            rms[sid] = align_rigid(v, tv, allow_mirror=False, allow_scale=True).shape_rms_mm
+            lengths[sid] = surface_length(v)
+        out = {"shape_rms_mm": rms, "length_mm": lengths}
+        try:
+            from clgs.io import atomic
+
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+            atomic.write_json(path, out)
+        except OSError:
+            pass
+        return out
+
+    def plausible_rms_mm(self) -> float:
+        """The shape residual (alignment RMS with the size set aside) beyond which a surface is
+        unlike this population's: twice the worst of the population's own (LLP26 femurs: 2.2-4 mm;
+        a box of a femur's size: about 80 mm)."""
+        return 2.0 * max(self.population_fit()["shape_rms_mm"].values())
+
+    def subject_grid(self, vertices, xy_margin_mm: float = 45.0, z_margin_mm: float = 10.0):
+        """The CT grid of a subject: the template's grid, grown by whole voxels on both sides (its
+        voxel centres stay on the template's lattice and its centre on the rotation axis) until it
+        holds the surface with ``z_margin_mm`` along the leg and ``xy_margin_mm`` across it (room
+        for the limb)."""
+        from clgs.geometry import Grid
+
+        g = self.grid
+        sp = np.asarray(g.spacing, float)  # (x, y, z)
+        n = np.asarray(g.shape[::-1])  # (x, y, z)
+        half = 0.5 * (n - 1) * sp
+        centre = np.asarray(g.origin, float) + half
+        v = np.asarray(vertices, float) - centre
+        need = np.max(np.abs(v), axis=0) + np.array([xy_margin_mm, xy_margin_mm, z_margin_mm])
+        grow = np.maximum(0, np.ceil((need - half) / sp)).astype(int)
+        n2 = n + 2 * grow
+        return Grid(tuple(int(x) for x in n2[::-1]), tuple(centre - 0.5 * (n2 - 1) * sp), tuple(sp))
+
+    def subject_from_mesh(self, path, seed: int = 0, align: bool = True, sid: str | None = None, echo=print,
+                          units: str = "mm"):
+        """A simulated CT subject from a mesh file (STL/PLY/OBJ/npz, either side, any frame),
         rigidly aligned to the template first (the fit is reported through ``echo``; None for
-        silence): (Subject, Alignment or None)."""
+        silence): (Subject, Alignment or None).
+
+        ``units``: the file's length unit ("mm", "cm", "m", "in"); a size that says another unit
+        than the one given is refused (:meth:`check_mesh_size`). The CT grid follows the subject
+        (:meth:`subject_grid`): any length is simulated with its own size, while the shape model and
+        atlas stay on the template's grid. A surface whose shape (size set aside) fits the template
+        far worse than the population's own is warned about, with both numbers, before the CT is
+        made."""
         import os
 
         from clgs.io.mesh import load_mesh
         from clgs.shape.template import Subject
 
+        factor = unit_factor(units)
         v, f = load_mesh(path)
+        v = np.asarray(v, float) * factor
         check_mesh(v, f, closed=True)
         self.check_mesh_size(v, path)
         al = None
         if align:
             v, f, al = self.align_mesh(v, f)
+            fit = self.population_fit()
             limit = self.plausible_rms_mm()
-            if al.rms_mm > limit:
+            worst = max(fit["shape_rms_mm"].values())
+            if al.shape_rms_mm > limit:
                 import warnings
 
-                warnings.warn(f"{os.fspath(path)} fits the {self.name} template poorly: {al.rms_mm:.1f} mm RMS after "
-                              f"alignment, where the {self.name}s of this population fit within {limit:.1f} mm; "
-                              f"it may not be a {self.name} (its simulated CT and any prior will be wrong)",
-                              stacklevel=2)
+                warnings.warn(f"{os.fspath(path)} fits the {self.name} template poorly: its shape is "
+                              f"{al.shape_rms_mm:.1f} mm RMS from the template after alignment (size set aside), "
+                              f"where this population's {self.name}s lie within {worst:.1f} mm (warned beyond "
+                              f"{limit:.1f} mm); it may not be a {self.name} (its simulated CT and any prior "
+                              "will be wrong)", stacklevel=2)
             if echo is not None:
+                lengths = list(fit["length_mm"].values())
+                length = surface_length(v)
+                side = " (beyond the population's lengths: the shape model extrapolates)" if not (
+                    min(lengths) <= length <= max(lengths)) else ""
                 echo(f"aligned {os.fspath(path)} to the {self.name} template: "
                      f"{'mirrored (other side), ' if al.mirrored else ''}RMS {al.rms_mm:.2f} mm after "
-                     f"{al.iterations} ICP iterations\nrotation:\n"
+                     f"{al.iterations} ICP iterations; shape {al.shape_rms_mm:.2f} mm RMS at the template's size "
+                     f"(population: up to {worst:.2f} mm); length {length:.0f} mm, {1.0 / al.scale:.3f} x the "
+                     f"template's (population: {min(lengths):.0f}-{max(lengths):.0f} mm){side}\nrotation:\n"
                      + np.array2string(al.rotation, precision=4, suppress_small=True)
                      + "\ntranslation (mm): " + np.array2string(al.translation, precision=2))
-        ph = make_phantom(v, f, self.grid, self.params, seed=seed)
+        grid = self.subject_grid(v)
+        for attempt in range(1, 5):  # grown until the limb has air around it
+            ph = make_phantom(v, f, grid, self.params, seed=seed)
+            if not _limb_reaches_border(ph.tissue):
+                break
+            grid = self.subject_grid(v, xy_margin_mm=45.0 + 30.0 * attempt)
         g = ph.grid
-        meta = {"anatomy": self.name, "seed": int(seed), "source": os.path.abspath(os.fspath(path))}
+        meta = {"anatomy": self.name, "seed": int(seed), "source": os.path.abspath(os.fspath(path)),
+                "units": units, "unit_factor": factor,
+                "grid": {"shape_zyx": list(g.shape), "origin_xyz": list(g.origin), "spacing_xyz": list(g.spacing)},
+                "template_grid": tuple(g.shape) == tuple(self.grid.shape)}
         if al is not None:
-            meta.update(mirrored=bool(al.mirrored), rms_mm=al.rms_mm, matrix=al.matrix.tolist())
+            meta.update(mirrored=bool(al.mirrored), rms_mm=al.rms_mm, matrix=al.matrix.tolist(),
+                        shape_rms_mm=al.shape_rms_mm, size_vs_template=1.0 / al.scale,
+                        length_mm=surface_length(v))
         subj = Subject(sid or os.path.splitext(os.path.basename(os.fspath(path)))[0], v, f, volume=ph.volume,
                        spacing=tuple(g.spacing[::-1]), origin=tuple(g.origin[::-1]), meta=meta)
         return subj, al

@@ -98,6 +98,23 @@ def _evaluate(anatomy, scan, volume, folder=None) -> dict:
     return out
 
 
+def _surface_picture(anatomy, scan, volume, folder) -> None:
+    """FOLDER/surface_distance.png: the reconstruction's bone surface (and a shape-guided run's
+    model surface) coloured by distance to the truth, when the scan has a true surface."""
+    from clgs.anatomy.surface_figure import reconstruction_figure
+
+    model = os.path.join(folder, "shape_surface.stl")
+    model_mesh = None
+    if os.path.isfile(model):
+        from clgs.io.mesh import load_mesh
+
+        model_mesh = load_mesh(model)
+    png = reconstruction_figure(os.path.join(folder, "surface_distance.png"), anatomy, scan, volume, model_mesh,
+                                title=f"{anatomy.name} {scan.meta.get('subject', '')}".strip())
+    if png:
+        click.echo(f"  surface picture        {png}")
+
+
 def default_method(anatomy) -> str:
     return "shape" if anatomy.load_shape_model is not None else "r2gs"
 
@@ -205,6 +222,53 @@ def _echo_metrics(m: dict):
             click.echo(f"  {k:22s} {v}")
 
 
+def _view_set_option(text):
+    """``--angles``: None, or a :class:`clgs.anatomy.views.ViewSet` (a usage error otherwise)."""
+    if text is None:
+        return None
+    from clgs.anatomy.views import CLINICAL_SETS, parse_degrees, view_set
+
+    try:
+        return view_set(text if text in CLINICAL_SETS else ",".join(str(d) for d in parse_degrees(text)) + ",")
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--angles")
+
+
+def _detector_option(text):
+    """``--detector-mm``: None or (V, U) mm at the isocentre (a usage error otherwise)."""
+    if text is None:
+        return None
+    import math
+
+    try:
+        vals = [float(x) for x in str(text).split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) not in (1, 2) or not all(math.isfinite(v) and v > 0 for v in vals):
+        raise click.BadParameter(f"{text!r}: give one or two positive sizes in mm, e.g. 300 or 300,300",
+                                 param_hint="--detector-mm")
+    return (vals[0], vals[-1])
+
+
+MESH_SUFFIXES = (".stl", ".ply", ".obj", ".off", ".npz")
+
+
+def _mesh_folder(folder, units: str) -> dict:
+    """{id (file stem): (path, units)} of the surface files in ``folder``, sorted; a usage error
+    when there is none or two share a stem."""
+    files = sorted(p for p in os.listdir(folder) if p.lower().endswith(MESH_SUFFIXES)
+                   and os.path.isfile(os.path.join(folder, p)))
+    if not files:
+        raise click.BadParameter(f"{folder} holds no surface file ({', '.join(MESH_SUFFIXES)})", param_hint="--meshes")
+    out = {}
+    for name in files:
+        stem = os.path.splitext(name)[0]
+        if stem in out:
+            raise click.BadParameter(f"{folder}: two surfaces are called {stem!r}; rename one", param_hint="--meshes")
+        out[stem] = (os.path.join(folder, name), units)
+    return out
+
+
 # --------------------------------------------------------------------------------------- group
 def _simulate_command(anatomy) -> click.Command:
     """``clgs <anatomy> simulate``."""
@@ -213,7 +277,8 @@ def _simulate_command(anatomy) -> click.Command:
 
     @click.command(cls=AnatomyCommand)
     @click.option("--subject", "subject_id", help="subject id (held-out ones: see `info`)")
-    @click.option("--mesh", type=click.Path(exists=True, dir_okay=False), help="a surface file (mm) instead")
+    @click.option("--mesh", type=click.Path(exists=True, dir_okay=False),
+                  help="a surface file instead (mm, or see --units; either side, any frame)")
     @click.option("--out", required=True, type=click.Path(file_okay=False), help="scan folder to write")
     @click.option("--views", default=int(scene.get("n_views", 50)), show_default=True, type=click.IntRange(min=1),
                   help="number of projections")
@@ -222,6 +287,14 @@ def _simulate_command(anatomy) -> click.Command:
     @click.option("--geometry", "geometry_file", type=click.Path(exists=True, dir_okay=False), default=None,
                   help="scanner and views from a geometry JSON (TIGRE names or per-view 'vectors', world mm; "
                        "docs/formats.md) instead of --views and --arc; the subject's grid replaces its volume")
+    @click.option("--angles", default=None, metavar="DEG,DEG,...",
+                  help="explicit view angles in degrees, e.g. 0,90 (lateral + AP), 0,45,90, or a named set: "
+                       "ap-lat, ap-oblique-lat, carm5 (5 views over 90); replaces --views/--arc")
+    @click.option("--detector-mm", default=None, metavar="MM[,MM]",
+                  help="a smaller detector: its field of view at the isocentre in mm (V,U, or one number for a "
+                       "square), e.g. 300 for a C-arm; the bone beyond it is truncated [default: sees it whole]")
+    @click.option("--units", type=click.Choice(["mm", "cm", "m", "in"]), default="mm", show_default=True,
+                  help="length unit of the --mesh file (rescaled to mm)")
     @click.option("--noise/--no-noise", default=True, show_default=True, help="Poisson + electronic noise")
     @click.option("--seed", type=Seed(), default=0, show_default=True, help="noise seed, 0 to 2**64 - 1")
     @click.option("--force", is_flag=True, help="replace an existing scan folder")
@@ -229,24 +302,31 @@ def _simulate_command(anatomy) -> click.Command:
                   help="fine: projections from a grid twice as fine as the reconstruction grid; same: on the "
                        "reconstruction grid itself (R2-Gaussian's protocol, flatters FDK and SART)")
     @click.option("--overwrite", "force_alias", is_flag=True, hidden=True)  # the flag's earlier name
-    def simulate(subject_id, mesh, out, views, arc, geometry_file, noise, seed, force, force_alias, protocol):
+    def simulate(subject_id, mesh, out, views, arc, geometry_file, angles, detector_mm, units, noise, seed, force,
+                 force_alias, protocol):
         """Simulate a CT scan of a subject (default: the first held-out one) or of a surface file."""
         import math
 
         if subject_id and mesh:
             raise click.UsageError("give --subject or --mesh, not both")
+        if units != "mm" and not mesh:
+            raise click.UsageError("--units is the unit of a --mesh file")
+        view_set = _view_set_option(angles)
+        fov = _detector_option(detector_mm)
         if geometry_file:
             ctx = click.get_current_context()
-            given = [f"--{p}" for p in ("views", "arc")
+            given = [f"--{p.replace('_', '-')}" for p in ("views", "arc", "angles", "detector_mm")
                      if ctx.get_parameter_source(p) == click.core.ParameterSource.COMMANDLINE]
             if given:
-                raise click.UsageError(f"--geometry gives the views: leave out {' and '.join(given)}")
+                raise click.UsageError(f"--geometry gives the views and the detector: leave out {' and '.join(given)}")
             views = _geometry_views(geometry_file)
+        if view_set is not None:
+            views = view_set.n_views
         _check_scan_memory(anatomy, views)
         if mesh:
             from clgs.anatomy.simulation import subject_from_mesh_file
 
-            subject = subject_from_mesh_file(anatomy, mesh, seed=seed)
+            subject = subject_from_mesh_file(anatomy, mesh, seed=seed, units=units)
         else:
             if not subject_id:
                 held = _need(anatomy, "test_subjects", "pick a held-out subject")()
@@ -255,14 +335,20 @@ def _simulate_command(anatomy) -> click.Command:
                 subject_id = held[0]
             subject = _load_subject(anatomy, subject_id)
         scan = _simulate(anatomy, subject, views, math.radians(arc), noise, seed, protocol=protocol,
-                         geometry_file=geometry_file)
+                         geometry_file=geometry_file, angles=None if view_set is None else view_set.radians,
+                         detector_mm=fov)
         try:
             scan.save(out, overwrite=force or force_alias)
         except FileExistsError:
             raise click.ClickException(f"{out} exists: pass --force to replace it")
-        how = f"from {geometry_file}" if geometry_file else f"over {arc:g} deg"
-        click.echo(f"{name}: subject {subject.id} -> {out} ({scan.n_views} views {how}, "
-                   f"{'noisy' if noise else 'noiseless'})")
+        if geometry_file:
+            what = f"{scan.n_views} views from {geometry_file}"
+        else:
+            what = view_set.describe() if view_set is not None else f"{views} views over {arc:g} deg"
+        g = scan.geometry
+        click.echo(f"{name}: subject {subject.id} -> {out} ({what}, {'noisy' if noise else 'noiseless'}; "
+                   f"grid {' x '.join(str(n) for n in g.nVoxel)} voxels, detector {g.nDetector[0]} x "
+                   f"{g.nDetector[1]} pixels{' (truncated field of view)' if fov is not None else ''})")
 
     return simulate
 
@@ -315,6 +401,7 @@ def _reconstruct_command(anatomy) -> click.Command:
         click.echo(f"{name}: {method} reconstruction of {scan.n_views} views in {seconds:.1f} s -> {out}")
         if scan.truth is not None and "volume" in result:
             _echo_metrics(_evaluate(anatomy, scan, result["volume"], out))
+            _surface_picture(anatomy, scan, result["volume"], out)
         exit_if_interrupted(result.get("info"))
 
     return reconstruct
@@ -446,6 +533,7 @@ def _demo_command(anatomy) -> click.Command:
                     f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
         click.echo(f"reconstructed in {elapsed:.1f} s; final error:")
         _echo_metrics(_evaluate(anatomy, scan, result["volume"], os.path.join(work, "recon")))
+        _surface_picture(anatomy, scan, result["volume"], os.path.join(work, "recon"))
         from clgs.bench.train import peak_memory_mib
 
         click.echo(f"peak resident memory: {peak_memory_mib():.0f} MiB")
@@ -463,6 +551,17 @@ def _experiment_command(anatomy) -> click.Command:
     @click.option("--views", multiple=True, type=click.IntRange(min=1),
                   help="view counts, e.g. --views 5 10 [default: 5 10]")
     @click.argument("more_views", nargs=-1, type=click.IntRange(min=1), metavar="")
+    @click.option("--view-sets", "view_sets", multiple=True, metavar="SET",
+                  help="clinical view sets, repeatable: ap-lat (0,90: lateral + AP), ap-oblique-lat (0,45,90), "
+                       "carm5 (5 views over a 90-degree C-arm arc), or degrees such as 0,60,120")
+    @click.option("--detector-mm", default=None, metavar="MM[,MM]",
+                  help="every scan with a smaller detector: its field of view at the isocentre (mm), e.g. 300; "
+                       "the bone beyond it is truncated")
+    @click.option("--meshes", type=click.Path(exists=True, file_okay=False), default=None,
+                  help="a folder of your own surfaces (STL/PLY/OBJ/OFF/npz, either side, any frame) to run the "
+                       "protocol on instead of the held-out subjects")
+    @click.option("--units", type=click.Choice(["mm", "cm", "m", "in"]), default="mm", show_default=True,
+                  help="length unit of the --meshes files")
     @click.option("--subjects", default=None, help="comma-separated held-out subject ids [default: all held out]")
     @click.option("--iterations", default=1000, show_default=True, type=click.IntRange(min=1),
                   help="training iterations of every Gaussian run (the README's table: 1000, a few "
@@ -478,14 +577,22 @@ def _experiment_command(anatomy) -> click.Command:
                        "reconstruction grid itself (R2-Gaussian's protocol, flatters FDK and SART)")
     @click.option("--progress/--no-progress", default=True, help="progress bar per run")
     @cohort_options
-    def experiment(views, more_views, subjects, iterations, ablation_views, out, seed, log_every, progress, protocol,
-                   workers, scheduler):
+    def experiment(views, more_views, view_sets, detector_mm, meshes, units, subjects, iterations, ablation_views,
+                   out, seed, log_every, progress, protocol, workers, scheduler):
         """The seed paper's experiment: R2-Gaussian vs shape-guided on every held-out subject,
-        the ablation, error against run time, surfaces; writes table.md, results.csv, curves.png."""
+        the ablation, error against run time, surfaces; writes table.md, results.csv, curves.png.
+        Clinical view sets (--view-sets), a truncating detector (--detector-mm) and your own
+        surfaces (--meshes) run the same protocol."""
         from clgs.experiment import run_experiment
 
         check_cohort_options(workers, scheduler)
-        views = tuple(views) + tuple(more_views) or (5, 10)  # `--views 5 10`: the 10 arrives as an argument
+        views = tuple(views) + tuple(more_views)  # `--views 5 10`: the 10 arrives as an argument
+        sets = [_view_set_option(v) for v in view_sets]
+        views = views + tuple(sets) if (views or sets) else (5, 10)
+        fov = _detector_option(detector_mm)
+        mesh_files = _mesh_folder(meshes, units) if meshes else None
+        if mesh_files and subjects:
+            raise click.UsageError("give --meshes or --subjects, not both")
         ids = [s.strip() for s in subjects.split(",")] if subjects else None
         if ids is not None:
             held = list(anatomy.test_subjects()) if anatomy.test_subjects is not None else []
@@ -499,11 +606,12 @@ def _experiment_command(anatomy) -> click.Command:
         summary = run_experiment(anatomy, out, views=views, subjects=ids, iterations=iterations,
                                  ablation_views=ablation_views or None, seed=seed, progress=progress,
                                  settings={"r2gs": per_run, "shape": per_run}, echo=click.echo,
-                                 workers=workers or None, scheduler=scheduler, simulation=protocol)
+                                 workers=workers or None, scheduler=scheduler, simulation=protocol, detector_mm=fov,
+                                 meshes=mesh_files)
         click.echo(open(os.path.join(out, "table.md")).read())
         for v, g in summary["gain_db"].items():
-            click.echo(f"{v} views: shape-guided minus R2-Gaussian {g['mean']:+.2f} dB (ahead on "
-                       f"{g['subjects_ahead']}/{g['subjects']} subjects)")
+            click.echo(f"{v}{' views' if str(v).isdigit() else ''}: shape-guided minus R2-Gaussian "
+                       f"{g['mean']:+.2f} dB (ahead on {g['subjects_ahead']}/{g['subjects']} subjects)")
         if summary.get("failed"):
             raise click.ClickException(f"{len(summary['failed'])} run(s) failed (listed in {out}/table.md and "
                                        "summary.json); the others are done: run the same command again to retry them")

@@ -146,8 +146,38 @@ def view_weights(geometry: Geometry, short_scan="auto"):
     return step, w
 
 
-def filter_projections(projections, geometry: Geometry, filter="ram-lak", short_scan="auto") -> np.ndarray:
-    """Steps 1-4 of the module docstring: weighted, ramp-filtered projections (n, V, U), float64."""
+#: a row is truncated when its edge pixels hold more than this fraction of the projections' maximum
+TRUNCATION_LEVEL = 0.05
+
+
+def is_truncated(projections, level: float = TRUNCATION_LEVEL) -> bool:
+    """Whether the object reaches past the detector's sides (u): an edge column of some view
+    holds more than ``level`` of the largest line integral."""
+    p = np.asarray(projections)
+    top = float(np.max(p)) if p.size else 0.0
+    edges = max(float(np.max(p[..., 0])), float(np.max(p[..., -1]))) if p.size else 0.0
+    return top > 0 and edges > level * top
+
+
+def extrapolate_rows(p, width: int) -> np.ndarray:
+    """Rows (..., U) extended by ``width`` columns on each side, each edge value rolled off to zero
+    by a half cosine: a truncated object's rows end smoothly, so the ramp filter makes no bright
+    rim at the detector's edge (the classic truncation artefact inside the field of view)."""
+    w = int(width)
+    k = np.arange(1, w + 1, dtype=np.float64)
+    roll = 0.5 * (1.0 + np.cos(np.pi * k / (w + 1)))  # 1 -> 0 away from the edge
+    left = p[..., :1] * roll[::-1]
+    right = p[..., -1:] * roll
+    return np.concatenate([left, p, right], axis=-1)
+
+
+def filter_projections(projections, geometry: Geometry, filter="ram-lak", short_scan="auto",
+                       truncation="auto") -> np.ndarray:
+    """Steps 1-4 of the module docstring: weighted, ramp-filtered projections (n, V, U), float64.
+
+    ``truncation``: ``"auto"`` extends truncated rows (:func:`is_truncated`) past the detector's
+    sides before filtering (:func:`extrapolate_rows`, half a row on each side), ``True`` always,
+    ``False`` never (zero padding)."""
     g = geometry
     require_circular(g)
     p = np.asarray(projections, np.float64)
@@ -163,25 +193,34 @@ def filter_projections(projections, geometry: Geometry, filter="ram-lak", short_
     else:
         spacing = du
     p = p * red[:, None, :]
-    resp, n_pad = ramp_filter(nu, spacing, filter)
+    if truncation not in ("auto", True, False):
+        raise InputError(f"truncation must be 'auto', True or False, got {truncation!r}")
+    ext = 0
+    if truncation is True or (truncation == "auto" and is_truncated(projections)):
+        ext = max(8, nu // 2)
+        p = extrapolate_rows(p, ext)
+    resp, n_pad = ramp_filter(nu + 2 * ext, spacing, filter)
     spec = np.fft.rfft(p, n=n_pad, axis=-1)
     spec *= resp
-    q = np.fft.irfft(spec, n=n_pad, axis=-1)[..., :nu]
+    q = np.fft.irfft(spec, n=n_pad, axis=-1)[..., ext:ext + nu]
     return q * step[:, None, None]
 
 
-def fdk(projections, geometry: Geometry, filter: str = "ram-lak", short_scan="auto", dtype=np.float32) -> np.ndarray:
+def fdk(projections, geometry: Geometry, filter: str = "ram-lak", short_scan="auto", dtype=np.float32,
+        truncation="auto") -> np.ndarray:
     """FDK reconstruction (FBP when ``geometry.mode == "parallel"``): (Z, Y, X) volume, values per mm.
 
     ``projections`` are (n_views, V, U) line integrals. ``filter`` is one of
     ``ram-lak``, ``shepp-logan``, ``cosine``, ``hamming``, ``hann``; ``short_scan`` is ``"auto"``
     (redundancy weights when the angles do not cover a full circle), ``True`` or ``False``.
-    ``dtype=np.float64`` backprojects in double precision.
+    ``dtype=np.float64`` backprojects in double precision. ``truncation``: see
+    :func:`filter_projections` (``"auto"``: rows of an object wider than the detector are extended
+    smoothly before filtering; untruncated scans are filtered exactly as before).
     """
     require_circular(geometry)
     p = check_projections(projections, geometry, neg_tolerance=None, source="fdk")
     name = str(filter).lower()
     if name not in FILTERS:
         raise InputError(f"unknown filter {filter!r}; choose one of {', '.join(FILTERS)}")
-    q = filter_projections(p, geometry, name, short_scan)
+    q = filter_projections(p, geometry, name, short_scan, truncation)
     return backproject(q.astype(np.float64 if dtype == np.float64 else np.float32), geometry).astype(dtype, copy=False)

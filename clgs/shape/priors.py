@@ -73,6 +73,13 @@ class DensityPrior:
         m = F.grid_sample(self._label, g, mode="bilinear", padding_mode="zeros", align_corners=True)
         return m.reshape(-1)
 
+    def _inside_atlas(self, pts_mm: torch.Tensor) -> torch.Tensor:
+        origin = torch.as_tensor(np.asarray(self.atlas.origin[::-1], float), dtype=pts_mm.dtype)
+        extent = torch.as_tensor((np.asarray(self.atlas.shape[::-1]) - 1) * np.asarray(self.atlas.spacing[::-1], float),
+                                 dtype=pts_mm.dtype)
+        rel = pts_mm - origin
+        return ((rel >= 0) & (rel <= extent)).all(dim=-1).to(pts_mm.dtype)
+
     def __call__(self, ctx):
         trainer = ctx.trainer
         s = _set(trainer, self.set_name)
@@ -100,6 +107,11 @@ class DensityPrior:
             mean = mean.float() * self.value_scale
             var = var.float() * self.value_scale ** 2
             w = torch.exp(-var / self.s2)
+            # the atlas says nothing beyond its grid (the template's): where a larger scan (a longer
+            # bone) reaches past it, the field is left to the projections, not pulled to the zeros
+            # the atlas reads there (tested on the scan's points, so a scan on the atlas's grid
+            # gives the same bits as before)
+            w = w * self._inside_atlas(pts_mm)
             if self.field == "shape":
                 w = w * self._inside_template(x_t)
         return (w * (v - mean) ** 2).mean()
