@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from clgs.ops.gaussian_math import covariance, precision, unpack_sym
+from clgs.ops.gaussian_math import covariance, precision
 from clgs.geometry import Geometry
 from clgs.ops.projector import WIDE, WIDTH_ENV, GaussianProjector, ProjectorError, project, project_packed, tile_width
-from clgs.reference.projection import exact_quadrature, project_dense
+from clgs.reference.projection import exact_quadrature, project_dense, ray_min_q
 
 BEAMS = ("cone", "parallel")
 MODES = ("affine", "exact")
@@ -81,16 +81,7 @@ def test_exact_matches_quadrature(beam):
     P = precision(s, q)
     out = project_packed(m, P, d, g, [0], "exact")[0].numpy()
     quad = exact_quadrature(m.numpy(), P, d.numpy(), g, 0)
-    o, r = g.rays(0)
-    Pm = unpack_sym(P).numpy()
-    qs = []
-    for i in range(3):
-        e = o - m[i].numpy()
-        a = np.einsum("vui,ij,vuj->vu", r, Pm[i], r)
-        b = np.einsum("vui,ij,vuj->vu", r, Pm[i], e)
-        w = e - (b / a)[..., None] * r
-        qs.append(np.einsum("vui,ij,vuj->vu", w, Pm[i], w))
-    qs = np.stack(qs)
+    qs = ray_min_q(m.numpy(), P, g, 0)
     clear = (np.abs(qs - 9.0) > 0.3).all(0)
     expect = (quad * (qs <= 9.0)).sum(0)
     assert (expect[clear] > 0).sum() > 50

@@ -323,9 +323,9 @@ def test_gaussian_projector_gives_the_same_bits_on_circular_vectors(beam, mode):
 def test_gaussian_projection_on_a_tilted_detector_matches_the_references(beam):
     """Exact mode against trapezoid integration along every pixel's own ray (geometry.rays), and
     both modes against the dense reference, on a detector turned about all three of its axes."""
-    from clgs.ops.gaussian_math import covariance, precision, unpack_sym
+    from clgs.ops.gaussian_math import covariance, precision
     from clgs.ops.projector import project_packed
-    from clgs.reference.projection import exact_quadrature, project_dense
+    from clgs.reference.projection import exact_quadrature, project_dense, ray_min_q
 
     # parallel beam: rays perpendicular to the detector, so it turns in its own plane only
     g = c_arm(beam, yaw_deg=7.0, roll_deg=11.0, pitch_deg=-9.0) if beam == "cone" else c_arm(beam, 0.0, 11.0, 0.0)
@@ -334,16 +334,7 @@ def test_gaussian_projection_on_a_tilted_detector_matches_the_references(beam):
     for view in (0, 3):
         out = project_packed(m, P, d, g, [view], "exact")[0].numpy()
         quad = exact_quadrature(m.numpy(), P, d.numpy(), g, view)
-        o, r = g.rays(view)
-        Pm = unpack_sym(P).numpy()
-        qs = []
-        for i in range(len(m)):
-            e = o - m[i].numpy()
-            a = np.einsum("vui,ij,vuj->vu", r, Pm[i], r)
-            b = np.einsum("vui,ij,vuj->vu", r, Pm[i], e)
-            w = e - (b / a)[..., None] * r
-            qs.append(np.einsum("vui,ij,vuj->vu", w, Pm[i], w))
-        qs = np.stack(qs)
+        qs = ray_min_q(m.numpy(), P, g, view)
         clear = (np.abs(qs - 9.0) > 0.3).all(0)
         expect = (quad * (qs <= 9.0)).sum(0)
         assert (expect[clear] > 0).sum() > 30

@@ -154,6 +154,23 @@ def exact_quadrature(means, prec, densities, geometry, view, n_steps=2001, n_sig
     return out.reshape(-1, *geometry.nDetector) / geometry.scale
 
 
+def ray_min_q(means, prec, geometry, view):
+    """(N, V, U) float64: each Gaussian's smallest squared Mahalanobis distance along every pixel's
+    ray (over the whole line), the quantity the kernels' 3-sigma cut tests; computed here on its
+    own, in plain NumPy, so tests can apply the cut independently of the kernels."""
+    o, r = geometry.rays(view)
+    P = unpack_sym(torch.as_tensor(prec, dtype=torch.float64)).numpy()
+    mu = np.asarray(means, np.float64)
+    qs = []
+    for i in range(mu.shape[0]):
+        e = o - mu[i]
+        a = np.einsum("vui,ij,vuj->vu", r, P[i], r)
+        b = np.einsum("vui,ij,vuj->vu", r, P[i], e)
+        w = e - (b / a)[..., None] * r
+        qs.append(np.einsum("vui,ij,vuj->vu", w, P[i], w))
+    return np.stack(qs)
+
+
 def project_patches(means, mats, densities, geometry, view, mode="affine", radius=None):
     """One view in plain torch, the fast way: every Gaussian evaluates a (2R+1)^2 patch around its
     projected centre (R from the largest 3-sigma radius) and the patches are summed into the
