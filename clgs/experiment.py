@@ -295,7 +295,8 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
         anatomy = plugins.get_anatomy(anatomy)
     out = Path(out_dir)
     v = views if isinstance(views, str) and not views.isdigit() else int(views)
-    n = v if angles is None else len(angles)
+    # a count's key may carry a truncating detector ("5-fov300"): its views are the count's
+    n = int(str(v).split("-fov")[0]) if angles is None else len(angles)
     tag = f"{subject_id}_{v}_{method.replace('+', '-')}"
     if echo is not None:
         echo(f"{tag}: reconstructing ({METHOD_LABELS[method]}, {views_label(v)})")

@@ -329,6 +329,10 @@ def test_experiment_takes_clinical_view_sets_and_a_truncating_detector(template,
     assert set(summary["gain_db"]) == set(sets)
     # a kept run's record says which detector made it
     assert json.loads((tmp_path / "runs" / "a_ap-lat-fov40_shape.json").read_text())["detector_fov_mm"] == [40.0] * 2
+    # a view count with a truncating detector: the key carries the detector, the scan the count's views
+    run_experiment(anatomy, tmp_path / "count", views=(3,), detector_mm=40.0, **{**kw, "methods": ("r2gs",)})
+    rec = json.loads((tmp_path / "count" / "runs" / "a_3-fov40_r2gs.json").read_text())
+    assert len(rec["angles_deg"]) == 3 and rec["detector_fov_mm"] == [40.0, 40.0]
 
 
 def test_experiment_runs_on_a_folder_of_the_users_surfaces(template, shape_model, atlas, tmp_path):
