@@ -6,6 +6,7 @@ import sys
 
 import numpy as np
 import pytest
+from cli_helpers import run
 from click.testing import CliRunner
 
 from clgs.cli import main
@@ -23,11 +24,6 @@ def ball_volume(n=24, radius=8.0):
     return vol
 
 
-def run(*args, ok=True):
-    res = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
-    if ok:
-        assert res.exit_code == 0, res.output
-    return res
 
 
 @pytest.fixture(scope="module")

@@ -2,7 +2,7 @@
 takes through clgs: DICOM -> simulate -> reconstruct -> DICOM, each at the same world points."""
 import numpy as np
 import pytest
-from click.testing import CliRunner
+from cli_helpers import run
 
 from clgs.io.units import hu_to_mu, mu_to_hu
 from clgs.io.volume import load_volume, save_volume
@@ -13,13 +13,6 @@ ORIGIN = (-120.0, 40.0, 300.0)
 SPACING = (3.0, 2.0, 1.5)  # (Z, Y, X)
 
 
-def run(*args, ok=True):
-    from clgs.cli import main
-
-    res = CliRunner().invoke(main, [str(a) for a in args])
-    if ok:
-        assert res.exit_code == 0, res.output
-    return res
 
 
 @pytest.fixture(scope="module")

@@ -4,12 +4,11 @@ names taken from another module, and the command line starts without torch or py
 The import graph is read from the source (every ``import`` statement, at module level or inside a
 function), so a lazy import counts like any other."""
 import ast
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from cli_helpers import modules_loaded_by_help
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "clgs"
@@ -136,14 +135,7 @@ def test_the_library_below_the_cli_never_imports_click():
 
 
 def test_help_and_import_of_the_cli_load_neither_torch_nor_pyopencl():
-    code = ("import sys\nfrom click.testing import CliRunner\nimport clgs\nimport clgs.cli\n"
-            "r = CliRunner().invoke(clgs.cli.main, ['--help'])\nassert r.exit_code == 0, r.output\n"
-            "heavy = sorted(m for m in ('torch', 'pyopencl', 'numpy') if m in sys.modules)\n"
-            "print(','.join(heavy))\n")
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
-    assert out.returncode == 0, out.stderr
-    loaded = [m for m in out.stdout.strip().split(",") if m in ("torch", "pyopencl")]
+    loaded = modules_loaded_by_help([["--help"]], ("torch", "pyopencl"))
     assert not loaded, f"clgs --help imported {loaded}"
 
 

@@ -4,19 +4,13 @@ import json
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
+from cli_helpers import run
 
-from clgs.cli import main
 from clgs.geometry import Geometry
 from clgs.io.scan import Scan
 from clgs.io.volume import save_volume
 
 
-def run(*args, ok=True):
-    res = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
-    if ok:
-        assert res.exit_code == 0, res.output
-    return res
 
 
 def c_arm_vectors(n_views=5, arc_deg=120.0, dso=300.0, dsd=450.0, pixel=1.5, offset=(6.0, -4.0), yaw_deg=5.0,
