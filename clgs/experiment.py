@@ -46,7 +46,7 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
     """One reconstruction: volume, seconds, error-against-time history and, for the methods bound
     to the shape model, the template surface carried by the fitted alpha."""
     t0 = time.perf_counter()
-    history, model_surface, jac_min = [], None, None
+    history, model_surface, jac_min, model_size = [], None, None, None
     if method == "fdk":
         from clgs.ct.fdk import fdk
 
@@ -68,9 +68,11 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
         model_surface = deformed_template_surface(anatomy[0], res.trainer.sets[0])
         if model_surface is not None and anatomy[1] is not None:  # the deformation must never fold
             jac_min = float(np.min(anatomy[1].jacobian_determinant(res.trainer.sets[0].alpha.detach())))
+        if getattr(res.trainer.sets[0], "fits_size", False):  # a bone beyond the model's sizes
+            model_size = res.trainer.sets[0].size
     seconds = time.perf_counter() - t0
     return {"volume": volume, "seconds": seconds, "history": history,
-            "model_surface": model_surface, "jacobian_min": jac_min}
+            "model_surface": model_surface, "jacobian_min": jac_min, "model_size": model_size}
 
 
 def _made_with(method: str, iterations: int, seed: int, settings: dict, simulation: str = "fine") -> dict:
@@ -333,7 +335,7 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
                           mesh=mesh, title=f"{subject_id}, {views_label(v)}, {METHOD_LABELS[method]}")
     row = {"subject": subject_id, "views": v, "method": method, "seconds": run["seconds"], **made_with,
            "angles_deg": [round(math.degrees(a), 6) for a in scan.geometry.angles],
-           "jacobian_min": run["jacobian_min"],
+           "jacobian_min": run["jacobian_min"], "model_size": run.get("model_size"),
            **{k: (float(x) if isinstance(x, (int, float, np.floating)) else x) for k, x in metrics.items()},
            "surface_file": None if surf is None else str(surf),
            "history": [{k: r.get(k) for k in ("iteration", "seconds", "psnr3d", "ssim3d")}
@@ -374,7 +376,7 @@ def write_reports(out: Path, rows, summary, views, ablation_views) -> None:
     keys = ["subject", "views", "method", "psnr3d", "ssim3d", "psnr3d_fov", "ssim3d_fov", "surface_mean_mm",
             "surface_p95_mm",
             "surface_hausdorff_mm", "model_surface_mean_mm", "model_surface_p95_mm", "model_surface_hausdorff_mm",
-            "jacobian_min", "seconds", "iterations", "detector_fov_mm"]
+            "jacobian_min", "model_size", "seconds", "iterations", "detector_fov_mm"]
     def cell(x):
         return "" if x is None else ("x".join(f"{v:g}" for v in x) if isinstance(x, list) else str(x))
 
@@ -432,6 +434,10 @@ def markdown_tables(rows, summary, views, ablation_views) -> str:
                         f"{fmt(pm.get('model_surface_mean_mm'))} / {fmt(pm.get('model_surface_p95_mm'))} / "
                         f"{fmt(pm.get('model_surface_hausdorff_mm'))} | {fmt(pm.get('jacobian_min'), 3)} | "
                         f"{fmt(pm.get('seconds'), 0)} |")
+    sized = [r for r in rows if r.get("model_size") is not None]
+    if sized:  # bones the shape model was scaled to (clgs.shape.size)
+        text += ["", "Bones fitted at a size beyond the shape model's (times the model's): "
+                 + ", ".join(f"{r['subject']} {views_label(r['views'])} {r['model_size']:.3f}" for r in sized)]
     if any(r.get("psnr3d_fov") is not None for r in rows):
         text += ["", "## Inside the detector's field of view (truncated scans)", "",
                  "3D PSNR / SSIM over the voxels every view measured whole (the rest of the bone was "

@@ -98,11 +98,31 @@ def main(device):
     Kernels run in OpenCL (PoCL or Intel's runtime on the CPU, or any OpenCL GPU). Each
     installed anatomy plugin adds a command group (e.g. ``clgs femur demo``).
     """
+    _plain_warnings()
     if device is not None:
         if not device.strip():
             raise click.BadParameter("give a device index (P:D) or a piece of its name", param_hint="--device")
         # an environment variable, so that subprocesses and cluster workers use the same device
         os.environ["CLGS_DEVICE"] = device.strip()
+
+
+def _plain_warnings() -> None:
+    """clgs's own warnings (about the user's scan, settings or result) print as ``Category: text``:
+    the source line Python would name is in clgs, sometimes generated code (``<string>:8``), and
+    says nothing to the user. Other packages' warnings keep Python's form."""
+    import warnings
+
+    default = warnings.formatwarning
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+    def fmt(message, category, filename, lineno, line=None):
+        ours = (getattr(category, "__module__", "").startswith("clgs") or str(filename).startswith("<")
+                or os.path.abspath(str(filename)).startswith(here + os.sep))
+        if ours:
+            return f"{category.__name__}: {message}\n"
+        return default(message, category, filename, lineno, line)
+
+    warnings.formatwarning = fmt
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -38,6 +38,7 @@ the atlas is converted the same way.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -72,6 +73,7 @@ from clgs.ops.field_sampler import default_sampler
 from clgs.shape.gaussian_set import ShapeGuidedSet
 from clgs.shape.initialise import initialise, initialise_surroundings, sample_surrounding_centres
 from clgs.shape.priors import DensityPrior, random_subgrid, shape_prior_term
+from clgs.shape.size import AUTO_TOLERANCE, search_size, size_centre, stretched_surroundings
 from clgs.errors import InputError
 
 
@@ -99,11 +101,17 @@ class ShapeGuidedConfig(GaussianFitConfig):
     density_prior_field: str = setting("all", "--density-prior-field",
                                        "field held to the atlas: the whole model, or the shape-guided Gaussians inside "
                                        "the bone (the paper)")
+    # a size fitted with alpha (clgs.shape.size): "auto" when the projections say the bone is
+    # beyond the model's sizes (more than 10 % from them), "on" always, "off" never
+    fit_size: str = setting("auto", "--fit-size",
+                            "fit the bone's size with its shape: auto (when the projections show a bone more "
+                            "than 10% larger or smaller than the model's), on, off")
     lambda_shape: float = 1e-4
     lambda_density: float = 0.5
     density_s: float = 0.05
     density_points: int = 32  # sub-grid points per axis for L_density
     lr_alpha: float = 0.1
+    lr_size: float = 0.002  # log-size, with alpha's schedule (0.005 to 10 % in the registration)
     alpha_freeze: int = 50
     lr_density: float = 0.01
     lr_scale: float = 0.005
@@ -111,9 +119,10 @@ class ShapeGuidedConfig(GaussianFitConfig):
 
     CLI = ("iterations", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every",
            "checkpoint_every", "max_gaussians", "n_shape", "n_free", "tau", "shape_prior", "density_prior",
-           "density_prior_field", "free_init", "alpha_init_iterations")
+           "density_prior_field", "free_init", "alpha_init_iterations", "fit_size")
     KIND = "shape-guided"
-    CHOICES = {**GaussianFitConfig.CHOICES, "free_init": ("atlas", "fdk"), "density_prior_field": ("all", "shape")}
+    CHOICES = {**GaussianFitConfig.CHOICES, "free_init": ("atlas", "fdk"), "density_prior_field": ("all", "shape"),
+               "fit_size": ("auto", "on", "off")}
     POSITIVE = GaussianFitConfig.POSITIVE | {"tau", "density_s"}
     AT_LEAST = {**GaussianFitConfig.AT_LEAST, "density_points": 2}
 
@@ -121,10 +130,12 @@ class ShapeGuidedConfig(GaussianFitConfig):
 # ---------------------------------------------------------------------- schedules
 def shape_schedules(cfg: ShapeGuidedConfig, iterations: int, *, free_means: bool) -> dict:
     """The paper's learning rates for the shape set: alpha 0.1 decaying to 1% by the midpoint and
-    frozen for the first ``alpha_freeze`` iterations; density and scale constant; rotation to 10%."""
+    frozen for the first ``alpha_freeze`` iterations (a fitted size the same way from ``lr_size``);
+    density and scale constant; rotation to 10%."""
     half = max(iterations // 2 - cfg.alpha_freeze, 1)
     sched = {
         "alpha": Schedule(cfg.lr_alpha, cfg.lr_alpha * 0.01, half, start=cfg.alpha_freeze, frozen_before_start=True),
+        "log_size": Schedule(cfg.lr_size, cfg.lr_size * 0.01, half, start=cfg.alpha_freeze, frozen_before_start=True),
         "densities": Schedule(cfg.lr_density),
         "scales": Schedule(cfg.lr_scale),
         "quats": Schedule(cfg.lr_rotation, cfg.lr_rotation * 0.1, iterations),
@@ -165,11 +176,13 @@ def field_sampler(backend: str):
     return None
 
 
-def fit_initial_alpha(scan, shape_model, cfg: ShapeGuidedConfig, init, free=None) -> np.ndarray:
-    """alpha of the atlas-based start registered to the projections: the shape set's start
-    ``init`` (a ShapeInit, mm and atlas units) moves with alpha, the free set's start ``free``
-    stays where it is, and only alpha is optimised (L1 + D-SSIM + the shape prior, Adam, one view
-    per iteration, lr ``lr_alpha`` decaying to 10% over ``alpha_init_iterations``).
+def fit_initial_alpha(scan, shape_model, cfg: ShapeGuidedConfig, init, free=None, size=None,
+                      centre_mm=None) -> tuple:
+    """(alpha, size) of the atlas-based start registered to the projections: the shape set's start
+    ``init`` (a ShapeInit, mm and atlas units) moves with alpha (and a size, starting from ``size``
+    about ``centre_mm``, when one is fitted; None otherwise), the free set's start ``free`` stays
+    where it is, and only alpha (and the size) is optimised (L1 + D-SSIM + the shape prior, Adam,
+    one view per iteration, lr ``lr_alpha`` decaying to 10% over ``alpha_init_iterations``).
 
     Why: trained from alpha = 0 with everything else free, the densities and the free Gaussians
     absorb the shape difference within a few dozen iterations and alpha stalls near 0 (femur,
@@ -184,12 +197,13 @@ def fit_initial_alpha(scan, shape_model, cfg: ShapeGuidedConfig, init, free=None
     k = int(cfg.alpha_init_iterations)
     frozen = Schedule(0.0)
     sched = {"alpha": Schedule(cfg.lr_alpha, cfg.lr_alpha * 0.1, k), "densities": frozen, "scales": frozen,
-             "quats": frozen}
+             "quats": frozen, "log_size": Schedule(2.5 * cfg.lr_size, 0.25 * cfg.lr_size, k)}
     bound = ShapeGuidedSet(init.centres, (init.scales * geo.scale).astype(np.float32), init.quats.astype(np.float32),
                            (init.densities * cfg.value_scale).astype(np.float32), shape_model=shape_model,
                            geometry=geo, box=volume_box(geo),
                            scale_bounds=scale_bounds_for(geo, cfg.scale_bounds, cfg.scale_floor), schedules=sched,
-                           name="registration", sampler=field_sampler(cfg.backend))
+                           name="registration", sampler=field_sampler(cfg.backend), size=size,
+                           size_centre_mm=centre_mm)
     for name in ("densities", "scales", "quats"):  # no gradients wanted: a cheaper backward
         bound.params[name].requires_grad_(False)
     sets = [bound]
@@ -203,7 +217,7 @@ def fit_initial_alpha(scan, shape_model, cfg: ShapeGuidedConfig, init, free=None
     trainer = Trainer(sets, geo, projections, losses, iterations=k, backend=Backend(cfg.backend, cfg.projector_mode),
                       render_scale=geo.scale, seed=cfg.seed, log_every=0)
     trainer.fit()
-    return bound.alpha.detach().numpy().copy()
+    return bound.alpha.detach().numpy().copy(), (bound.size if bound.fits_size else None)
 
 
 class _Frozen:
@@ -264,7 +278,7 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
     fsched = r2gs_schedules(iters)
     bounds = scale_bounds_for(geo, cfg.scale_bounds, cfg.scale_floor)
     free_kw = dict(box=box, scale_bounds=bounds, schedules=fsched, name="free", densify=True)
-    free, alpha0 = None, None
+    free, alpha0, size, centre = None, None, None, size_centre(template)
     if state is None:
         init = initialise(template, atlas, geo, cfg.n_shape, tau=cfg.tau, boundary_weight=cfg.boundary_weight,
                           seed=cfg.seed, backend=cfg.backend)
@@ -272,6 +286,12 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
         if new_free and cfg.free_init == "atlas" and atlas is not None:
             outside = initialise_surroundings(init, template, atlas, geo, cfg.n_free, threshold=cfg.init_threshold,
                                               seed=cfg.seed + 1, backend=cfg.backend)
+        if bound:
+            size = choose_size(scan, cfg, init, outside, centre)
+        if size is not None:  # the bone's Gaussians at its size, the tissue along its length
+            init = dataclasses.replace(init, scales=init.scales * size)
+            if outside is not None:
+                outside = dataclasses.replace(outside, centres=stretched_surroundings(outside.centres, centre, size))
         if outside is not None:
             free = GaussianSet(geo.world_to_scene(outside.centres).astype(np.float32),
                                (outside.scales * geo.scale).astype(np.float32), outside.quats.astype(np.float32),
@@ -282,9 +302,10 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
                                     threshold=cfg.init_threshold, density_factor=cfg.density_factor,
                                     seed=cfg.seed + 1, **free_kw)
         if bound and cfg.alpha_init_iterations > 0:
-            alpha0 = fit_initial_alpha(scan, shape_model, cfg, init, free)
+            alpha0, size = fit_initial_alpha(scan, shape_model, cfg, init, free, size=size, centre_mm=centre)
     else:
         n = state["sets"]["shape"]["scales"].shape[0]
+        size = 1.0 if "log_size" in state["sets"]["shape"] else None  # the checkpoint holds its value
         init = None
     if init is not None:
         scales, dens, quats, centres = (init.scales * geo.scale, init.densities * cfg.value_scale, init.quats,
@@ -296,7 +317,8 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
     if bound:
         shape_set = ShapeGuidedSet(centres, scales.astype(np.float32), quats.astype(np.float32),
                                    dens.astype(np.float32), shape_model=shape_model, geometry=geo,
-                                   schedules=sched, alpha=alpha0, sampler=field_sampler(cfg.backend), **common)
+                                   schedules=sched, alpha=alpha0, sampler=field_sampler(cfg.backend), size=size,
+                                   size_centre_mm=centre, **common)
     else:
         shape_set = GaussianSet(geo.world_to_scene(centres).astype(np.float32), scales.astype(np.float32),
                                 quats.astype(np.float32), dens.astype(np.float32), schedules=sched,
@@ -323,14 +345,31 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
     return make_trainer(scan, cfg, sets, losses, out_dir, progress)
 
 
+def choose_size(scan, cfg: ShapeGuidedConfig, init, tissue, centre_mm) -> float | None:
+    """The size the shape set starts from (:func:`clgs.shape.size.search_size`), or None when none
+    is fitted (``fit_size="off"``, or ``"auto"`` and the bone within ``AUTO_TOLERANCE`` of the
+    model's size: then the run is the same as without the search). Without the atlas's tissue
+    around the bone (``tissue`` None) the search would let the bone grow into the tissue it cannot
+    see: ``"auto"`` then fits no size and ``"on"`` starts from the model's size."""
+    if cfg.fit_size == "off" or (tissue is None and cfg.fit_size == "auto"):
+        return None
+    if tissue is None:
+        return 1.0
+    best, _ = search_size(scan, Backend(cfg.backend, cfg.projector_mode), cfg.value_scale, init, tissue, centre_mm)
+    if cfg.fit_size == "auto" and abs(best - 1.0) <= AUTO_TOLERANCE:
+        return None
+    return best
+
+
 def deformed_template_surface(template, shape_set) -> tuple:
-    """The template surface carried onto the subject by the fitted alpha: (vertices mm, faces)."""
+    """The template surface carried onto the subject by the fitted alpha (and size): (vertices mm,
+    faces)."""
     if not isinstance(shape_set, ShapeGuidedSet):
         return None
     with torch.no_grad():
         u = shape_set.shape_model.displacement(shape_set.alpha.detach())
         v = torch.as_tensor(template.vertices, dtype=torch.float32)
-        moved = v + shape_set.shape_model.sample(u, v)
+        moved = shape_set.scaled(v + shape_set.shape_model.sample(u, v))
     return moved.numpy().astype(np.float64), np.asarray(template.faces)
 
 
@@ -383,7 +422,9 @@ def write_outputs(trainer, out_dir, value_scale, volume, template, alpha, level=
 
     out_dir = Path(out_dir)
     paths = write_common(trainer, out_dir, value_scale, volume)
-    paths["alpha"] = atomic.write_json(out_dir / "alpha.json", {"alpha": [float(a) for a in alpha]})
+    shape_set = trainer.sets[0]
+    size = shape_set.size if isinstance(shape_set, ShapeGuidedSet) and shape_set.fits_size else None
+    paths["alpha"] = atomic.write_json(out_dir / "alpha.json", {"alpha": [float(a) for a in alpha], "size": size})
     moved = deformed_template_surface(template, trainer.sets[0])
     if moved is not None:
         paths["shape_surface"] = save_mesh(out_dir / "shape_surface.stl", *moved)

@@ -1,6 +1,11 @@
 """The shape-guided Gaussian set: Gaussians whose centres follow a shape model,
 ``p_j = p_ref_j + u(alpha)(p_ref_j)``, so one vector of mode coefficients moves them all and keeps
-the bone plausible. Their scale, rotation and density are free, as any :class:`GaussianSet`'s."""
+the bone plausible. Their scale, rotation and density are free, as any :class:`GaussianSet`'s.
+
+With a fitted size ``s`` the model's bone is also scaled about a fixed centre ``c``:
+``p_j = c + s (p_ref_j + u(alpha)(p_ref_j) - c)``. The modes of a shape model built from one
+population describe its shapes at that population's sizes; a femur of 355 or 558 mm lies beyond
+what they can stretch to, and ``s`` (one number, no prior) takes that part."""
 from __future__ import annotations
 
 import numpy as np
@@ -33,7 +38,8 @@ class ShapeGuidedSet(GaussianSet):
     LINEAR_TOL = 0.05
 
     def __init__(self, p_ref_mm, scales, quats, densities, *, shape_model, geometry, box, scale_bounds,
-                 schedules, alpha=None, name: str = "shape", raw: bool = False, sampler=None):
+                 schedules, alpha=None, name: str = "shape", raw: bool = False, sampler=None,
+                 size: float | None = None, size_centre_mm=None):
         dt = torch.float32
         self.sampler = sampler  # a FieldSampler (OpenCL) or None (torch's grid_sample)
         self.shape_model = shape_model.to(dt) if shape_model.dtype != dt else shape_model
@@ -46,6 +52,13 @@ class ShapeGuidedSet(GaussianSet):
         del self.params["means"]
         a = torch.zeros(self.shape_model.n_modes, dtype=dt) if alpha is None else torch.as_tensor(alpha, dtype=dt)
         self.params = {"alpha": a.detach().clone().requires_grad_(True), **self.params}
+        # the bone's size relative to the model's (None: not fitted, the model's own size)
+        self.size_centre = None
+        if size is not None:
+            if not np.isfinite(size) or size <= 0:
+                raise ValueError(f"size must be a positive number, got {size}")
+            self.size_centre = torch.as_tensor(np.asarray(size_centre_mm, np.float64), dtype=dt)
+            self.params["log_size"] = torch.tensor([np.log(size)], dtype=dt, requires_grad=True)
         self.last_u = None  # the latest displacement field (detached), for the density prior
         self._at_ref = None  # FixedPointSampler at p_ref, built on first use
         self._linear = None  # (a0, u0 grid, J grid, centre offsets at a0, their J): the linearised map
@@ -68,7 +81,27 @@ class ShapeGuidedSet(GaussianSet):
         self.last_u = u.detach()
         return u
 
+    @property
+    def fits_size(self) -> bool:
+        return "log_size" in self.params
+
+    @property
+    def size(self) -> float:
+        """The fitted size (1.0 without one)."""
+        return float(torch.exp(self.params["log_size"].detach())[0]) if self.fits_size else 1.0
+
+    def scaled(self, points_mm: torch.Tensor) -> torch.Tensor:
+        """Points of the model's frame at the fitted size: ``c + s (x - c)`` (the points as they are
+        without a fitted size)."""
+        if not self.fits_size:
+            return points_mm
+        s = torch.exp(self.params["log_size"])
+        return self.size_centre + s * (points_mm - self.size_centre)
+
     def centres_mm(self, u=None) -> torch.Tensor:
+        return self.scaled(self._model_centres_mm(u))
+
+    def _model_centres_mm(self, u=None) -> torch.Tensor:
         if u is None and self.LINEAR_TOL is not None and self.FIXED_POINTS and self._one_dtype():
             out = self._linear_centres()
             if out is not None:
@@ -138,11 +171,17 @@ class ShapeGuidedSet(GaussianSet):
         means = (self.centres_mm() - self._origin) * self._scale
         return means, self.scale_activation(p["scales"]), p["quats"], F.softplus(p["densities"])
 
-    def to_template(self, points_mm: torch.Tensor) -> torch.Tensor:
-        """Points of the subject carried back to the template: x' = x - u(x'), two fixed-point steps."""
+    def to_template(self, points_mm: torch.Tensor, tissue: bool = False) -> torch.Tensor:
+        """Points of the subject carried back to the template: the size undone, then x' = x - u(x'),
+        two fixed-point steps. ``tissue``: the size undone as the tissue around the bone takes it:
+        a larger bone's, not a smaller one's (a limb has a girth of its own; see
+        :meth:`clgs.shape.priors.DensityPrior._sized_atlas`)."""
         if self.last_u is None:
             with torch.no_grad():
                 self.displacement()
+        if self.fits_size:
+            s = torch.exp(self.params["log_size"].detach())
+            points_mm = self.size_centre + (points_mm - self.size_centre) / (torch.clamp(s, min=1.0) if tissue else s)
         x = points_mm
         for _ in range(2):
             x = points_mm - self.shape_model.sample(self.last_u, x, self.sampler)
@@ -151,6 +190,9 @@ class ShapeGuidedSet(GaussianSet):
     def to_numpy(self) -> dict:
         out = super().to_numpy()
         out["alpha"] = self.alpha.detach().numpy().astype(np.float32)
+        if self.fits_size:
+            out["size"] = np.float32(self.size)
+            out["size_centre_mm"] = self.size_centre.numpy().astype(np.float32)
         out["p_ref_mm"] = self.p_ref.numpy().astype(np.float32)
         return out
 
@@ -161,10 +203,16 @@ class ShapeGuidedSet(GaussianSet):
         linear = {"linear_a0": self._linear[0].clone() if self._linear is not None else empty,
                   "linear_prev": self._prev_alpha.clone() if self._prev_alpha is not None else empty,
                   "linear_step": torch.tensor(self._step, dtype=torch.float64)}
-        return {**super().state_dict(), "p_ref": self.p_ref.clone(), **linear}
+        size = {"size_centre": self.size_centre.clone()} if self.fits_size else {}
+        return {**super().state_dict(), "p_ref": self.p_ref.clone(), **linear, **size}
 
     def load_state_dict(self, state: dict) -> None:
         self.p_ref = state["p_ref"].clone()
+        if ("log_size" in state) != self.fits_size:
+            raise ValueError("the checkpoint's shape set was made " + ("with" if "log_size" in state else "without")
+                             + " a fitted size, this run's " + ("with" if self.fits_size else "without"))
+        if self.fits_size:
+            self.size_centre = state["size_centre"].clone()
         self._at_ref = self._linear = self._prev_alpha = None
         self._step = 0.0
         for k in self.params:
