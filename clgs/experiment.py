@@ -78,20 +78,27 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
 def _made_with(method: str, iterations: int, seed: int, settings: dict, simulation: str = "fine") -> dict:
     """What a run's result depends on besides the subject, as kept in its record: a resumed
     experiment reuses a record only when these match (else its table would mix runs). Records
-    made before the simulation protocol was a choice used ``"same"`` and do not name it."""
+    made before the simulation protocol was a choice used ``"same"`` and do not name it; the
+    shape-bound runs name whether a size was fitted (``fit_size``: records made before it was
+    fitted count as ``"off"``)."""
     sim = {} if simulation == "same" else {"simulation": simulation}
     if method == "fdk":
         return {"iterations": 0, **sim}
     key = "r2gs" if method == "r2gs" else "shape"
     chosen = {k: v for k, v in settings.get(key, {}).items() if k not in _BOOKKEEPING}
+    size = {}
+    if method in ("init+shape", "shape"):
+        from clgs.methods.shape_guided import ShapeGuidedConfig
+
+        size = {"fit_size": str(chosen.pop("fit_size", ShapeGuidedConfig.fit_size))}
     return {"iterations": iterations, "seed": seed,
-            "settings": json.loads(json.dumps(chosen, sort_keys=True, default=str)), **sim}
+            "settings": json.loads(json.dumps(chosen, sort_keys=True, default=str)), **sim, **size}
 
 
 # settings that change how often a run logs or saves, not its result
 _BOOKKEEPING = {"log_every", "checkpoint_every", "checkpoint_dir", "progress"}
 _OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings", "detector_fov_mm": "--detector-mm",
-           "simulation": "--simulation"}
+           "simulation": "--simulation", "fit_size": "shape-guided setting fit_size"}
 
 
 def load_experiment_subject(anatomy, sid, meshes, seed: int):
@@ -111,7 +118,7 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
     """ValueError if the kept record ``row`` was made with other settings than ``made_with``
     (records from before seeds, settings, detectors and simulation protocols were kept count as
     seed 0, no settings, the whole detector and the same-grid protocol)."""
-    defaults = {"seed": 0, "settings": {}, "detector_fov_mm": None, "simulation": "same"}
+    defaults = {"seed": 0, "settings": {}, "detector_fov_mm": None, "simulation": "same", "fit_size": "off"}
     made_with = {"simulation": "same", **made_with}
     for key, want in made_with.items():
         had = row.get(key, defaults.get(key, want))

@@ -109,7 +109,7 @@ def test_the_centres_gradient_wrt_the_size_is_the_derivative_of_the_map(template
 
 def test_a_larger_bone_is_fitted_at_its_size_and_beats_the_models_own(template, shape_model, tissue_atlas,
                                                                         tmp_path):
-    """1.25 x the template: auto fits the size, the model surface and the volume gain. (The test
+    """1.25 x the template: the size is fitted (the default), the model surface and the volume gain. (The test
     model's first mode stretches z, which trades a little with the size: measured 1.195 with alpha_1
     0.02 after 150 iterations; the model surface 0.85 mm against 2.44 mm without a size, 3D PSNR
     22.29 against 21.41 dB.)"""
@@ -124,6 +124,8 @@ def test_a_larger_bone_is_fitted_at_its_size_and_beats_the_models_own(template, 
     off = reconstruct_shape_guided(scan, parts, None, iterations=150, fit_size="off", **kw)
     s = sized.trainer.sets[0]
     assert s.fits_size and not off.trainer.sets[0].fits_size
+    auto = reconstruct_shape_guided(scan, parts, None, iterations=1, fit_size="auto", **kw)
+    assert auto.trainer.sets[0].fits_size  # beyond the model's sizes: auto fits one too
     assert s.size == pytest.approx(1.25, abs=0.08)
     assert json.loads((tmp_path / "a" / "alpha.json").read_text())["size"] == pytest.approx(s.size)
     assert psnr3d(sized.volume, scan.truth) > psnr3d(off.volume, scan.truth) + 0.5
@@ -144,7 +146,7 @@ def test_auto_leaves_a_bone_of_the_models_size_as_it_was(template, shape_model, 
 
     scan = _scan_at(template, 1.0)
     parts = (template, shape_model, tissue_atlas)
-    auto = reconstruct_shape_guided(scan, parts, None, iterations=20, **_small(alpha_freeze=5))
+    auto = reconstruct_shape_guided(scan, parts, None, iterations=20, fit_size="auto", **_small(alpha_freeze=5))
     off = reconstruct_shape_guided(scan, parts, None, iterations=20, fit_size="off", **_small(alpha_freeze=5))
     assert not auto.trainer.sets[0].fits_size
     np.testing.assert_array_equal(auto.volume, off.volume)
@@ -198,3 +200,31 @@ def test_the_density_prior_scales_the_bone_and_only_a_larger_bones_tissue(templa
     ring = (x > 14.0 * size + 1.0) & (x < 12.9)
     assert bool(ring.any()) == (size < 1)
     assert torch.all(keep[ring] == 0) and torch.all(keep[~ring & (inside | far)] == 1)
+
+
+def test_the_method_entry_reports_the_fitted_size(template, shape_model, tissue_atlas, tmp_path, capsys):
+    """What `clgs reconstruct --method shape --fit-size on` runs: the size in the report and on stderr."""
+    from clgs.methods.shape_guided import run_method
+
+    scan = _scan_at(template, 1.25)
+    kw = _small(alpha_freeze=3)
+    out = run_method(scan, tmp_path / "r", 10, anatomy=(template, shape_model, tissue_atlas), fit_size="on", **kw)
+    assert out["info"]["size"] == pytest.approx(1.25, abs=0.08)
+    assert "bone size: 1.2" in capsys.readouterr().err
+    off = run_method(scan, tmp_path / "o", 10, anatomy=(template, shape_model, tissue_atlas), fit_size="off", **kw)
+    assert off["info"]["size"] is None
+
+
+def test_experiment_records_made_before_the_size_count_as_made_without_one(tmp_path):
+    """A resumed experiment must not mix runs with and without a fitted size in one table."""
+    from clgs.errors import InputError
+    from clgs.experiment import _check_same_run, _made_with
+
+    want = _made_with("shape", 1000, 0, {}, "same")
+    assert want["fit_size"] == "on" and want["settings"] == {}
+    old = {"iterations": 1000, "seed": 0, "settings": {}}  # a record from before the size
+    with pytest.raises(InputError, match="fit_size 'off'"):
+        _check_same_run(tmp_path / "run.json", old, want)
+    _check_same_run(tmp_path / "run.json", old, _made_with("shape", 1000, 0, {"shape": {"fit_size": "off"}}, "same"))
+    assert "fit_size" not in _made_with("r2gs", 1000, 0, {}, "same")
+    assert "fit_size" not in _made_with("init", 1000, 0, {}, "same")  # no shape model bound: no size

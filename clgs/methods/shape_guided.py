@@ -39,6 +39,7 @@ the atlas is converted the same way.
 from __future__ import annotations
 
 import dataclasses
+import sys
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -101,11 +102,11 @@ class ShapeGuidedConfig(GaussianFitConfig):
     density_prior_field: str = setting("all", "--density-prior-field",
                                        "field held to the atlas: the whole model, or the shape-guided Gaussians inside "
                                        "the bone (the paper)")
-    # a size fitted with alpha (clgs.shape.size): "auto" when the projections say the bone is
-    # beyond the model's sizes (more than 10 % from them), "on" always, "off" never
-    fit_size: str = setting("auto", "--fit-size",
-                            "fit the bone's size with its shape: auto (when the projections show a bone more "
-                            "than 10% larger or smaller than the model's), on, off")
+    # a size fitted with alpha (clgs.shape.size): "on" always, "auto" only when the projections say
+    # the bone is beyond the model's sizes (more than 10 % from them), "off" never (the paper)
+    fit_size: str = setting("on", "--fit-size",
+                            "fit the bone's size with its shape: on, auto (only when the projections show a bone "
+                            "more than 10% larger or smaller than the model's), off (the paper)")
     lambda_shape: float = 1e-4
     lambda_density: float = 0.5
     density_s: float = 0.05
@@ -453,8 +454,13 @@ def run_method(scan, out_dir=None, iterations: int | None = None, anatomy=None, 
     result = reconstruct_shape_guided(scan, anatomy, out_dir, iterations, resume=resume, progress=progress,
                                       **settings)
     files = {p.name: str(p) for p in sorted(Path(out_dir).iterdir())} if out_dir is not None else {}
+    shape_set = result.trainer.sets[0]
+    size = shape_set.size if isinstance(shape_set, ShapeGuidedSet) and shape_set.fits_size else None
+    if size is not None:
+        print(f"bone size: {size:.3f} x the shape model's (fitted with its shape; --fit-size off keeps the model's)",
+              file=sys.stderr)
     return method_output(result, out_dir, files, seconds=result.seconds, alpha=[float(a) for a in result.alpha],
-                         history=result.log.rows)
+                         size=size, history=result.log.rows)
 
 
 METHOD = Method("shape", run_method, config=ShapeGuidedConfig, atomic_dir=False,
