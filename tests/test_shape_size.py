@@ -7,7 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from test_shape_guided import _small, geometry, shape_model, template, tissue_atlas  # noqa: F401 (fixtures)
+import test_shape_guided as ellipsoid
+from test_shape_guided import _small, geometry
+
+# the ellipsoid's fixtures, shared with test_shape_guided
+template, shape_model, tissue_atlas = ellipsoid.template, ellipsoid.shape_model, ellipsoid.tissue_atlas
 
 
 def _scan_at(template, size, n_views=8):
