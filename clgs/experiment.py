@@ -441,10 +441,13 @@ def markdown_tables(rows, summary, views, ablation_views) -> str:
                         f"{fmt(pm.get('model_surface_mean_mm'))} / {fmt(pm.get('model_surface_p95_mm'))} / "
                         f"{fmt(pm.get('model_surface_hausdorff_mm'))} | {fmt(pm.get('jacobian_min'), 3)} | "
                         f"{fmt(pm.get('seconds'), 0)} |")
-    sized = [r for r in rows if r.get("model_size") is not None]
-    if sized:  # bones the shape model was scaled to (clgs.shape.size)
-        text += ["", "Bones fitted at a size beyond the shape model's (times the model's): "
-                 + ", ".join(f"{r['subject']} {views_label(r['views'])} {r['model_size']:.3f}" for r in sized)]
+    sized = {}
+    for r in rows:  # the bone's fitted size (clgs.shape.size), per subject over its view sets
+        if r.get("model_size") is not None:
+            sized.setdefault(r["subject"], []).append(float(r["model_size"]))
+    if sized:
+        text += ["", "Fitted bone size, times the shape model's (per subject, over its runs): " + ", ".join(
+            f"{s} {min(v):.3f}" + (f"-{max(v):.3f}" if max(v) > min(v) else "") for s, v in sorted(sized.items()))]
     if any(r.get("psnr3d_fov") is not None for r in rows):
         text += ["", "## Inside the detector's field of view (truncated scans)", "",
                  "3D PSNR / SSIM over the voxels every view measured whole (the rest of the bone was "
