@@ -20,7 +20,12 @@ def main() -> None:
     ap.add_argument("--lengths", default="355,558", help="lengths in mm, comma-separated [default: 355,558]")
     ap.add_argument("--subject", default="22", help="LLP26 subject whose shape is scaled [default: 22]")
     args = ap.parse_args()
-    lengths = [float(x) for x in args.lengths.split(",") if x.strip()]
+    try:
+        lengths = [float(x) for x in args.lengths.split(",") if x.strip()]
+    except ValueError:
+        ap.error(f"--lengths takes millimetres separated by commas, e.g. 355,558; got {args.lengths!r}")
+    if not lengths or min(lengths) <= 0:
+        ap.error(f"--lengths must be positive millimetres, got {args.lengths!r}")
     femur = clgs_femur.population_model()
     v, f = femur.mesh(args.subject)
     own = surface_length(v)

@@ -60,3 +60,19 @@ def test_tooth_sparse_views_reports_every_method_against_the_reference(tmp_path)
     if "astra" in summary:  # ASTRA's own 181-view FBP agrees with the reference once turned
         assert summary["astra"]["fbp_181_psnr_vs_reference"] > 30
     assert (out / "curves.png").stat().st_size > 1000 and (out / "slices.png").stat().st_size > 1000
+
+
+def test_femur_sizes_writes_subject_22_at_the_lengths_asked(tmp_path):
+    """The README's sizes experiment starts from these files: the subject's shape at each length."""
+    pytest.importorskip("clgs_femur", reason="install with: pip install -e anatomies/femur")
+    from clgs.anatomy.population import surface_length
+    from clgs.io.mesh import load_mesh
+
+    cmd = [sys.executable, str(EXAMPLES / "femur_sizes.py"), str(tmp_path / "sizes"), "--lengths", "355,558"]
+    r = subprocess.run(cmd, capture_output=True, text=True, cwd=EXAMPLES, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    for length in (355.0, 558.0):
+        v, f = load_mesh(tmp_path / "sizes" / f"f{length:.0f}.stl")
+        assert surface_length(v) == pytest.approx(length, rel=1e-3)
+    bad = subprocess.run(cmd[:3] + ["--lengths", "x"], capture_output=True, text=True, cwd=EXAMPLES, timeout=600)
+    assert bad.returncode == 2 and "--lengths takes millimetres" in bad.stderr
