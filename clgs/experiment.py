@@ -68,7 +68,7 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
         model_surface = deformed_template_surface(anatomy[0], res.trainer.sets[0])
         if model_surface is not None and anatomy[1] is not None:  # the deformation must never fold
             jac_min = float(np.min(anatomy[1].jacobian_determinant(res.trainer.sets[0].alpha.detach())))
-        if getattr(res.trainer.sets[0], "fits_size", False):  # a bone beyond the model's sizes
+        if getattr(res.trainer.sets[0], "fits_size", False):  # the bone's fitted size (the default)
             model_size = res.trainer.sets[0].size
     seconds = time.perf_counter() - t0
     return {"volume": volume, "seconds": seconds, "history": history,

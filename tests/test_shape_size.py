@@ -232,3 +232,15 @@ def test_experiment_records_made_before_the_size_count_as_made_without_one(tmp_p
     _check_same_run(tmp_path / "run.json", old, _made_with("shape", 1000, 0, {"shape": {"fit_size": "off"}}, "same"))
     assert "fit_size" not in _made_with("r2gs", 1000, 0, {}, "same")
     assert "fit_size" not in _made_with("init", 1000, 0, {}, "same")  # no shape model bound: no size
+
+
+def test_the_experiment_table_names_each_subjects_fitted_sizes():
+    from clgs.experiment import markdown_tables, summarise
+
+    rows = [{"subject": sid, "views": v, "method": "shape", "psnr3d": 30.0, "ssim3d": 0.9, "seconds": 1.0,
+             "model_size": size} for sid, v, size in (("20", 5, 1.047), ("20", 10, 1.052), ("21", 5, 0.99))]
+    rows.append({"subject": "22", "views": 5, "method": "shape", "psnr3d": 30.0, "ssim3d": 0.9, "seconds": 1.0,
+                 "model_size": None})  # made with --fit-size off
+    text = markdown_tables(rows, summarise(rows, [5, 10], None), [5, 10], None)
+    line = next(x for x in text.splitlines() if x.startswith("Fitted bone size"))
+    assert line.endswith(": 20 1.047-1.052, 21 0.990")
