@@ -12,8 +12,7 @@ import pytest  # noqa: E402
 #: torch ops and the training loop built on them. The rest run on the automatic choice.
 KERNEL_TESTS = {
     "test_projector", "test_voxelizer", "test_tv_patch", "test_losses_cl", "test_field_sampler",
-    "test_ct_projector", "test_ct_fdk", "test_ct_sart", "test_trainer", "test_devices_agree",
-    "test_vector_geometry",
+    "test_ct_projector", "test_ct_fdk", "test_ct_sart", "test_trainer", "test_vector_geometry",
 }
 
 
@@ -60,10 +59,31 @@ def pytest_report_header(config):
     return _device_report()
 
 
+#: device label -> {outcome: count} of the tests that ran on that device
+_RAN_ON: dict = {}
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """Count each device-parametrised test's outcome under the device it really ran on."""
+    outcome = yield
+    report = outcome.get_result()
+    dev = getattr(getattr(item, "callspec", None), "params", {}).get("cl_device")
+    if dev is None or not (report.when == "call" or (report.when == "setup" and report.outcome != "passed")):
+        return
+    label = f"{dev.platform.name.strip()} | {dev.name.strip()}"
+    counts = _RAN_ON.setdefault(label, {})
+    counts[report.outcome] = counts.get(report.outcome, 0) + 1
+
+
 def pytest_terminal_summary(terminalreporter):
-    """The same report at the end, where ``pytest -q`` (which hides the header) shows it too."""
+    """The same report at the end, where ``pytest -q`` (which hides the header) shows it too,
+    and what ran on each device."""
     for line in _device_report():
         terminalreporter.write_line(line)
+    for label, counts in sorted(_RAN_ON.items()):
+        figures = ", ".join(f"{n} {k}" for k, n in sorted(counts.items()))
+        terminalreporter.write_line(f"kernel tests on {label}: {figures}")
 
 
 def pytest_generate_tests(metafunc):

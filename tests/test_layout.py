@@ -15,7 +15,7 @@ PACKAGE = ROOT / "clgs"
 
 # Lowest first. A module may import its own layer and the layers before it, never a later one.
 LAYERS = [
-    ["clgs.errors", "clgs.geometry", "clgs.progress"],
+    ["clgs.errors", "clgs.geometry", "clgs.progress", "clgs.commands"],
     ["clgs.io"],
     ["clgs.mesh"],
     ["clgs.metrics"],
@@ -28,10 +28,11 @@ LAYERS = [
     ["clgs.anatomy"],
     ["clgs.methods"],
     ["clgs.cohort", "clgs.experiment"],
-    ["clgs.api", "clgs.bench"],
+    ["clgs.bench"],
     ["clgs.cli", "clgs.__main__"],
 ]
-# The package's own __init__ is the public facade: it loads clgs.api on first attribute access.
+# The package's own __init__ is the public facade: it loads each public name from its home module
+# on first attribute access.
 FACADE = "clgs"
 # Known, function-level: choosing a device builds the probe kernel with the program cache, which
 # itself asks for the chosen device's context. Both sit inside clgs.runtime.

@@ -176,6 +176,30 @@ def test_registry_checks_what_plugins_return():
             reg.anatomies()
 
 
+@pytest.mark.parametrize("name", ["import", "convert", "batch", "anatomies"])
+def test_every_built_in_command_name_is_refused_as_an_anatomy(name):
+    """The names the registry refuses are the command line's own commands (one table), so an
+    anatomy can never be shadowed by a built-in command and silently unreachable."""
+    from clgs.anatomy import plugins
+    from clgs.anatomy.hookspecs import hookimpl
+    from clgs.cli import COMMANDS, main
+
+    assert plugins._RESERVED == set(COMMANDS) == set(main.list_commands(click.Context(main))) - set(
+        plugins.anatomy_names())
+
+    class Shadowed:
+        @hookimpl
+        def clgs_anatomies(self):
+            return [Anatomy(name=name, summary="x")]
+
+    reg = Registry()
+    reg.register(Shadowed(), name="shadowed", package="pkg-shadowed")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert name not in reg.anatomies()
+    assert any(f"clashes with the built-in command 'clgs {name}'" in str(w.message) for w in caught)
+
+
 # --------------------------------------------------------------------------------------- the group
 @pytest.fixture
 def toy(toy_target, tmp_path, monkeypatch):

@@ -19,10 +19,16 @@ _projectors: dict = {}
 
 
 def wproj(width):
-    """A projector forced to one vector width on every kernel (one per width, shared)."""
-    if width not in _projectors:
-        _projectors[width] = GaussianProjector(width)
-    return _projectors[width]
+    """A projector forced to one vector width on every kernel, built on the device the test runs
+    on (one per device and width, shared): a projector keeps its device's programs, so a cache
+    keyed by width alone would test the first device twice."""
+    from clgs import runtime
+
+    key = (runtime.device().int_ptr, width)
+    if key not in _projectors:
+        _projectors[key] = GaussianProjector(width)
+    assert _projectors[key].ctx.devices[0] == runtime.device()
+    return _projectors[key]
 
 
 def geom(beam, n_det=40, n_views=4, off=(3.0, -5.0)):

@@ -51,9 +51,14 @@ def test_circular_written_as_vectors_is_the_same_scan(mode, tmp_path):
     g = circular(mode)
     v = g.as_vectors()
     assert g.is_circular and not v.is_circular
-    np.testing.assert_array_equal(v.view_vectors(), g.view_vectors())
-    np.testing.assert_array_equal(v.view_vectors(scene=False, views=[3, 1]), g.view_vectors(scene=False, views=[3, 1]))
-    np.testing.assert_array_equal(v.rays(2)[1], g.rays(2)[1])
+    # two float64 derivations of the same numbers: equal to rounding, not bit for bit (numpy's
+    # trigonometry may differ in the last bit between code paths on some CPUs); the kernels are
+    # checked bit for bit below, where they are fed identical records
+    close = dict(rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(v.view_vectors(), g.view_vectors(), **close)
+    np.testing.assert_allclose(v.view_vectors(scene=False, views=[3, 1]), g.view_vectors(scene=False, views=[3, 1]),
+                               **close)
+    np.testing.assert_allclose(v.rays(2)[1], g.rays(2)[1], **close)
     assert v.volume_grid() == g.volume_grid() and v.scale == g.scale
     assert v.resolution_mm == pytest.approx(g.resolution_mm, rel=1e-12)
     np.testing.assert_allclose(v.source_detector_distance(), g.source_detector_distance(), rtol=1e-12)
@@ -71,7 +76,7 @@ def test_circular_written_as_vectors_is_the_same_scan(mode, tmp_path):
     path.write_text(json.dumps(d))
     np.testing.assert_array_equal(read_geometry(path).view_vectors(), v.view_vectors())
     # a subset keeps its views' vectors
-    np.testing.assert_array_equal(v.select([4, 0]).view_vectors(), g.select([4, 0]).view_vectors())
+    np.testing.assert_allclose(v.select([4, 0]).view_vectors(), g.select([4, 0]).view_vectors(), **close)
 
 
 def test_an_isocentre_places_the_vectors_as_it_places_a_circular_scan(rng):

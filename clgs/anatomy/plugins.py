@@ -24,6 +24,7 @@ import pluggy
 
 from clgs.anatomy import hookspecs
 from clgs.anatomy.record import Anatomy
+from clgs.commands import BUILTIN_COMMANDS
 from clgs.errors import ClgsError
 
 GROUP = "clgs.anatomies"
@@ -148,7 +149,7 @@ class Registry:
         return found[name]
 
 
-_RESERVED = {"info", "bench", "simulate", "reconstruct", "evaluate", "anatomies"}
+_RESERVED = frozenset(BUILTIN_COMMANDS)  # `clgs NAME` runs the built-in command, never the anatomy
 
 
 def _check_name(name) -> str:

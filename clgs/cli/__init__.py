@@ -15,20 +15,11 @@ import os
 
 import click
 
+from clgs.commands import BUILTIN_COMMANDS
 from clgs.errors import ClgsError
 
 # name -> "module:attribute" of a click command, imported on first use
-COMMANDS = {
-    "info": "clgs.cli.info:info",
-    "bench": "clgs.cli.bench:bench",
-    "simulate": "clgs.cli.simulate:simulate",
-    "reconstruct": "clgs.cli.reconstruct:reconstruct",
-    "evaluate": "clgs.cli.evaluate:evaluate",
-    "anatomies": "clgs.cli.anatomies:anatomies",
-    "import": "clgs.cli.import_raw:import_raw",
-    "convert": "clgs.cli.convert:convert",
-    "batch": "clgs.cli.batch:batch",
-}
+COMMANDS = BUILTIN_COMMANDS
 
 
 def _load(target: str) -> click.Command:
