@@ -7,9 +7,11 @@
 #    (PyPI's PoCL 3.0 does not). Needs root or password-less sudo; skipped, with a message, when
 #    neither is there or the system has no apt-get.
 # 2. pip: torch (the CPU build, pinned; install your own first on a GPU machine), clgs in
-#    editable mode with its test tools, SimpleITK and h5py (DICOM, MetaImage, NRRD, HDF5), ASTRA
-#    (for side-by-side comparisons only), Intel's CPU OpenCL runtime (a dependency on x86-64 Linux:
-#    clgs registers it with the ICD loader itself), and the built-in anatomy plugins.
+#    editable mode with every extra (test tools; formats: SimpleITK, pydicom, h5py; compare: ASTRA
+#    and RTK, for side-by-side comparisons only; cluster: Dask), Intel's CPU OpenCL runtime (a
+#    dependency on x86-64 Linux: clgs registers it with the ICD loader itself), and the built-in
+#    anatomy plugins; then what was installed, and its size. (`pip install clgs` alone brings only
+#    what the library runs on; see docs/install.md.)
 # 3. clgs info: every OpenCL device with its probe result; fails when none works.
 #
 # PYTHON=/path/to/python bash setup.sh installs into another interpreter (a virtualenv's).
@@ -48,8 +50,9 @@ else
 fi
 
 echo "== clgs set-up: Python packages"
-"$PY" -m pip install --quiet --disable-pip-version-check "torch==2.13.0" -e ".[test,formats,compare]" \
+"$PY" -m pip install --quiet --disable-pip-version-check "torch==2.13.0" -e ".[test,formats,compare,cluster]" \
   -e anatomies/femur -e anatomies/patella
+"$PY" -m clgs.install_report
 
 echo "== clgs set-up: OpenCL devices"
 "$PY" -m clgs.cli info

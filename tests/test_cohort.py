@@ -325,3 +325,18 @@ def test_a_run_started_again_after_a_lost_attempt_starts_afresh(scans, tmp_path)
                     str(folder))
     assert rec["psnr3d"] > 5 and (folder / "run.json").is_file()
     assert not (folder / "checkpoint.pt").exists() or (folder / "checkpoint.pt").read_bytes() != b"half a run"
+
+
+def test_a_cluster_without_dask_is_a_clear_error_before_any_work(monkeypatch):
+    """Dask is the ``cluster`` extra: asking for workers without it says what to install."""
+    import importlib.util
+
+    from clgs.cohort import cluster
+    from clgs.errors import InputError
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name in ("dask", "distributed")
+                        else real(name, *a))
+    assert cluster.distributed_wanted(0, None) is False  # no cluster asked for: nothing needed
+    with pytest.raises(InputError, match=r"pip install 'clgs\[cluster\]'"):
+        cluster.distributed_wanted(2, None)

@@ -2,8 +2,8 @@
 
 Builds the wheel from this checkout (``python -m build --wheel --no-isolation``: hatchling is a
 declared build requirement, so no network is needed), installs it with ``--no-deps`` into a
-fresh virtualenv outside the checkout that sees the system site-packages (numpy, torch,
-pyopencl), and, from a neutral working directory, checks that ``clgs`` and its ``cl`` folder come
+fresh virtualenv outside the checkout that sees the site-packages of the environment running the
+tests (numpy, torch, pyopencl; a virtualenv's or the system's), and, from a neutral working directory, checks that ``clgs`` and its ``cl`` folder come
 from that virtualenv (not from an editable install of the checkout), then compiles every
 top-level ``.cl`` file with ``runtime.get_program``.
 """
@@ -75,9 +75,20 @@ def test_wheel_ships_every_opencl_source(wheel):
 def test_installed_wheel_compiles_every_kernel(wheel, tmp_path):
     venv = tmp_path / "venv"
     assert ROOT not in venv.parents
-    res = _run([sys.executable, "-m", "venv", "--system-site-packages", "--without-pip", str(venv)])
+    res = _run([sys.executable, "-m", "venv", "--without-pip", str(venv)])
     assert res.returncode == 0, res.stderr
     py = venv / "bin" / "python"
+    # numpy, torch, pyopencl... from the environment running the tests (a virtualenv's, or the
+    # system's): its site-packages go on the new one's path after the wheel's own. Plain paths in a
+    # .pth file: the outer environment's own .pth files (an editable clgs among them) are not run.
+    # (`venv --system-site-packages` would reach the base interpreter's packages instead, which
+    # from inside a virtualenv are not the ones set up.)
+    import site
+
+    res = _run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"])
+    assert res.returncode == 0, res.stderr
+    outer = [p for p in (*site.getsitepackages(), site.getusersitepackages()) if os.path.isdir(p)]
+    (Path(res.stdout.strip()) / "outer_environment.pth").write_text("\n".join(outer) + "\n")
     res = _run([sys.executable, "-m", "pip", "--python", str(py), "install", "--no-deps", "--no-index",
                 "--force-reinstall", "--no-compile", str(wheel)], cwd=tmp_path, env=_clean_env())
     assert res.returncode == 0, f"pip install of the wheel failed:\n{res.stdout[-2000:]}\n{res.stderr[-2000:]}"

@@ -51,7 +51,21 @@ def check_choice(workers, scheduler) -> None:
 
 
 def distributed_wanted(workers, scheduler) -> bool:
-    return bool(scheduler) or bool(workers)
+    """True when a cluster is asked for; then Dask must be installed (the ``cluster`` extra)."""
+    wanted = bool(scheduler) or bool(workers)
+    if wanted:
+        require_dask()
+    return wanted
+
+
+def require_dask() -> None:
+    """A clear error, before any work, when Dask's ``distributed`` is not installed."""
+    import importlib.util
+
+    if importlib.util.find_spec("distributed") is None or importlib.util.find_spec("dask") is None:
+        raise InputError("running on a cluster (--workers N or --scheduler ADDRESS) needs Dask, which is not "
+                         "installed: pip install 'clgs[cluster]' (or run without --workers/--scheduler, "
+                         "one scan after another)")
 
 
 def thread_share_plugin():
@@ -75,6 +89,7 @@ def open_client(workers=None, scheduler=None, echo=print):
     """A ``distributed.Client``: on a new local cluster of ``workers`` processes, or connected to
     ``scheduler``. Yields (client, resources for each task or None). Prints the dashboard link."""
     check_choice(workers, scheduler)
+    require_dask()
     import dask
     from distributed import Client, LocalCluster
 
