@@ -1,11 +1,11 @@
 """The built wheel carries the OpenCL sources and they compile from an installed copy.
 
 Builds the wheel from this checkout (``python -m build --wheel --no-isolation``: hatchling is a
-declared build requirement, so no network is needed), installs it with ``--no-deps`` into a
-fresh virtualenv outside the checkout that sees the site-packages of the environment running the
-tests (numpy, torch, pyopencl; a virtualenv's or the system's), and, from a neutral working directory, checks that ``clgs`` and its ``cl`` folder come
-from that virtualenv (not from an editable install of the checkout), then compiles every
-top-level ``.cl`` file with ``runtime.get_program``.
+declared build requirement, so no network is needed), installs it with ``--no-deps`` into a fresh
+virtualenv outside the checkout that sees the site-packages of the environment running the tests
+(numpy, torch, pyopencl; a virtualenv's or the system's), and, from a neutral working directory,
+checks that ``clgs`` and its ``cl`` folder come from that virtualenv (not from an editable install
+of the checkout), then compiles every top-level ``.cl`` file with ``runtime.get_program``.
 """
 import importlib.util
 import json
