@@ -133,7 +133,40 @@ def test_clgs_device_option_sets_the_choice_and_rejects_unknown_devices(fresh_ch
     devices._current = None
     out = CliRunner().invoke(main, ["--device", "no-such-driver", "info"])
     assert "no OpenCL device matches 'no-such-driver'" in out.output
+    assert out.exit_code == 1  # a set-up script stops here
     os.environ.pop("CLGS_DEVICE", None)
+
+
+def _clgs(args, env_extra, cwd):
+    import subprocess
+    import sys
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # this checkout's clgs
+    env = {**os.environ, **env_extra, "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])}
+    env.pop("CLGS_DEVICE", None)
+    return subprocess.run([sys.executable, "-m", "clgs.cli", *args], capture_output=True, text=True, env=env,
+                          cwd=cwd, timeout=300)
+
+
+def test_no_opencl_at_all_is_one_message_and_a_failing_status(tmp_path):
+    """No platform (the ICD loader finds no driver): `clgs info` exits 1, and a reconstruction says
+    so in one message, not a traceback, before any work."""
+    from clgs.geometry import Geometry
+    from clgs.io.scan import Scan
+
+    g = Geometry.default(n_views=4, mode="parallel", n_detector=16, n_voxel=16)
+    Scan(g, np.zeros(g.projection_shape, np.float32)).save(tmp_path / "scan")
+    none = {"OCL_ICD_VENDORS": str(tmp_path / "no-drivers"), "OCL_ICD_FILENAMES": ""}
+    res = _clgs(["info"], none, tmp_path)
+    assert res.returncode == 1 and "No OpenCL platform found" in res.stdout + res.stderr
+    res = _clgs(["reconstruct", "scan", "--method", "fdk", "--out", "fdk"], none, tmp_path)
+    text = res.stdout + res.stderr
+    assert res.returncode == 1 and "Traceback" not in text and "OpenCL" in text, text
+    assert not (tmp_path / "fdk").exists()
+    res = _clgs(["--device", "no-such-driver", "reconstruct", "scan", "--method", "fdk", "--out", "fdk"], {},
+                tmp_path)
+    text = res.stdout + res.stderr
+    assert res.returncode == 1 and "Traceback" not in text and "no-such-driver" in text, text
 
 
 # ------------------------------------------------------------------ Intel's runtime from PyPI

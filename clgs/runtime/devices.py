@@ -23,6 +23,8 @@ import os
 import threading
 from dataclasses import dataclass
 
+from clgs.errors import ClgsError
+
 from . import drivers
 
 drivers.configure()  # before pyopencl's ICD loader first runs
@@ -45,8 +47,9 @@ INSTALL_HINT = (
 )
 
 
-class NoOpenCLDevice(RuntimeError):
-    """No OpenCL device can run clgs's kernels (or the one asked for cannot)."""
+class NoOpenCLDevice(ClgsError, RuntimeError):
+    """No OpenCL device can run clgs's kernels (or the one asked for cannot): a
+    :class:`~clgs.errors.ClgsError`, so the command line prints its message, not a traceback."""
 
 
 @dataclass(frozen=True)
