@@ -113,8 +113,9 @@ def save_dicom_series(folder, volume, spacing_zyx, origin_xyz, *, kev: float = D
     base.SpecificCharacterSet = "ISO_IR 192"
     # Patient, General Study, Frame of Reference (identity)
     for key in ("PatientName", "PatientID", "IssuerOfPatientID", "PatientBirthDate", "PatientSex", "PatientAge",
-                "PatientIdentityRemoved", "DeidentificationMethod", "StudyInstanceUID", "StudyDate", "StudyTime", "StudyID", "AccessionNumber",
-                "ReferringPhysicianName", "StudyDescription", "FrameOfReferenceUID", "PositionReferenceIndicator"):
+                "PatientIdentityRemoved", "DeidentificationMethod", "StudyInstanceUID", "StudyDate", "StudyTime",
+                "StudyID", "AccessionNumber", "ReferringPhysicianName", "StudyDescription", "FrameOfReferenceUID",
+                "PositionReferenceIndicator"):
         if key in ident:
             setattr(base, key, ident[key])
     # General Series
