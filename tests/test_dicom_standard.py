@@ -151,7 +151,7 @@ def runs(ct, tmp_path_factory):
     d, _ = ct
     w = tmp_path_factory.mktemp("runs")
     vol, sp, org = load_volume(d / "ct.nii.gz")
-    patient = {"PatientName": "Doe^Jane", "PatientID": "P-0042", "PatientBirthDate": "19700101",
+    patient = {"PatientName": "Müller^Jöran", "PatientID": "P-0042", "PatientBirthDate": "19700101",
                "PatientSex": "F", "StudyInstanceUID": "1.2.826.0.1.3680043.2.1125.1.42",
                "StudyDate": "20240301", "StudyTime": "101500", "StudyID": "S42", "AccessionNumber": "A42",
                "ReferringPhysicianName": "House^Greg", "FrameOfReferenceUID": "1.2.826.0.1.3680043.2.1125.1.43",
@@ -177,7 +177,7 @@ def test_every_reconstruction_of_a_scan_is_a_series_of_its_study(runs):
     assert fdk.SeriesDescription == "clgs FDK, 12 views" and sart.SeriesDescription.startswith("clgs SART")
     assert "sart" in sart.DerivationDescription and "iterations=1" in sart.DerivationDescription
     # the patient came along from the DICOM input
-    assert str(fdk.PatientName) == "Doe^Jane" and fdk.PatientID == "P-0042" and fdk.PatientSex == "F"
+    assert str(fdk.PatientName) == "Müller^Jöran" and fdk.PatientID == "P-0042" and fdk.PatientSex == "F"
     assert (fdk.StudyDate, fdk.StudyTime, fdk.AccessionNumber) == ("20240301", "101500", "A42")
     assert fdk.PatientPosition == "HFS"
 
