@@ -102,16 +102,18 @@ _OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings
 
 
 def load_experiment_subject(anatomy, sid, meshes, seed: int):
-    """A held-out subject of the anatomy, or with ``meshes`` ({id: (file, units)}) the user's
-    surface ``sid`` made a subject (aligned, its CT simulated with a density seeded by its id)."""
+    """A held-out subject of the anatomy, or with ``meshes`` ({id: (file, units)} or {id: (file,
+    units, frame of an untagged file)}) the user's surface ``sid`` made a subject (aligned, its CT
+    simulated with a density seeded by its id)."""
     if not meshes:
         return anatomy.load_subject(sid)
     import zlib
 
     from clgs.anatomy.simulation import subject_from_mesh_file
 
-    path, units = meshes[sid]
-    return subject_from_mesh_file(anatomy, path, seed=zlib.crc32(f"{anatomy.name}/{sid}".encode()), units=units)
+    path, units, *space = meshes[sid]
+    return subject_from_mesh_file(anatomy, path, seed=zlib.crc32(f"{anatomy.name}/{sid}".encode()), units=units,
+                                  space=space[0] if space else None)
 
 
 def _check_same_run(path: Path, row: dict, made_with: dict) -> None:

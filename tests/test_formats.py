@@ -155,14 +155,18 @@ def test_meshes_are_written_in_lps_with_the_tag_slicer_reads(tmp_path, suffix):
     assert np.allclose(back.vertices.mean(0), vertices.mean(0), atol=1e-3)
 
 
-def test_untagged_and_ras_tagged_meshes_are_read_as_ras(tmp_path):
+def test_ras_tagged_meshes_are_read_as_ras_and_untagged_ones_as_asked(tmp_path):
     import trimesh
+
+    from clgs.io.mesh import MeshWarning
 
     sphere = trimesh.creation.icosphere(1)
     vertices = sphere.vertices + [5.0, 6.0, 7.0]
     tm = trimesh.Trimesh(vertices, sphere.faces, process=False)
     (tmp_path / "plain.obj").write_text(tm.export(file_type="obj"))
     (tmp_path / "ras.obj").write_text("# SPACE=RAS\n" + tm.export(file_type="obj"))
-    for name in ("plain.obj", "ras.obj"):
-        assert np.allclose(load_mesh(tmp_path / name).vertices.mean(0), [5.0, 6.0, 7.0], atol=1e-6)
+    assert np.allclose(load_mesh(tmp_path / "ras.obj").vertices.mean(0), [5.0, 6.0, 7.0], atol=1e-6)
+    assert np.allclose(load_mesh(tmp_path / "plain.obj", space="RAS").vertices.mean(0), [5.0, 6.0, 7.0], atol=1e-6)
+    with pytest.warns(MeshWarning, match="read as LPS"):
+        assert np.allclose(load_mesh(tmp_path / "plain.obj").vertices.mean(0), [-5.0, -6.0, 7.0], atol=1e-6)
     assert mesh_space(tmp_path / "plain.obj") is None and mesh_space(tmp_path / "ras.obj") == "RAS"

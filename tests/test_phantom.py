@@ -243,7 +243,7 @@ def test_load_mesh_formats(tmp_path):
     mesh.export(tmp_path / "m.stl")
     np.savez(tmp_path / "m.npz", vertices=mesh.vertices, faces=mesh.faces)
     for name in ("m.stl", "m.npz"):
-        v, f = load_mesh(tmp_path / name)
+        v, f = load_mesh(tmp_path / name, space="RAS")  # trimesh's file: no frame tag
         check_mesh(v, f, closed=True)  # watertight
         assert abs(mv.mesh_volume(v, f) - mesh.volume) < 1e-3 * mesh.volume
     with pytest.raises(MeshError, match="no such file"):

@@ -361,7 +361,7 @@ class SurfacePopulation:
         return Grid(tuple(int(x) for x in n2[::-1]), tuple(centre - 0.5 * (n2 - 1) * sp), tuple(sp))
 
     def subject_from_mesh(self, path, seed: int = 0, align: bool = True, sid: str | None = None, echo=print,
-                          units: str = "mm"):
+                          units: str = "mm", space: str | None = None):
         """A simulated CT subject from a mesh file (STL/PLY/OBJ/npz, either side, any frame),
         rigidly aligned to the template first (the fit is reported through ``echo``; None for
         silence): (Subject, Alignment or None).
@@ -371,14 +371,15 @@ class SurfacePopulation:
         (:meth:`subject_grid`): any length is simulated with its own size, while the shape model and
         atlas stay on the template's grid. A surface whose shape (size set aside) fits the template
         far worse than the population's own is warned about, with both numbers, before the CT is
-        made."""
+        made. ``space``: the frame ("RAS" or "LPS") of a surface file that declares none
+        (:func:`clgs.io.mesh.load_mesh`)."""
         import os
 
         from clgs.io.mesh import load_mesh
         from clgs.shape.template import Subject
 
         factor = unit_factor(units)
-        v, f = load_mesh(path)
+        v, f = load_mesh(path, space=space)
         v = np.asarray(v, float) * factor
         check_mesh(v, f, closed=True)
         self.check_mesh_size(v, path)

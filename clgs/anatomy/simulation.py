@@ -101,30 +101,36 @@ def scan_geometry(anatomy, subject, n_views: int, arc: float, angles=None, detec
     return Geometry(**d)
 
 
-def subject_from_mesh_file(anatomy, path, seed: int = 0, units: str = "mm"):
+def subject_from_mesh_file(anatomy, path, seed: int = 0, units: str = "mm", space: str | None = None):
     """A Subject (with a CT volume) from a surface file: the plugin's ``subject_from_mesh`` when it
     has one; otherwise the surface filled with a uniform bone attenuation ``scene['density']``
     (1/mm, default 0.04) on a grid of the template's spacing with a 10 mm margin. ``units``: the
-    file's length unit ("mm", "cm", "m", "in"), rescaled to mm."""
+    file's length unit ("mm", "cm", "m", "in"), rescaled to mm; ``space``: the frame ("RAS" or
+    "LPS") of a file that declares none (default LPS, with a warning: :func:`clgs.io.mesh.load_mesh`)."""
     import inspect
 
     from clgs.anatomy.population import unit_factor
 
     factor = unit_factor(units)
     if getattr(anatomy, "subject_from_mesh", None) is not None:
-        if "units" in inspect.signature(anatomy.subject_from_mesh).parameters:
-            out = anatomy.subject_from_mesh(path, seed=seed, units=units)
+        params = inspect.signature(anatomy.subject_from_mesh).parameters
+        if space is not None and "space" not in params:
+            raise InputError(f"the {anatomy.name} plugin reads surface files in its own frame: leave out the frame "
+                             f"({space}) given for {path}")
+        extra = {"space": space} if "space" in params else {}
+        if "units" in params:
+            out = anatomy.subject_from_mesh(path, seed=seed, units=units, **extra)
         elif units != "mm":
             raise InputError(f"the {anatomy.name} plugin reads surfaces in mm only: scale {path} by {factor:g}")
         else:
-            out = anatomy.subject_from_mesh(path, seed=seed)
+            out = anatomy.subject_from_mesh(path, seed=seed, **extra)
         return out[0] if isinstance(out, tuple) else out
     import numpy as np
 
     from clgs.io.mesh import load_mesh
     from clgs.shape.template import Subject, box_grid, mesh_to_label
 
-    v, f = load_mesh(path)
+    v, f = load_mesh(path, space=space)
     v = np.asarray(v, float) * factor
     spacing = float(min(anatomy.load_template().spacing)) if anatomy.load_template is not None else 2.0
     shape, sp, org = box_grid(v.min(0) - 10.0, v.max(0) + 10.0, spacing=spacing)

@@ -21,7 +21,7 @@ import click
 
 from clgs.cli.cohort_options import check_cohort_options, cohort_options
 from clgs.cli.common import check_memory, check_not_input, exit_if_interrupted
-from clgs.cli.options import FiniteFloat, Seed
+from clgs.cli.options import FiniteFloat, Seed, mesh_space_option
 from clgs.cli.settings import check_settings, parse_settings
 
 # --------------------------------------------------------------------------------------- errors
@@ -93,7 +93,7 @@ def _evaluate(anatomy, scan, volume, folder=None) -> dict:
         from clgs.io.mesh import load_mesh
         from clgs.metrics import surface_distance
 
-        sd = surface_distance(load_mesh(model), scan.surface)
+        sd = surface_distance(load_mesh(model, space="RAS"), scan.surface)  # clgs's own (tagged) file
         out.update({f"model_surface_{k}_mm": v for k, v in sd.items() if k in ("mean", "p95", "hausdorff")})
     return out
 
@@ -108,7 +108,7 @@ def _surface_picture(anatomy, scan, volume, folder) -> None:
     if os.path.isfile(model):
         from clgs.io.mesh import load_mesh
 
-        model_mesh = load_mesh(model)
+        model_mesh = load_mesh(model, space="RAS")  # clgs's own (tagged) file
     png = reconstruction_figure(os.path.join(folder, "surface_distance.png"), anatomy, scan, volume, model_mesh,
                                 title=f"{anatomy.name} {scan.meta.get('subject', '')}".strip())
     if png:
@@ -253,9 +253,9 @@ def _detector_option(text):
 MESH_SUFFIXES = (".stl", ".ply", ".obj", ".off", ".npz")
 
 
-def _mesh_folder(folder, units: str) -> dict:
-    """{id (file stem): (path, units)} of the surface files in ``folder``, sorted; a usage error
-    when there is none or two share a stem."""
+def _mesh_folder(folder, units: str, space=None) -> dict:
+    """{id (file stem): (path, units, space)} of the surface files in ``folder``, sorted; a usage
+    error when there is none or two share a stem."""
     files = sorted(p for p in os.listdir(folder) if p.lower().endswith(MESH_SUFFIXES)
                    and os.path.isfile(os.path.join(folder, p)))
     if not files:
@@ -265,7 +265,7 @@ def _mesh_folder(folder, units: str) -> dict:
         stem = os.path.splitext(name)[0]
         if stem in out:
             raise click.BadParameter(f"{folder}: two surfaces are called {stem!r}; rename one", param_hint="--meshes")
-        out[stem] = (os.path.join(folder, name), units)
+        out[stem] = (os.path.join(folder, name), units, space)
     return out
 
 
@@ -295,6 +295,7 @@ def _simulate_command(anatomy) -> click.Command:
                        "square), e.g. 300 for a C-arm; the bone beyond it is truncated [default: sees it whole]")
     @click.option("--units", type=click.Choice(["mm", "cm", "m", "in"]), default="mm", show_default=True,
                   help="length unit of the --mesh file (rescaled to mm)")
+    @mesh_space_option("--mesh")
     @click.option("--noise/--no-noise", default=True, show_default=True, help="Poisson + electronic noise")
     @click.option("--seed", type=Seed(), default=0, show_default=True, help="noise seed, 0 to 2**64 - 1")
     @click.option("--force", is_flag=True, help="replace an existing scan folder")
@@ -302,8 +303,8 @@ def _simulate_command(anatomy) -> click.Command:
                   help="fine: projections from a grid twice as fine as the reconstruction grid; same: on the "
                        "reconstruction grid itself (R2-Gaussian's protocol, flatters FDK and SART)")
     @click.option("--overwrite", "force_alias", is_flag=True, hidden=True)  # the flag's earlier name
-    def simulate(subject_id, mesh, out, views, arc, geometry_file, angles, detector_mm, units, noise, seed, force,
-                 force_alias, protocol):
+    def simulate(subject_id, mesh, out, views, arc, geometry_file, angles, detector_mm, units, mesh_space, noise,
+                 seed, force, force_alias, protocol):
         """Simulate a CT scan of a subject (default: the first held-out one) or of a surface file."""
         import math
 
@@ -311,6 +312,8 @@ def _simulate_command(anatomy) -> click.Command:
             raise click.UsageError("give --subject or --mesh, not both")
         if units != "mm" and not mesh:
             raise click.UsageError("--units is the unit of a --mesh file")
+        if mesh_space and not mesh:
+            raise click.UsageError("--mesh-space is the frame of a --mesh file")
         view_set = _view_set_option(angles)
         fov = _detector_option(detector_mm)
         if geometry_file:
@@ -326,7 +329,7 @@ def _simulate_command(anatomy) -> click.Command:
         if mesh:
             from clgs.anatomy.simulation import subject_from_mesh_file
 
-            subject = subject_from_mesh_file(anatomy, mesh, seed=seed, units=units)
+            subject = subject_from_mesh_file(anatomy, mesh, seed=seed, units=units, space=mesh_space)
         else:
             if not subject_id:
                 held = _need(anatomy, "test_subjects", "pick a held-out subject")()
@@ -562,6 +565,7 @@ def _experiment_command(anatomy) -> click.Command:
                        "protocol on instead of the held-out subjects")
     @click.option("--units", type=click.Choice(["mm", "cm", "m", "in"]), default="mm", show_default=True,
                   help="length unit of the --meshes files")
+    @mesh_space_option("--meshes")
     @click.option("--subjects", default=None, help="comma-separated held-out subject ids [default: all held out]")
     @click.option("--iterations", default=1000, show_default=True, type=click.IntRange(min=1),
                   help="training iterations of every Gaussian run (the README's table: 1000, a few "
@@ -577,8 +581,8 @@ def _experiment_command(anatomy) -> click.Command:
                        "reconstruction grid itself (R2-Gaussian's protocol, flatters FDK and SART)")
     @click.option("--progress/--no-progress", default=True, help="progress bar per run")
     @cohort_options
-    def experiment(views, more_views, view_sets, detector_mm, meshes, units, subjects, iterations, ablation_views,
-                   out, seed, log_every, progress, protocol, workers, scheduler):
+    def experiment(views, more_views, view_sets, detector_mm, meshes, units, mesh_space, subjects, iterations,
+                   ablation_views, out, seed, log_every, progress, protocol, workers, scheduler):
         """The seed paper's experiment: R2-Gaussian vs shape-guided on every held-out subject,
         the ablation, error against run time, surfaces; writes table.md, results.csv, curves.png.
         Clinical view sets (--view-sets), a truncating detector (--detector-mm) and your own
@@ -590,7 +594,9 @@ def _experiment_command(anatomy) -> click.Command:
         sets = [_view_set_option(v) for v in view_sets]
         views = views + tuple(sets) if (views or sets) else (5, 10)
         fov = _detector_option(detector_mm)
-        mesh_files = _mesh_folder(meshes, units) if meshes else None
+        if mesh_space and not meshes:
+            raise click.UsageError("--mesh-space is the frame of the --meshes files")
+        mesh_files = _mesh_folder(meshes, units, mesh_space) if meshes else None
         if mesh_files and subjects:
             raise click.UsageError("give --meshes or --subjects, not both")
         ids = [s.strip() for s in subjects.split(",")] if subjects else None

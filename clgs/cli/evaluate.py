@@ -16,7 +16,7 @@ from clgs.cli.common import (
     load_volume_file,
     parse_spacing,
 )
-from clgs.cli.options import FiniteFloat
+from clgs.cli.options import FiniteFloat, mesh_space_option
 
 
 def _truth_from(path: Path, spacing, axes: str = "zyx"):
@@ -47,13 +47,15 @@ def _truth_from(path: Path, spacing, axes: str = "zyx"):
               help="iso-level for the surface distance (mm) between VOLUME's and the truth's surfaces")
 @click.option("--surface", "surface_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="true surface mesh (STL/PLY/OBJ/npz) to compare with instead of the truth's iso-surface")
+@mesh_space_option("the --surface")
 @click.option("--spacing", default=None, help="voxel size in mm for .npy inputs, 'd' or 'dZ,dY,dX'")
 @click.option("--axes", type=click.Choice(["zyx", "xyz"]), default="zyx", show_default=True,
               help="axis order of .npy inputs: zyx (clgs) or xyz (R2-Gaussian's vol_gt.npy)")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="write the figures to this JSON file (an infinite PSNR is written as null)")
 @click.option("--force", is_flag=True, help="overwrite an existing --json")
-def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, spacing, axes, json_out, force):
+def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, mesh_space, spacing, axes, json_out,
+             force):
     """Compare VOLUME with the truth: 3D PSNR / SSIM (as R2-Gaussian), masked variants, and the
     surface distance in mm when --level is given. VOLUME may also be a reconstruct output folder.
 
@@ -65,6 +67,8 @@ def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, 
     from clgs import metrics
     from clgs.io import atomic
 
+    if mesh_space and surface_path is None:
+        raise click.UsageError("--mesh-space is the frame of a --surface file")
     if json_out is not None:
         check_not_input(json_out, [("volume", volume, False), ("truth", truth, truth.is_dir()),
                                     ("mask", mask_path, False), ("surface", surface_path, False)], "--json")
@@ -117,7 +121,7 @@ def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, 
         try:
             ours = surface_from_volume(pred, level, spacing=sp_mm, origin=org)
             if surface_path is not None:
-                ref = load_mesh(surface_path)
+                ref = load_mesh(surface_path, space=mesh_space)
             elif tsurf[0] is not None and tsurf[1] == level:
                 ref = tsurf[0]  # the scan's stored true surface, made at this level
             else:

@@ -171,3 +171,12 @@ def distance_options(dso_help: str, dsd_help: str):
         f = click.option("--DSD", "DSD", type=FiniteFloat(min=0, min_open=True), default=None, help=dsd_help)(f)
         return click.option("--DSO", "DSO", type=FiniteFloat(min=0, min_open=True), default=None, help=dso_help)(f)
     return decorate
+
+
+def mesh_space_option(what: str):
+    """``--mesh-space RAS|LPS``: the coordinate frame of the ``what`` surface files that declare none
+    (no SPACE= tag); unset, such a file is read as LPS (3D Slicer's reading) with a warning."""
+    return click.option("--mesh-space", type=click.Choice(["RAS", "LPS"], case_sensitive=False), default=None,
+                        callback=lambda ctx, param, value: value.upper() if value else None,
+                        help=f"frame of {what} surface files without a SPACE= tag [default: LPS, as 3D Slicer "
+                             "reads them, with a warning]; a tagged file is read in its own frame")

@@ -214,6 +214,10 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, settings, s
         try:
             sc = load_scan(scan, split)
             report["n_views"] = sc.n_views
+            report["scan_path"] = str(Path(scan).resolve())
+            from clgs.io.dicom_identity import scan_identity
+
+            report["scan_identity"] = scan_identity(sc)  # the study and frame its DICOM series join
             click.echo(f"{method.name}: {sc.n_views} views, {'x'.join(map(str, sc.geometry.nVoxel))} voxels",
                        err=True)
             try:

@@ -134,6 +134,13 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
         raise click.BadParameter(str(exc), param_hint="--grid") from None
     grid_sp = parse_spacing(grid_spacing, "--grid-spacing") if grid_spacing is not None else None
     vol, sp, org = load_volume_file(volume, sp_override, attenuation=not hu, axes=axes)
+    from clgs.io.dicom_identity import DicomIdentityError, input_identity
+
+    try:  # a DICOM input's patient, study and frame of reference, for the reconstructions' series
+        dicom_source = input_identity(volume)
+    except DicomIdentityError as exc:
+        dicom_source = None
+        click.echo(f"warning: {exc}; DICOM series of its reconstructions will be anonymous", err=True)
     if sp is None:
         raise click.UsageError(f"{volume} is a .npy array without voxel size; give --spacing (mm)")
     extent = np.multiply(vol.shape, sp)  # (Z, Y, X) mm: the field of view both grids cover
@@ -235,6 +242,8 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
                        "clgs_version": __import__("clgs").__version__,
                        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())},
     }
+    if dicom_source:
+        meta["dicom_source"] = dicom_source
     surface = None
     if surface_level is not None:
         meta["truth_surface_level"] = surface_level

@@ -7,7 +7,10 @@
 * :mod:`clgs.io.volume`: volumes as ``.npy``, NIfTI, MetaImage, NRRD or DICOM series, kept where
   they lie in the world.
 * :mod:`clgs.io.units`: Hounsfield units to attenuation and back, at a stated energy.
-* :mod:`clgs.io.mesh`: surface meshes (STL, PLY, OBJ written in LPS with Slicer's tag; npz).
+* :mod:`clgs.io.mesh`: surface meshes (STL, PLY, OBJ written in LPS with Slicer's tag; npz);
+  untagged files read as LPS with a warning, or in the frame the caller names.
+* :mod:`clgs.io.dicom`: volumes out as a DICOM CT series (pydicom), oriented as scanners write it;
+  :mod:`clgs.io.dicom_identity`: the patient, study and frame of reference a series belongs to.
 
 Submodules are imported on demand; this package stays light.
 

@@ -4,8 +4,11 @@ Coordinates in memory are clgs's world mm (x, y, z), the frame NIfTI volumes are
 (labelled RAS). On disk, STL, PLY and OBJ files are written in LPS coordinates (x and y negated)
 with ``SPACE=LPS`` in the header (the STL header, a PLY ``comment``, an OBJ ``#`` line): the
 convention of DICOM, ITK and 3D Slicer, which reads the tag, so a surface opens aligned with the
-volume it came from. On read, ``SPACE=LPS`` files are turned back into the RAS frame; files tagged
-``SPACE=RAS`` and untagged files (earlier clgs versions, most other tools) are taken as RAS.
+volume it came from. On read, a file's tag decides its frame (``SPACE=LPS`` files are turned back
+into RAS). A file without a tag is read in the frame ``space`` names; by default LPS, as 3D Slicer
+reads untagged files (so a surface exported from Slicer or another ITK-based tool lands where it
+was drawn), with a :class:`MeshWarning` naming the frame assumed and how to choose the other
+(``space="RAS"``, ``--mesh-space RAS``). npz files are clgs's own arrays, in its world frame.
 Writes are atomic. STL stores each triangle's corners separately, so on read coincident vertices
 are merged back into a shared-vertex mesh.
 """
@@ -19,14 +22,22 @@ import numpy as np
 from clgs.errors import ClgsError
 from clgs.io import atomic
 
-__all__ = ["Mesh", "MeshError", "check_mesh", "save_mesh", "load_mesh", "mesh_space", "MESH_SUFFIXES"]
+__all__ = ["Mesh", "MeshError", "MeshWarning", "check_mesh", "check_space", "save_mesh", "load_mesh", "mesh_space",
+           "MESH_SUFFIXES", "MESH_SPACES", "UNTAGGED_SPACE"]
 
 MESH_SUFFIXES = (".stl", ".ply", ".obj", ".npz")
 RAS_TO_LPS = np.array([-1.0, -1.0, 1.0])  # the flip is its own inverse
+MESH_SPACES = ("RAS", "LPS")
+#: the frame of a surface file with no SPACE= tag, unless the caller names one (3D Slicer's reading)
+UNTAGGED_SPACE = "LPS"
 
 
 class MeshError(ClgsError, ValueError):
     """A mesh file that cannot be read or written as asked."""
+
+
+class MeshWarning(UserWarning):
+    """A surface file read on an assumption (no coordinate tag: the frame assumed is named)."""
 
 
 class Mesh(NamedTuple):
@@ -130,8 +141,26 @@ def mesh_space(path) -> str | None:
     return None
 
 
-def load_mesh(path) -> Mesh:
-    """Read a triangle mesh as :class:`Mesh` (vertices mm, faces int64)."""
+def check_space(space, what: str = "space") -> str | None:
+    """``space`` as "RAS" or "LPS" (any case), or None; anything else is a MeshError."""
+    if space is None:
+        return None
+    text = str(space).strip().upper()
+    if text not in MESH_SPACES:
+        raise MeshError(f"{what} {space!r}: give RAS or LPS (the coordinate frame of the surface file)")
+    return text
+
+
+def load_mesh(path, space: str | None = None) -> Mesh:
+    """Read a triangle mesh as :class:`Mesh` (vertices mm in clgs's RAS world frame, faces int64).
+
+    A file that declares its frame (``SPACE=LPS`` / ``SPACE=RAS``) is read in it. ``space``
+    ("RAS" or "LPS") is the frame of a file that declares none; None reads such a file as
+    :data:`UNTAGGED_SPACE` (LPS, as 3D Slicer does) with a :class:`MeshWarning` that says so. A
+    tag always wins over ``space`` (a folder may mix tagged and untagged files)."""
+    import warnings
+
+    space = check_space(space)
     path = Path(path)
     suf = _suffix(path)
     if not path.is_file():
@@ -157,6 +186,12 @@ def load_mesh(path) -> Mesh:
     if suf == ".stl":
         tm.merge_vertices()
     vertices = np.asarray(tm.vertices, dtype=np.float64)
-    if mesh_space(path) == "LPS":
+    tag = mesh_space(path)
+    if tag is None and space is None:
+        warnings.warn(f"{path} declares no coordinate frame (no SPACE=RAS or SPACE=LPS in its header): read as "
+                      f"{UNTAGGED_SPACE}, as 3D Slicer reads it; if it is in RAS (e.g. written by earlier clgs "
+                      "versions or from a NIfTI's coordinates), pass --mesh-space RAS (Python: space='RAS')",
+                      MeshWarning, stacklevel=2)
+    if (tag or space or UNTAGGED_SPACE) == "LPS":
         vertices = vertices * RAS_TO_LPS
     return check_mesh(vertices, tm.faces)

@@ -203,7 +203,9 @@ class Scan:
             from clgs.io.mesh import MeshError, load_mesh
 
             try:
-                surface = load_mesh(inside_folder(folder, files["truth_surface"], "truth surface", SCAN_JSON))
+                # clgs's own file: tagged; untagged ones (earlier versions) were written in RAS
+                surface = load_mesh(inside_folder(folder, files["truth_surface"], "truth surface", SCAN_JSON),
+                                    space="RAS")
             except MeshError as exc:
                 raise ScanError(str(exc)) from exc
         return cls(geometry, proj, truth, meta, surface)

@@ -43,3 +43,72 @@ def mu_to_hu(mu, kev: float = DEFAULT_KEV) -> np.ndarray:
     """Attenuation in 1/mm -> Hounsfield units (float32)."""
     w = water_mu(kev)
     return (1000.0 * (np.asarray(mu, dtype=np.float64) - w) / w).astype(np.float32)
+
+
+def unit_label(hu: bool, kev: float = DEFAULT_KEV) -> str:
+    """How a volume file names its values: ``HU at 70 keV`` or ``attenuation 1/mm``."""
+    return f"HU at {float(kev):g} keV" if hu else "attenuation 1/mm"
+
+
+def record_unit(path, label: str):
+    """Write ``label`` (e.g. :func:`unit_label`) into the header of a volume file clgs wrote: a
+    NIfTI's ``descrip`` field, a MetaImage's or NRRD's ``ValueUnit`` field. The file is rewritten
+    atomically. Returns False for ``.npy`` (no header: nothing recorded), True otherwise."""
+    from pathlib import Path
+
+    from clgs.io import atomic
+
+    path = Path(path)
+    name = path.name.lower()
+    if name.endswith(".npy"):
+        return False
+    if name.endswith((".nii", ".nii.gz")):
+        import nibabel as nib
+
+        img = nib.load(str(path))
+        data = np.asanyarray(img.dataobj)
+        hdr = img.header.copy()
+        hdr["descrip"] = label.encode()[:80]
+        new = nib.Nifti1Image(data, img.affine, hdr)
+        with atomic.atomic_path(path, True) as tmp:
+            nib.save(new, str(tmp))
+        return True
+    import os
+    import shutil
+    import tempfile
+
+    import SimpleITK as sitk
+
+    img = sitk.ReadImage(str(path))
+    img.SetMetaData("ValueUnit", label)
+    # made under its own name in a folder beside it (a detached header names its data file), then
+    # moved in: data files first, the header last
+    tmpdir = Path(tempfile.mkdtemp(prefix=".clgs-tmp-", dir=path.parent))
+    try:
+        sitk.WriteImage(img, str(tmpdir / path.name), True)
+        for f in sorted(tmpdir.iterdir(), key=lambda f: f.name == path.name):
+            os.replace(f, path.parent / f.name)
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)
+    return True
+
+
+def recorded_unit(path) -> str | None:
+    """The value unit a volume file's header records (:func:`record_unit`), or None."""
+    from pathlib import Path
+
+    path = Path(path)
+    name = path.name.lower()
+    if name.endswith(".npy"):
+        return None
+    if name.endswith((".nii", ".nii.gz")):
+        import nibabel as nib
+
+        text = bytes(nib.load(str(path)).header["descrip"]).split(b"\0")[0].decode("latin-1").strip()
+        return text or None
+    import SimpleITK as sitk
+
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
+    reader.ReadImageInformation()
+    return reader.GetMetaData("ValueUnit") if reader.HasMetaDataKey("ValueUnit") else None
