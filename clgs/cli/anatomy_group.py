@@ -496,7 +496,7 @@ def _demo_command(anatomy) -> click.Command:
     @click.option("--out", default=None, type=click.Path(file_okay=False), help="keep outputs here")
     @click.option("--iterations", default=600, show_default=True, type=click.IntRange(min=1),
                   help="optimisation steps for iterative methods (the papers use 30000: hours on a CPU; "
-                       "the shape-guided method peaks near 600 on the femur, see the README)")
+                       "the shape-guided method peaks near 600 on the femur, see docs/results.md)")
     @click.option("--seed", type=Seed(), default=0, show_default=True, help="random seed, 0 to 2**64 - 1")
     @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="method option (repeatable)")
     def demo(subject_id, views, method, out, iterations, seed, settings):
@@ -568,7 +568,7 @@ def _experiment_command(anatomy) -> click.Command:
     @mesh_space_option("--meshes")
     @click.option("--subjects", default=None, help="comma-separated held-out subject ids [default: all held out]")
     @click.option("--iterations", default=1000, show_default=True, type=click.IntRange(min=1),
-                  help="training iterations of every Gaussian run (the README's table: 1000, a few "
+                  help="training iterations of every Gaussian run (docs/results.md's tables: 1000, a few "
                        "minutes per subject on 2 cores; the paper: 30000, hours per run there)")
     @click.option("--ablation-views", default=5, show_default=True, type=click.IntRange(min=0),
                   help="view count of the ablation (0: none)")

@@ -43,7 +43,7 @@ CPU_PLATFORM_ORDER = ("portable computing language", "intel(r) opencl")
 INSTALL_HINT = (
     "To get a working OpenCL device on Linux x86-64: run clgs's set-up (bash setup.sh), or install "
     "Debian's PoCL (apt-get install pocl-opencl-icd) or Intel's CPU runtime "
-    "(pip install intel-opencl-rt intel-cmplr-lib-rt); for a GPU install its vendor's OpenCL driver (see the README)."
+    "(pip install intel-opencl-rt intel-cmplr-lib-rt); for a GPU install its vendor's OpenCL driver (see docs/devices.md)."
 )
 
 
