@@ -153,7 +153,8 @@ def _fit_pair(A_full, B_full, fit_roll: bool, max_rows: int = 48):
         one = A_full[r:r + 1].astype(np.float64)
         if not np.any(one):
             continue
-        rr = optimize.minimize_scalar(lambda c: _row_cost(one[0], B_full[r], c), bounds=(c1 - 3.0, c1 + 3.0), method="bounded", options={"xatol": 1e-4})
+        rr = optimize.minimize_scalar(lambda c: _row_cost(one[0], B_full[r], c), bounds=(c1 - 3.0, c1 + 3.0),
+                                      method="bounded", options={"xatol": 1e-4})
         per_row.append((r, float(rr.x)))
         weight.append(float(np.sum(one ** 2)))
     if len(per_row) >= 2:
@@ -395,7 +396,8 @@ def find_axis(proj, angles_rad, mode: str = "parallel", background=None) -> tupl
     chosen = counted[0]
     why = "the first available of pair, sinogram, centre of mass"
     if not agree and len(counted) == 3:
-        pairs_ok = [(a, b) for ai, a in enumerate(counted) for b in counted[ai + 1:] if abs(cols[a] - cols[b]) <= AGREE_PX]
+        pairs_ok = [(a, b) for ai, a in enumerate(counted) for b in counted[ai + 1:]
+                    if abs(cols[a] - cols[b]) <= AGREE_PX]
         if len(pairs_ok) == 1:
             chosen = pairs_ok[0][0]
             why = f"{NAMES[pairs_ok[0][0]]} and {NAMES[pairs_ok[0][1]]} agree, the third does not"

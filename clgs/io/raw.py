@@ -17,7 +17,7 @@ reads 0 whatever the beam did between the flat fields and the projections, and t
 removed is reported per view. Ratios at or below a floor (dead pixels, photon starvation) are set
 to the floor and counted; line integrals still below 0 (noise in the air) are set to 0 and
 counted too. Zingers (:mod:`clgs.io.artefacts`) are removed on request before the air is
-measured; sinogram stripes (rings) after crop and binning.
+measured; sinogram stripes (rings) after it, before the clipping.
 
 HDF5 files are read as Data Exchange (``exchange/data``) or NeXus NXtomo (:mod:`clgs.io.nexus`).
 
@@ -196,14 +196,16 @@ def read_raw(path, flats=None, darks=None) -> RawProjections:
 
 
 def line_integrals(raw: RawProjections, air_columns=None, floor: float = DEFAULT_FLOOR, air: bool = True,
-                   zingers=None):
+                   zingers=None, rings=None):
     """(line integrals (n_views, rows, columns) float32, report dict): ``-log`` of the flat- and
     dark-corrected counts. ``air_columns`` (first, last exclusive) names detector columns that see
     only air (found per view when None). ``air``: set each view's I0 from its air so that the air
     reads 0 (:func:`clgs.io.air.normalise_air`). ``zingers``: None, ``"auto"`` or a threshold
-    (:func:`clgs.io.artefacts.remove_zingers`)."""
+    (:func:`clgs.io.artefacts.remove_zingers`). ``rings``: None or the stripe filter's size in
+    columns (:func:`clgs.io.artefacts.remove_stripes`), before negative values are set to 0 (a
+    stripe clipped in the air and kept in the object is no longer a stripe)."""
     from clgs.io.air import normalise_air
-    from clgs.io.artefacts import remove_zingers
+    from clgs.io.artefacts import remove_stripes, remove_zingers
 
     if not (0 < floor < 1):
         raise RawError(f"the floor must lie in (0, 1), got {floor}")
@@ -259,6 +261,11 @@ def line_integrals(raw: RawProjections, air_columns=None, floor: float = DEFAULT
             proj, report["air"] = normalise_air(proj, air_columns)
         except ValueError as exc:
             report["air"] = {"air": "none", "note": f"not normalised: {exc}; give --air-columns"}
+    if rings is not None:
+        try:
+            proj, report["rings"] = remove_stripes(proj, rings)
+        except ValueError as exc:
+            raise RawError(str(exc)) from None
     # still below 0 (noise in the air, a beam brighter than the flat field without air
     # normalisation): no negative attenuation exists, so these are set to 0 and counted
     negative = proj < 0
@@ -333,8 +340,7 @@ def scan_from_raw(raw: RawProjections, *, mode: str = "parallel", pixel: float =
     centre is found on all of them). ``geometry``: a geometry file (:func:`clgs.geometry.read_geometry`:
     TIGRE's names or per-view vectors) that describes the detector after crop and binning; it
     replaces the angles, centre, mode and distances. ``air``, ``zingers``: as for
-    :func:`line_integrals`; ``rings``: a stripe filter's size in columns
-    (:func:`clgs.io.artefacts.remove_stripes`), after crop and binning. ``tilt``: None (the roll
+    :func:`line_integrals`, as is ``rings`` (a stripe filter's size in columns). ``tilt``: None (the roll
     is estimated and reported, not applied), ``"auto"`` (the estimate applied) or degrees: a
     rolled detector is written as per-view vectors."""
     from clgs.geometry import Geometry, GeometryError
@@ -429,17 +435,9 @@ def scan_from_raw(raw: RawProjections, *, mode: str = "parallel", pixel: float =
 
 
 def _corrected(raw, crop, binning, air_columns, floor, air, rings, zingers):
-    """(line integrals after crop, binning and the optional stripe filter, report)."""
-    from clgs.io.artefacts import remove_stripes
-
-    proj, report = line_integrals(raw, air_columns, floor, air=air, zingers=zingers)
-    proj = crop_and_bin(proj, crop, binning)
-    if rings is not None:
-        try:
-            proj, report["rings"] = remove_stripes(proj, rings)
-        except ValueError as exc:
-            raise RawError(str(exc)) from None
-    return proj, report
+    """(line integrals (:func:`line_integrals`) after crop and binning, report)."""
+    proj, report = line_integrals(raw, air_columns, floor, air=air, zingers=zingers, rings=rings)
+    return crop_and_bin(proj, crop, binning), report
 
 
 def _scan_with_geometry(raw, path, crop, binning, air_columns, floor, views, air=True, rings=None, zingers=None):
