@@ -3,7 +3,9 @@ dark pixels), removed on request.
 
 Stripes: a detector column that answers a little more or less than its flat field said adds the
 same offset to every view, a vertical stripe in the sinogram and a ring around the axis in the
-slice. :func:`remove_stripes` sorts each sinogram column by value along the views, median-filters
+slice. :func:`remove_stripes` takes each row's sinogram less its 2-pixel Gaussian smoothing (the
+object's own slopes across columns would hide a stripe from a median), sorts each column of that
+detail by value along the views, median-filters
 the sorted sinogram across columns (a stripe is an outlier among its neighbours at every rank,
 while the object, once sorted, varies smoothly across columns), and puts the values back in their
 views: the sorting-based filter of Vo et al. (2018). ``size`` (columns) must exceed a stripe's

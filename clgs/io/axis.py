@@ -7,7 +7,7 @@ with its own figure of merit, and says how far they agree:
 
 * ``pair``: the view at ``theta + 180`` degrees, mirrored, is the view at ``theta`` mirrored about
   the axis. Least squares over the axis column (a coarse search, then a bounded refinement with
-  cubic-spline resampling) and, with two rows or more, the detector's roll, fitted on the whole
+  cubic-spline resampling) and, with four rows or more, the detector's roll, fitted on the whole
   image (the mirrored view is the first turned by twice the roll about the axis). When no view
   lies exactly 180 degrees from another (a 180-degree arc that stops one step short), the
   opposite view is interpolated in angle (linearly, from its neighbour), to first order. Several
@@ -186,7 +186,7 @@ def _row_cost(a, b, c):
 
 
 def pair_axis(proj, angles_rad, fit_roll: bool = True, smooth: float = 1.0) -> dict:
-    """The ``pair`` estimator (module doc): {"column", "tilt_deg" (None with one row),
+    """The ``pair`` estimator (module doc): {"column", "tilt_deg" (None with fewer than 4 rows),
     "mismatch_percent", "pairs", "gap_deg"}, or {"available": False, "why"}. Both views are
     smoothed along the rows (Gaussian, ``smooth`` pixels) first: the same blur on both moves
     nothing and keeps the resampling's error below the figures sought."""
@@ -195,7 +195,7 @@ def pair_axis(proj, angles_rad, fit_roll: bool = True, smooth: float = 1.0) -> d
     pairs = opposite_pairs(angles_rad)
     if not pairs:
         return {"available": False, "why": "no two views lie 180 degrees apart (within 2 degrees)"}
-    fit_roll = fit_roll and p.shape[1] >= 2
+    fit_roll = fit_roll and p.shape[1] >= 4  # two or three rows leave the slope to noise
     cols, rolls, costs = [], [], []
     for i, j, gap in pairs:
         # an inexact pair meets half-way: each view turned by half the gap, towards the other

@@ -399,7 +399,7 @@ def scan_from_raw(raw: RawProjections, *, mode: str = "parallel", pixel: float =
                 raise RawError(f"tilt must be 'auto' or degrees, got {tilt!r}")
             if estimated_tilt is None:
                 raise RawError("the detector's roll cannot be estimated here (it needs the axis found with "
-                               "--centre auto from a parallel-beam scan with two views 180 degrees apart and two "
+                               "--centre auto from a parallel-beam scan with two views 180 degrees apart and four "
                                "rows or more); give it in degrees (--tilt DEG)")
             report["tilt"]["applied_deg"] = estimated_tilt
         else:
