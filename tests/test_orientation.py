@@ -199,3 +199,75 @@ def test_older_scans_and_geometry_files_stay_ras(tmp_path):
     for bad in ("RAX", "RRS", "RA", 5):
         with pytest.raises(GeometryError, match="orientation"):
             Geometry.from_dict({**g.to_dict(), "orientation": bad})
+
+
+# ------------------------------------------------------------------------------ units
+@pytest.fixture(scope="module")
+def mu_scan(tmp_path_factory):
+    """A scan simulated from a volume in 1/mm (so it records no X-ray energy)."""
+    d = tmp_path_factory.mktemp("units")
+    save_volume(d / "obj.nii.gz", asymmetric_object((16, 16, 16)), spacing=2.0)
+    run("simulate", d / "obj.nii.gz", "--views", 24, "--detector", 32, "--no-noise", "--out", d / "scan")
+    return d
+
+
+def test_reconstruct_hu_needs_a_known_energy(mu_scan, tmp_path):
+    from clgs.io.units import water_mu
+
+    res = run("reconstruct", mu_scan / "scan", "--method", "fdk", "--hu", "--out", tmp_path / "hu", ok=False)
+    assert res.exit_code == 2 and "records none" in res.output and "--kev" in res.output
+    assert not (tmp_path / "hu").exists()
+    res = run("reconstruct", mu_scan / "scan", "--method", "fdk", "--kev", 70, "--out", tmp_path / "x", ok=False)
+    assert res.exit_code == 2 and "add --hu" in res.output
+    run("reconstruct", mu_scan / "scan", "--method", "fdk", "--out", tmp_path / "mu")
+    run("reconstruct", mu_scan / "scan", "--method", "fdk", "--hu", "--kev", 60, "--out", tmp_path / "hu")
+    mu = nib.load(str(tmp_path / "mu" / "volume.nii.gz")).get_fdata()
+    hu = nib.load(str(tmp_path / "hu" / "volume.nii.gz"))
+    w = water_mu(60)
+    assert np.allclose(hu.get_fdata(), 1000.0 * (mu - w) / w, atol=1e-2)  # HU = 1000 (mu - mu_water) / mu_water
+    assert np.allclose(np.load(tmp_path / "hu" / "volume.npy"), hu.get_fdata().T)
+    assert hu.header["intent_name"].item() == b"HU 60 keV"
+    report = json.loads((tmp_path / "hu" / "report.json").read_text())
+    assert report["volume_units"] == {"units": "HU", "kev": 60.0, "water_mu_per_mm": round(w, 6)}
+    # the figures stay in 1/mm, against the truth
+    mu_report = json.loads((tmp_path / "mu" / "report.json").read_text())
+    assert report["metrics"]["psnr3d"] == pytest.approx(mu_report["metrics"]["psnr3d"])
+    assert mu_report["volume_units"] == {"units": "1/mm"}
+
+
+def test_save_reconstruction_from_python(mu_scan, tmp_path):
+    from clgs.io.reconstruction import save_reconstruction
+    from clgs.io.scan import Scan
+    from clgs.io.units import UnitsError
+
+    sc = Scan.load(mu_scan / "scan")
+    with pytest.raises(UnitsError, match="records none"):
+        save_reconstruction(tmp_path / "a.nii.gz", sc.truth, sc.geometry, hu=True, meta=sc.meta)
+    rec = save_reconstruction(tmp_path / "a.nii.gz", sc.truth, sc.geometry, hu=True, kev=70)
+    assert rec["units"] == "HU" and rec["kev"] == 70.0
+    img = nib.load(str(tmp_path / "a.nii.gz"))
+    assert img.get_fdata().min() == pytest.approx(-1000.0)  # air
+
+
+def test_implausible_attenuation_is_named(tmp_path):
+    """A volume normalised to [0, 1] taken as 1/mm: a warning says what was seen and what to pass."""
+    vol = asymmetric_object((16, 16, 16)) / 0.05  # 0 .. 1
+    save_volume(tmp_path / "norm.nii.gz", vol, spacing=2.0)
+    res = run("simulate", tmp_path / "norm.nii.gz", "--views", 4, "--detector", 24, "--no-noise",
+              "--out", tmp_path / "s")
+    assert "99.9th percentile is 1/mm" in res.output and "--hu" in res.output
+    save_volume(tmp_path / "ok.nii.gz", vol * 0.02, spacing=2.0)
+    res = run("simulate", tmp_path / "ok.nii.gz", "--views", 4, "--detector", 24, "--no-noise",
+              "--out", tmp_path / "t")
+    assert "percentile" not in res.output
+    from clgs.io.units import attenuation_doubt
+
+    assert "never negative" in attenuation_doubt(np.full((4, 4, 4), -500.0))
+    assert attenuation_doubt(np.full((4, 4, 4), -0.005)) is None
+    assert attenuation_doubt(np.full((4, 4, 4), 1.5)) is not None
+
+
+def test_i0_help_says_the_normalisation():
+    res = run("simulate", "--help")
+    text = " ".join(res.output.split())
+    assert "I0 exp(-p / max p)" in text and "flat field" not in text

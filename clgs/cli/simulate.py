@@ -97,9 +97,10 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
     """Simulate a sparse-view X-ray scan of VOLUME (attenuation in 1/mm, or Hounsfield units with
     --hu): .npy, NIfTI, MetaImage (.mha/.mhd), NRRD, or a DICOM series (its folder or a .dcm file).
 
-    The rotation axis passes through the volume's centre, and every file written keeps the
-    input's world position (origin and spacing). The scan folder stores the projections, the
-    geometry, the acquisition settings and the truth on the reconstruction grid (--grid).
+    The rotation axis passes through the volume's centre, and every volume written (the truth,
+    later the reconstructions) keeps the input's affine and array order (LAS, LPS, permuted).
+    The scan folder stores the projections, the geometry, the acquisition settings and the
+    truth on the reconstruction grid (--grid).
     Projections come from a grid twice as fine as the reconstruction grid unless
     --simulation same.
     \f

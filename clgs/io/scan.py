@@ -20,7 +20,8 @@ Projections are line integrals ``-log(I / I0)`` of the attenuation ``mu`` (1/mm)
 with the detector's u axis (see :mod:`clgs.geometry`).
 
 ``meta`` holds everything else, as JSON: ``acquisition`` (``noise`` true/false, ``I0``,
-``sigma``, ``scatter``, ``seed``), ``provenance`` (what made the scan), optionally ``subject``
+``sigma``, ``scatter``, ``seed``; ``kev`` when the input was in Hounsfield units), ``provenance``
+(what made the scan, with the input's frame and units), optionally ``subject``
 and ``anatomy``; further keys are kept as they are.
 
 Negative line integrals: a real or simulated noisy scan has small negatives where the object is
