@@ -166,7 +166,7 @@ def run_reconstruct(scan, anatomy, method: str, out=None, **options):
         # clgs.io.atomic.save_npy, so readers see the old file or the new one, never a torn one
         volume = as_float32(result["volume"])
         save_volume(os.path.join(out, "volume.npy"), volume, scan.geometry)
-        save_volume(os.path.join(out, "volume.nii.gz"), volume, scan.geometry)  # for viewers, placed in mm
+        save_volume(os.path.join(out, "volume.nii.gz"), volume, scan.geometry, units="1/mm")  # for viewers, in mm
     return result
 
 
@@ -479,7 +479,12 @@ def _evaluate_command(anatomy) -> click.Command:
             volume = os.path.join(volume, "volume.npy")
         scan = Scan.load(scan_dir)
         loaded = load_volume(volume)
-        _echo_metrics(_evaluate(anatomy, scan, loaded[0], os.path.dirname(volume)))
+        vol = loaded[0]
+        if str(volume).lower().endswith(".npy"):  # written in the scan's file order: back to the working one
+            from clgs.io.orientation import to_working
+
+            vol = to_working(vol, scan.geometry.orientation)
+        _echo_metrics(_evaluate(anatomy, scan, vol, os.path.dirname(volume)))
 
     return evaluate
 

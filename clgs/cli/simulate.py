@@ -66,7 +66,9 @@ def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, 
 @click.option("--I0", "I0", type=FiniteFloat(min=1, min_open=True, hint="photons per pixel of an unattenuated ray; "
                                                  "counts are floored at 1, so at I0 <= 1 every projection is 0"),
               default=1e5, show_default=True,
-              help="photons per pixel of the flat field (Poisson noise); more than 1")
+              help="Poisson noise: photon count of an unattenuated ray, with TIGRE's normalisation: counts are "
+                   "I0 exp(-p / max p), so the most attenuating ray keeps I0/e whatever the object (a relative "
+                   "noise level, not a dose; docs/formats.md); more than 1")
 @click.option("--sigma", type=FiniteFloat(min=0), default=10.0, show_default=True,
               help="electronic (Gaussian) noise, in photon counts")
 @click.option("--scatter", type=FiniteFloat(min=0), default=0.0, show_default=True,
@@ -95,9 +97,10 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
     """Simulate a sparse-view X-ray scan of VOLUME (attenuation in 1/mm, or Hounsfield units with
     --hu): .npy, NIfTI, MetaImage (.mha/.mhd), NRRD, or a DICOM series (its folder or a .dcm file).
 
-    The rotation axis passes through the volume's centre, and every file written keeps the
-    input's world position (origin and spacing). The scan folder stores the projections, the
-    geometry, the acquisition settings and the truth on the reconstruction grid (--grid).
+    The rotation axis passes through the volume's centre, and every volume written (the truth,
+    later the reconstructions) keeps the input's affine and array order (LAS, LPS, permuted).
+    The scan folder stores the projections, the geometry, the acquisition settings and the
+    truth on the reconstruction grid (--grid).
     Projections come from a grid twice as fine as the reconstruction grid unless
     --simulation same.
     \f
@@ -133,7 +136,8 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
     except InputError as exc:
         raise click.BadParameter(str(exc), param_hint="--grid") from None
     grid_sp = parse_spacing(grid_spacing, "--grid-spacing") if grid_spacing is not None else None
-    vol, sp, org = load_volume_file(volume, sp_override, attenuation=not hu, axes=axes)
+    loaded = load_volume_file(volume, sp_override, attenuation=not hu, axes=axes, doubt_negatives=False)
+    vol, sp, org = loaded
     from clgs.io.dicom_identity import DicomIdentityError, input_identity
 
     try:  # a DICOM input's patient, study and frame of reference, for the reconstructions' series
@@ -178,6 +182,8 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
                          3.0 * 4 * views * geo.nDetector[0] * geo.nDetector[1], "use fewer views or a smaller detector")
         else:
             geo = _scanner_geometry(recon_shape, recon_sp, views, arc, mode, DSD, DSO, detector, pixel, centre_xyz)
+        # outputs keep the input's array order (truth, reconstructions): the geometry carries it
+        geo = type(geo).from_dict({**geo.to_dict(), "orientation": loaded.orientation})
     except GeometryError as exc:
         raise click_error(exc, "invalid scanner") from None
     _warn_if_thinner_than_a_row(volume, vol.shape, sp, geo)
@@ -219,6 +225,8 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
     acquisition = {"noise": not no_noise, "I0": I0, "sigma": sigma, "scatter": scatter, "seed": seed,
                    "simulation": {"protocol": protocol, "projected_grid": list(source.shape),
                                   "reconstruction_grid": list(recon_shape)}}
+    if hu:
+        acquisition["kev"] = kev  # the energy the input's HU were converted at: `reconstruct --hu` reads it
     if not no_noise:
         from clgs.ct.noise import add_noise
 
@@ -239,6 +247,8 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
         "acquisition": acquisition,
         "provenance": {"command": "clgs simulate", "argv": sys.argv[1:], "volume": str(volume),
                        "volume_origin_xyz": None if org is None else list(org),
+                       "volume_units": "HU" if hu else "1/mm",
+                       **_input_frame(loaded),
                        "clgs_version": __import__("clgs").__version__,
                        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())},
     }
@@ -258,6 +268,25 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
     except (ScanError, FileExistsError) as exc:
         raise click_error(exc) from None
     click.echo(f"wrote {out}: {views} views, {elapsed:.1f} s")
+
+
+def _input_frame(loaded) -> dict:
+    """The input's frame as scan.json records it: its axis codes, and (for files that place
+    themselves) its voxel-to-world matrix and its array's shape as the file indexes it (i, j, k);
+    for an oblique file, those of the axis-aligned grid it was resampled onto."""
+    import numpy as np
+    from nibabel.orientations import axcodes2ornt
+
+    from clgs.io.orientation import file_affine
+
+    vol, sp, org = loaded
+    frame = {"volume_orientation": loaded.orientation}
+    if sp is not None and org is not None:
+        aff = file_affine(sp, org, vol.shape, loaded.orientation)
+        frame["volume_affine"] = [[float(v) for v in row] for row in aff]
+        axes = axcodes2ornt(tuple(loaded.orientation))[:, 0].astype(int)  # world axis of each file axis
+        frame["volume_shape"] = [int(np.asarray(vol.shape[::-1])[a]) for a in axes]
+    return frame
 
 
 def _warn_if_thinner_than_a_row(path, shape, spacing, geo) -> None:
