@@ -122,8 +122,9 @@ def _prepare_outputs(scan, out, json_out, force, into_folder: bool, resuming: bo
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="also write the report (method, options, time, metrics) to this JSON file")
 @click.option("--force", is_flag=True, help="overwrite an existing --out")
-@click.option("--to-hu", "hu", is_flag=True, help="write the volume in Hounsfield units, at the X-ray energy the scan records "
-                                         "(a simulation of a CT with `simulate --hu`) or --kev [default: attenuation, 1/mm]")
+@click.option("--to-hu", "hu", is_flag=True,
+              help="write the volume in Hounsfield units, at the X-ray energy the scan records (a simulation of a "
+                   "CT with `simulate --hu`) or --kev [default: attenuation, 1/mm]")
 @click.option("--kev", type=FiniteFloat(min=40, max=150), default=None,
               help="X-ray energy (keV) for --to-hu, when the scan records none (water's attenuation from NIST XCOM)")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
