@@ -40,6 +40,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage, optimize
 
+from clgs.errors import ClgsError
+
 __all__ = ["AxisError", "find_axis", "pair_axis", "sinogram_axis", "com_axis", "opposite_pairs", "AGREE_PX",
            "ESTIMATORS"]
 
@@ -48,7 +50,7 @@ ESTIMATORS = ("pair", "sinogram", "com")
 NAMES = {"pair": "180-degree pair", "sinogram": "FBP sharpness", "com": "centre of mass"}
 
 
-class AxisError(ValueError):
+class AxisError(ClgsError, ValueError):
     """The axis cannot be found from these projections."""
 
 
