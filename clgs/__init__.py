@@ -25,13 +25,8 @@ Errors
     ``ClgsError``: the base of every error clgs raises about its input.
 """
 import importlib as _importlib
-import os as _os
 from typing import TYPE_CHECKING as _TYPE_CHECKING
 
-# torch's OpenMP threads spin for a while after every parallel op by default and starve PoCL's
-# worker threads on the same cores (a 32^3 voxelizer block: 22-325 ms with spinning, 6-7 ms
-# without); ask them to sleep instead. Read when torch loads, so it is set here, first.
-_os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 __version__ = "0.1.0"
 

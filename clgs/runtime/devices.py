@@ -27,7 +27,6 @@ from clgs.errors import ClgsError
 
 from . import drivers
 
-drivers.configure()  # before pyopencl's ICD loader first runs
 
 try:
     import pyopencl as cl
@@ -89,6 +88,7 @@ def _listed():
     """(platform, device) pairs as the ICD loader lists them; platforms that fail are skipped."""
     global _devices
     if _devices is None:
+        drivers.configure()  # the drivers' environment, before the ICD loader first runs
         try:
             platforms = cl.get_platforms()
         except cl.Error as exc:
