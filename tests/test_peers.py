@@ -72,6 +72,7 @@ def test_fbp_agrees_with_astra_on_the_tooth(tooth_row):
 
 
 @pytest.mark.slow  # ITK loads RTK's wrappers on first use: 20 s of CPU
+@pytest.mark.filterwarnings("ignore:builtin type .* has no __module__ attribute:DeprecationWarning")  # SWIG's
 def test_fbp_agrees_with_rtk_on_the_tooth(tooth_row):
     """RTK's FDK in its parallel geometry (source-detector distance 0), the axis placed by the
     projections' origin; its first and last detector rows' slices are left out, so the row is
