@@ -1,5 +1,6 @@
-"""The real tooth scan, sparse: FDK, SART and R2-Gaussian mode from 10 and 20 of its 181 views,
-against the FDK reconstruction from all 181, with their run times, on one plot.
+"""The real tooth scan, sparse: FDK, SART and R2-Gaussian mode from 10, 15 and 20 of its 181 views,
+against the FDK reconstruction from all 181, with their run times, on one plot; with ASTRA's and
+RTK's FBP/FDK and SART on the same views where they are installed.
 
     python examples/tooth_sparse_views.py --out tooth_cmp
 
@@ -7,17 +8,30 @@ The data: ``shared/data/real/tooth/tooth.h5`` (or ``--raw``), real synchrotron c
 and dark fields, 2 detector rows x 640 columns, parallel beam over 180 degrees. It is imported as
 ``clgs import`` does (flat/dark correction, -log, the rotation axis found by the centre-of-mass
 fit on all 181 views), the reference is FDK (ramp filter) from every view, and each sparse set
-takes evenly spaced views. 2D PSNR over both reconstructed slices (normalised by the reference's
+takes evenly spaced views (clgs's FDK with the Hann window, and with ram-lak as the peers run
+theirs). 2D PSNR over both reconstructed slices (normalised by the reference's
 range, as the 3D PSNR of ``clgs.metrics``) and 2D SSIM (scikit-image, mean over the two slices).
 Writes ``OUT/curves.png``, ``OUT/summary.json`` and ``OUT/slices.png``.
 
 When ASTRA is installed (``pip install astra-toolbox``: a benchmark-only extra, never needed to
 reconstruct), its CPU FBP and SART run on the same views in the same run, slice by slice, with
-the same rotation axis (each projection shifted so that the axis falls on the detector's middle,
-which ASTRA's CPU FBP assumes).
+the same rotation axis (each projection shifted by a Fourier phase ramp, an exact sub-pixel shift,
+so that the axis falls on the detector's middle, which ASTRA's CPU FBP assumes; FBP with the
+``strip`` projector, SART with ``linear``).
 ASTRA's image axes and rotation sense differ from clgs's: its results are turned (one of the
 eight flips and transposes, the one that best matches its own 181-view FBP to the reference) before
 they are compared.
+
+When RTK is installed (``pip install itk-rtk``, also in the ``compare`` extra), its CPU FDK and
+SART run too, in RTK's own parallel geometry (source-detector distance 0) with the same angles,
+the axis given by the projections' origin (no resampling). RTK's FDK leaves out the slices of
+the detector's first and last rows, so the 2 rows are padded to 6 by repeating them (parallel
+beam: rows are independent) and the middle two slices kept. RTK's frame (rotation about y) maps
+to clgs's by a fixed transpose. RTK's SART: the same iterations and 5 subsets as clgs's, values
+kept non-negative.
+
+``--centre`` sets the rotation axis column instead of the import's estimate (``clgs import``'s
+centre-of-mass fit); every method, clgs's and the peers', and the reference use the same axis.
 """
 import argparse
 import json
@@ -44,22 +58,19 @@ def _astra_runs(proj, theta, column, ref, sart_iterations):
         import astra
     except ImportError:
         return None
-    from scipy import ndimage
-
     rows, n = proj.shape[1], proj.shape[2]
     # ASTRA's CPU FBP takes the plain parallel geometry only (axis at the detector's middle): move
-    # the axis there by shifting every projection (linear interpolation)
-    centred = ndimage.shift(np.asarray(proj, np.float64), (0, 0, (n - 1) / 2.0 - column), order=1, mode="nearest")
+    # the axis there by shifting every projection
+    proj = centre_axis(proj, column)
     pg = astra.create_proj_geom("parallel", 1.0, n, np.asarray(theta, np.float64))
     vg = astra.create_vol_geom(n, n)
-    projector = astra.create_projector("linear", pg, vg)
-    proj = centred
+    projectors = {"FBP": astra.create_projector("strip", pg, vg), "SART": astra.create_projector("linear", pg, vg)}
 
     def run(alg, r, iterations=1):
         sid = astra.data2d.create("-sino", pg, np.ascontiguousarray(proj[:, r, :], np.float32))
         rid = astra.data2d.create("-vol", vg, 0.0)
         cfg = astra.astra_dict(alg)
-        cfg.update(ReconstructionDataId=rid, ProjectionDataId=sid, ProjectorId=projector)
+        cfg.update(ReconstructionDataId=rid, ProjectionDataId=sid, ProjectorId=projectors[alg])
         if alg == "SART":
             cfg["option"] = {"MinConstraint": 0.0}
         aid = astra.algorithm.create(cfg)
@@ -76,7 +87,74 @@ def _astra_runs(proj, theta, column, ref, sart_iterations):
         t0 = time.perf_counter()
         vol = np.stack([run(alg, r, its) for r in range(rows)])
         results.append((f"ASTRA {alg}", vol, time.perf_counter() - t0))
-    astra.projector.delete(projector)
+    for pid in projectors.values():
+        astra.projector.delete(pid)
+    return results
+
+
+def centre_axis(proj, column):
+    """Projections (n, V, U) shifted along u so that the axis at ``column`` falls on the middle
+    ``(U - 1) / 2``: a Fourier phase ramp (an exact shift of band-limited rows) on rows padded by
+    half their length with their edge values, so nothing wraps around."""
+    p = np.asarray(proj, np.float64)
+    n = p.shape[-1]
+    pad = n // 2
+    ext = np.pad(p, ((0, 0), (0, 0), (pad, pad)), mode="edge")
+    f = np.fft.fftfreq(ext.shape[-1])
+    shifted = np.fft.ifft(np.fft.fft(ext, axis=-1) * np.exp(-2j * np.pi * f * ((n - 1) / 2.0 - column)), axis=-1)
+    return shifted.real[..., pad:pad + n]
+
+
+def _rtk_runs(proj, theta, column, sart_iterations, subsets=5):
+    """RTK's CPU FDK and SART (see the module doc): [(name, volume (rows, N, N), seconds)] in clgs's
+    orientation, or None without RTK. ``sart_iterations`` 0: FDK only."""
+    try:
+        import itk
+        from itk import RTK as rtk
+    except ImportError:
+        return None
+    nviews, rows, n = proj.shape
+    pad = 2
+    padded = np.concatenate([np.repeat(proj[:, :1], pad, 1), proj, np.repeat(proj[:, -1:], pad, 1)], 1)
+    nv = rows + 2 * pad
+    image = itk.Image[itk.F, 3]
+    geometry = rtk.ThreeDCircularProjectionGeometry.New()
+    for a in theta:
+        geometry.AddProjection(1000.0, 0.0, float(np.rad2deg(a)), 0.0, 0.0)  # SDD 0: parallel beam
+    stack = itk.image_from_array(np.ascontiguousarray(padded, np.float32))  # x = u, y = v, z = view
+    stack.SetSpacing([1.0, 1.0, 1.0])
+    stack.SetOrigin([-float(column), -(nv - 1) / 2.0, 0.0])  # the axis (u = 0) at ``column``
+    volume = rtk.ConstantImageSource[image].New()
+    volume.SetOrigin([-(n - 1) / 2.0, -(nv - 1) / 2.0, -(n - 1) / 2.0])
+    volume.SetSpacing([1.0, 1.0, 1.0])
+    volume.SetSize([n, nv, n])
+    volume.SetConstant(0.0)
+
+    def fdk_filter():
+        f = rtk.FDKConeBeamReconstructionFilter[image].New()
+        return f
+
+    def sart_filter():
+        f = rtk.SARTConeBeamReconstructionFilter[image, image].New()
+        f.SetNumberOfIterations(int(sart_iterations))
+        f.SetNumberOfProjectionsPerSubset(max(1, int(np.ceil(nviews / subsets))))
+        f.SetEnforcePositivity(True)
+        f.SetLambda(1.0)
+        return f
+
+    results = []
+    for name, make in (("RTK FDK", fdk_filter), ("RTK SART", sart_filter)):
+        if name == "RTK SART" and not sart_iterations:
+            continue
+        t0 = time.perf_counter()
+        f = make()
+        f.SetInput(0, volume.GetOutput())
+        f.SetInput(1, stack)
+        f.SetGeometry(geometry)
+        f.Update()
+        vol = itk.array_from_image(f.GetOutput())  # (z, y, x) of RTK: y is the rotation axis
+        results.append((name, np.ascontiguousarray(vol.transpose(1, 2, 0)[pad:pad + rows]),
+                        time.perf_counter() - t0))
     return results
 
 
@@ -97,12 +175,19 @@ def _best_turn(vol, ref):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--raw", default=str(DEFAULT_RAW))
-    ap.add_argument("--views", type=int, nargs="+", default=[10, 20])
+    ap.add_argument("--views", type=int, nargs="+", default=[10, 15, 20])
     ap.add_argument("--iterations", type=int, default=3000, help="R2-Gaussian iterations")
     ap.add_argument("--sart-iterations", type=int, default=30)
     ap.add_argument("--log-every", type=int, default=250)
+    ap.add_argument("--centre", default="auto",
+                    help="rotation axis column (after import), or 'auto' for the import's estimate")
     ap.add_argument("--out", default="tooth_cmp")
     args = ap.parse_args()
+    if args.centre != "auto":
+        try:
+            args.centre = float(args.centre)
+        except ValueError:
+            ap.error(f"--centre takes a column number or 'auto', got {args.centre!r}")
 
     import warnings
 
@@ -116,20 +201,25 @@ def main():
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    full, report = scan_from_raw(read_raw(args.raw))
+    full, report = scan_from_raw(read_raw(args.raw), centre=args.centre)
+    column = report["centre"]["column"]
     t0 = time.perf_counter()
     ref = fdk(full.projections, full.geometry, filter="ram-lak")
     ref_seconds = time.perf_counter() - t0
-    summary = {"raw": args.raw, "centre_column": report["centre"]["column"], "reference": "FDK, 181 views, ram-lak",
-               "reference_seconds": ref_seconds, "runs": []}
+    summary = {"raw": args.raw, "centre_column": column, "centre_method": report["centre"]["method"],
+               "reference": "FDK, 181 views, ram-lak", "reference_seconds": ref_seconds,
+               "r2gs_iterations": args.iterations, "sart_iterations": args.sart_iterations, "runs": []}
     curves = {}
     astra_turn = None
-    full_astra = _astra_runs(full.projections, full.geometry.angles, report["centre"]["column"], ref, 0)
+    full_astra = _astra_runs(full.projections, full.geometry.angles, column, ref, 0)
     if full_astra is not None:
         astra_turn = _best_turn(full_astra[0][1], ref)
         turned = _orient(full_astra[0][1], astra_turn)
         summary["astra"] = {"orientation (flip y, flip x, transpose)": list(astra_turn),
                             "fbp_181_psnr_vs_reference": float(metrics.psnr3d(turned, ref))}
+    full_rtk = _rtk_runs(full.projections, full.geometry.angles, column, 0)
+    if full_rtk is not None:
+        summary["rtk"] = {"fdk_181_psnr_vs_reference": float(metrics.psnr3d(full_rtk[0][1], ref))}
     for nv in args.views:
         keep = np.linspace(0, full.n_views, nv, endpoint=False).astype(int)
         with warnings.catch_warnings():
@@ -140,6 +230,10 @@ def main():
         vol = fdk(scan.projections, scan.geometry, filter="hann")
         sec = time.perf_counter() - t0
         runs = [("FDK", vol, sec, [(sec, float(metrics.psnr3d(vol, ref)))])]
+        t0 = time.perf_counter()
+        vol = fdk(scan.projections, scan.geometry, filter="ram-lak")  # the peers' filter
+        sec = time.perf_counter() - t0
+        runs.append(("FDK ram-lak", vol, sec, [(sec, float(metrics.psnr3d(vol, ref)))]))
         sart_curve = []
         t0 = time.perf_counter()
         vol = sart(scan.projections, scan.geometry, n_iter=args.sart_iterations, subsets=5,
@@ -152,9 +246,12 @@ def main():
         curve = [(r["wall"], r["psnr3d"]) for r in res.log.rows if r.get("psnr3d") is not None]
         runs.append(("R2-Gaussian", res.volume, sec, curve))
         if astra_turn is not None:
-            for name, v, s in _astra_runs(scan.projections, scan.geometry.angles, report["centre"]["column"], ref,
+            for name, v, s in _astra_runs(scan.projections, scan.geometry.angles, column, ref,
                                           args.sart_iterations):
                 v = _orient(v, astra_turn)
+                runs.append((name, v, s, [(s, float(metrics.psnr3d(v, ref)))]))
+        if full_rtk is not None:
+            for name, v, s in _rtk_runs(scan.projections, scan.geometry.angles, column, args.sart_iterations):
                 runs.append((name, v, s, [(s, float(metrics.psnr3d(v, ref)))]))
         for name, v, s, c in runs:
             row = {"views": nv, "method": name, "psnr2d": float(metrics.psnr3d(v, ref)), "ssim2d": _ssim2d(v, ref),
@@ -164,6 +261,8 @@ def main():
             print(f"{nv:3d} views  {name:12s} PSNR {row['psnr2d']:6.2f} dB  SSIM {row['ssim2d']:.3f}  {s:7.1f} s")
             if nv == max(args.views) or nv == min(args.views):
                 np.save(out / f"{name.replace('-', '').lower()}_{nv}.npy", v[0])
+    summary["curves"] = [{"method": name, "views": nv, "seconds_psnr2d": [list(map(float, p)) for p in c]}
+                         for (name, nv), c in curves.items()]
     atomic.write_json(out / "summary.json", summary)
 
     import matplotlib
@@ -171,17 +270,21 @@ def main():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.5, 4))
-    styles = {"FDK": "s", "SART": "o-", "R2-Gaussian": "-", "ASTRA FBP": "^", "ASTRA SART": "v"}
-    for (name, nv), c in curves.items():
-        c = np.asarray(c)
-        ax.plot(c[:, 0], c[:, 1], styles[name], ms=3, label=f"{name}, {nv} views")
-    ax.set_xscale("symlog", linthresh=1.0)
-    ax.set_xlabel("run time (s)")
-    ax.set_ylabel("2D PSNR against the 181-view FDK (dB)")
-    ax.set_title("real tooth scan (synchrotron, parallel beam)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    names = list(dict.fromkeys(name for name, _ in curves))
+    colours = {name: f"C{i}" for i, name in enumerate(names)}
+    fig, axs = plt.subplots(1, len(args.views), figsize=(4.2 * len(args.views), 4), sharey=True, squeeze=False)
+    for ax, nv in zip(axs[0], args.views):
+        for name in names:
+            c = np.asarray(curves.get((name, nv), []))
+            if c.size:
+                ax.plot(c[:, 0], c[:, 1], "-o" if len(c) > 1 else "o", ms=3, color=colours[name], label=name)
+        ax.set_xscale("symlog", linthresh=1.0)
+        ax.set_xlabel("run time (s)")
+        ax.set_title(f"{nv} views")
+        ax.grid(alpha=0.3)
+    axs[0, 0].set_ylabel("2D PSNR against the 181-view FDK (dB)")
+    axs[0, -1].legend(fontsize=8)
+    fig.suptitle("real tooth scan (synchrotron, parallel beam)")
     fig.tight_layout()
     with atomic.atomic_path(out / "curves.png") as tmp:
         fig.savefig(tmp, dpi=110, format="png")
@@ -199,7 +302,7 @@ def main():
     fig.tight_layout()
     with atomic.atomic_path(out / "slices.png") as tmp:
         fig.savefig(tmp, dpi=80, format="png")
-    print(json.dumps({k: v for k, v in summary.items() if k != "runs"}, indent=1))
+    print(json.dumps({k: v for k, v in summary.items() if k not in ("runs", "curves")}, indent=1))
 
 
 if __name__ == "__main__":

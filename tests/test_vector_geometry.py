@@ -184,14 +184,15 @@ def test_geometry_file_errors_name_the_file(tmp_path):
         read_geometry(p)
 
 
-def test_fdk_refuses_vectors_naming_the_alternatives():
+def test_fdk_takes_vectors_and_a_circular_scan_as_vectors_gives_the_circular_fdk(rng):
+    """(tests/test_ct_fdk_vectors.py checks FDK on vectors in full.)"""
     from clgs.ct.fdk import fdk
 
-    g = c_arm()
-    with pytest.raises(InputError, match="SART .* Gaussian method"):
-        fdk(np.zeros(g.projection_shape, np.float32), g)
-    with pytest.raises(InputError, match="circular"):
-        fdk(np.zeros(g.projection_shape, np.float32), circular().as_vectors())
+    g = circular()
+    p = np.abs(rng.standard_normal(g.projection_shape))
+    a, b = fdk(p, g, dtype=np.float64), fdk(p, g.as_vectors(), dtype=np.float64)
+    np.testing.assert_allclose(b, a, rtol=0, atol=1e-12 * np.abs(a).max())
+    assert np.isfinite(fdk(np.zeros(c_arm().projection_shape, np.float32), c_arm())).all()
 
 
 # ----------------------------------------------------------------------------- voxel projector pair

@@ -29,14 +29,35 @@ weight one or are missing, which gives the usual limited-angle artefacts but no 
 density of the lines that were measured. ``short_scan=False`` turns the weighting off and scales
 every view by ``pi / arc`` instead (right mean density, more artefacts); ``True`` forces it even
 for a full circle. A single view is backprojected with ``db = pi`` and weight one.
+
+Per-view (vector) scans: the same steps, each view on its own geometry, as RTK does for circular
+orbits with offsets and tilts. :mod:`clgs.ct.fdk_views` reads the orbit off the views (the mean
+rotation axis, each view's angle ``b_i`` about it and its source's distance ``R_i`` from it);
+then, per view, the cosine weight is ``D_i / |pixel - source|`` (``D_i`` the source-detector
+distance along the detector normal), the fan angle ``gamma`` of each pixel is its ray's angle
+from the source-to-axis direction seen along the axis (so a rolled detector's columns have
+their own), the redundancy weights above use ``b_i`` and those fan angles, the ramp runs along the
+detector's rows (u) at the view's own pixel pitch, the view's factor is ``db_i R_i D_i / ref_i^2``
+(the circular ``db DSO/DSD`` over ``(DSO/ref)^2``), and the backprojection follows each view's
+own projection matrix (:func:`clgs.ops.fdk.projection_matrices`) with the distance weight
+``(ref_i / depth)^2``, ``depth`` along the view's detector normal. A circular scan written as
+vectors gives the circular FDK to rounding. A non-circular orbit (a C-arm's sagging, wobbling
+source, a detector that moves and turns from view to view) is backprojected exactly along its
+own rays; only the weights treat it as the circular orbit about the mean axis (the source
+distance and height that change from view to view enter through ``R_i``, ``D_i`` and ``depth``,
+not through a trajectory-aware redundancy), so FDK's usual approximations grow with the
+departure from a circle. Views that do not turn about any axis (a straight source path) get the
+repeated-angle rule or a short arc of nearly equal angles: a blurry laminogram, not a
+reconstruction.
 """
 from __future__ import annotations
 
 import numpy as np
 
+from clgs.ct import fdk_views
 from clgs.io.validate import check_projections
 from clgs.geometry import Geometry
-from clgs.ops.fdk import backproject
+from clgs.ops.fdk import backproject, view_depths
 from clgs.errors import InputError
 
 FILTERS = ("ram-lak", "shepp-logan", "cosine", "hamming", "hann")
@@ -85,65 +106,83 @@ def _sorted_arc(angles):
     return order, un, np.roll(gaps, -start), full
 
 
-def require_circular(geometry: Geometry) -> None:
-    """FDK's weights hold for a circular orbit only: a per-view (vector) geometry is refused."""
-    if not geometry.is_circular:
-        raise InputError("FDK/FBP needs a circular scan (TIGRE's DSO, DSD, angles); this geometry is given per "
-                         "view as vectors. Reconstruct it with SART (--method sart) or a Gaussian method "
-                         "(--method r2gs, or shape for an anatomy), which take any per-view geometry.")
+class Redundancy:
+    """The angular steps and redundancy weights of a set of view angles (module doc): ``step``
+    (n,) and :meth:`weights` of one view's rays, given their fan angles."""
+
+    def __init__(self, angles, short_scan="auto"):
+        if short_scan not in ("auto", True, False):
+            raise InputError(f"short_scan must be 'auto', True or False, got {short_scan!r}")
+        angles = np.asarray(angles, np.float64)
+        n = angles.size
+        self.constant = None  # a weight for every ray, or None for the taper
+        if n == 1:
+            self.step, self.constant = np.array([np.pi]), 1.0
+            return
+        order, un, gaps, full = _sorted_arc(angles)
+        if not np.any(gaps[:-1] > 0):  # every view at one angle: each is a copy of a one-view scan
+            self.step, self.constant = np.full(n, np.pi / n), 1.0
+            return
+        step = np.empty(n)
+        if full and short_scan is not True:
+            step[order] = 0.5 * (gaps + np.roll(gaps, 1))
+            self.step, self.constant = step, 0.5
+            return
+        inner = gaps[:-1]  # gaps between consecutive views along the arc
+        st = np.empty(n)
+        st[1:-1] = 0.5 * (inner[:-1] + inner[1:])
+        st[0], st[-1] = inner[0], inner[-1]
+        step[order] = st
+        self.step = step
+        self.a0 = un[0] - 0.5 * inner[0]
+        self.a1 = un[-1] + 0.5 * inner[-1]
+        arc = self.a1 - self.a0
+        if short_scan is False:
+            self.constant = min(1.0, np.pi / arc)
+            return
+        self.eps = max(float(np.clip(arc - np.pi, 2 * np.median(inner), 0.5 * arc)), 1e-9)
+        # (many repeated angles make the median gap 0: the floor keeps the taper finite)
+        self.beta = np.empty(n)
+        self.beta[order] = un
+
+    def _taper(self, beta):
+        d = np.minimum(beta - self.a0, self.a1 - beta)
+        h = np.sin(0.5 * np.pi * np.clip(d / self.eps, 0.0, 1.0)) ** 2
+        return np.where(d >= 0, np.maximum(h, 1e-6), 0.0)
+
+    def weights(self, view: int, gamma) -> np.ndarray:
+        """Weights of view ``view``'s rays of fan angles ``gamma`` (any shape)."""
+        gamma = np.asarray(gamma, np.float64)
+        if self.constant is not None:
+            return np.full(gamma.shape, self.constant)
+        beta = self.beta[view]
+        conj = beta + np.pi - 2 * gamma
+        conj = self.a0 + np.mod(conj - self.a0, 2 * np.pi)
+        h = self._taper(np.array([beta]))
+        return h / (h + self._taper(conj))
 
 
 def view_weights(geometry: Geometry, short_scan="auto"):
-    """(n_views,) angular steps and (n_views, U) redundancy weights, in the geometry's view order.
+    """(n_views,) angular steps and the redundancy weights, in the geometry's view order: (n_views, U)
+    for a circular scan, (n_views, V, U) per pixel for a per-view one (the fan angles of a turned
+    detector change along its columns).
 
     See the module docstring for the rules.
     """
-    angles = geometry.angles
-    n = angles.size
+    if not geometry.is_circular:
+        orb = fdk_views.orbit(geometry)
+        red = Redundancy(orb.angles, short_scan)
+        _, dists, _ = view_depths(geometry)
+        w = [red.weights(i, fdk_views.fan_and_cosine(geometry, orb, i, dists[i])[0]) for i in range(geometry.n_views)]
+        return red.step, np.stack(w)
     nu = geometry.nDetector[1]
     if geometry.mode == "cone":
         u_mm = (np.arange(nu) - 0.5 * (nu - 1)) * geometry.dDetector[1] + geometry.offDetector[1]
         gamma = np.arctan(u_mm / geometry.DSD)
     else:
         gamma = np.zeros(nu)
-    if short_scan not in ("auto", True, False):
-        raise InputError(f"short_scan must be 'auto', True or False, got {short_scan!r}")
-    if n == 1:
-        return np.array([np.pi]), np.ones((1, nu))
-    order, un, gaps, full = _sorted_arc(angles)
-    if not np.any(gaps[:-1] > 0):  # every view at one angle: each is a copy of a one-view scan
-        return np.full(n, np.pi / n), np.ones((n, nu))
-    step = np.empty(n)
-    if full and short_scan is not True:
-        step[order] = 0.5 * (gaps + np.roll(gaps, 1))
-        return step, np.full((n, nu), 0.5)
-    inner = gaps[:-1]  # gaps between consecutive views along the arc
-    s = np.empty(n)
-    s[1:-1] = 0.5 * (inner[:-1] + inner[1:])
-    s[0], s[-1] = inner[0], inner[-1]
-    step[order] = s
-    a0 = un[0] - 0.5 * inner[0]
-    a1 = un[-1] + 0.5 * inner[-1]
-    arc = a1 - a0
-    if short_scan is False:
-        return step, np.full((n, nu), min(1.0, np.pi / arc))
-    eps = float(np.clip(arc - np.pi, 2 * np.median(inner), 0.5 * arc))
-    eps = max(eps, 1e-9)  # many repeated angles make the median gap 0: keep the taper finite
-
-    def taper(beta):
-        d = np.minimum(beta - a0, a1 - beta)
-        inside = d >= 0
-        h = np.sin(0.5 * np.pi * np.clip(d / eps, 0.0, 1.0)) ** 2
-        return np.where(inside, np.maximum(h, 1e-6), 0.0)
-
-    w = np.empty((n, nu))
-    for idx, beta in zip(order, un):
-        conj = beta + np.pi - 2 * gamma
-        conj = a0 + np.mod(conj - a0, 2 * np.pi)
-        h = taper(np.array([beta]))
-        hc = taper(conj)
-        w[idx] = h / (h + hc)
-    return step, w
+    red = Redundancy(geometry.angles, short_scan)
+    return red.step, np.stack([red.weights(i, gamma) for i in range(geometry.n_views)])
 
 
 #: a row is truncated when its edge pixels hold more than this fraction of the projections' maximum
@@ -179,22 +218,26 @@ def filter_projections(projections, geometry: Geometry, filter="ram-lak", short_
     sides before filtering (:func:`extrapolate_rows`, half a row on each side), ``True`` always,
     ``False`` never (zero padding)."""
     g = geometry
-    require_circular(g)
-    p = np.asarray(projections, np.float64)
-    nv, nu = g.nDetector
-    dv, du = g.dDetector
-    u_mm = (np.arange(nu) - 0.5 * (nu - 1)) * du + g.offDetector[1]
-    v_mm = (np.arange(nv) - 0.5 * (nv - 1)) * dv + g.offDetector[0]
-    step, red = view_weights(g, short_scan)
-    if g.mode == "cone":
-        cosw = g.DSD / np.sqrt(g.DSD**2 + u_mm[None, :] ** 2 + v_mm[:, None] ** 2)
-        p = p * cosw[None]
-        spacing = du * g.DSO / g.DSD
-    else:
-        spacing = du
-    p = p * red[:, None, :]
     if truncation not in ("auto", True, False):
         raise InputError(f"truncation must be 'auto', True or False, got {truncation!r}")
+    p = np.asarray(projections, np.float64)
+    nv, nu = g.nDetector
+    if g.is_circular:
+        dv, du = g.dDetector
+        u_mm = (np.arange(nu) - 0.5 * (nu - 1)) * du + g.offDetector[1]
+        v_mm = (np.arange(nv) - 0.5 * (nv - 1)) * dv + g.offDetector[0]
+        step, red = view_weights(g, short_scan)
+        if g.mode == "cone":
+            cosw = g.DSD / np.sqrt(g.DSD**2 + u_mm[None, :] ** 2 + v_mm[:, None] ** 2)
+            p = p * cosw[None]
+            spacing = du * g.DSO / g.DSD
+        else:
+            spacing = du
+        p = p * red[:, None, :]
+        scale = step
+    else:
+        p, scale = _weigh_views(p, g, short_scan)
+        spacing = 1.0  # each view's own pixel pitch is in ``scale``
     ext = 0
     if truncation is True or (truncation == "auto" and is_truncated(projections)):
         ext = max(8, nu // 2)
@@ -203,7 +246,29 @@ def filter_projections(projections, geometry: Geometry, filter="ram-lak", short_
     spec = np.fft.rfft(p, n=n_pad, axis=-1)
     spec *= resp
     q = np.fft.irfft(spec, n=n_pad, axis=-1)[..., ext:ext + nu]
-    return q * step[:, None, None]
+    return q * scale[:, None, None]
+
+
+def _weigh_views(p: np.ndarray, g: Geometry, short_scan):
+    """Steps 1-2 for a per-view scan, view by view, on its own orbit (:mod:`clgs.ct.fdk_views`);
+    returns (weighted projections, per-view factor of step 4 to apply after a unit-spacing ramp).
+
+    The factor ``db R D / (ref^2 du)`` is the circular ``db`` with the ramp's spacing ``du DSO/DSD``
+    and the kernel's ``(DSO / depth)^2`` written for the view's own source distance from the axis
+    ``R``, source-detector distance ``D``, reference depth ``ref`` (see
+    :func:`clgs.ops.fdk.view_depths`) and u pixel pitch ``du``."""
+    orb = fdk_views.orbit(g)
+    red = Redundancy(orb.angles, short_scan)
+    _, dists, refs = view_depths(g)
+    du = np.linalg.norm(g.frame_vectors()[:, 6:9], axis=1)
+    out = np.empty_like(p)
+    for i in range(g.n_views):
+        gamma, cosine = fdk_views.fan_and_cosine(g, orb, i, dists[i])
+        out[i] = p[i] * (cosine * red.weights(i, gamma))
+    scale = red.step / du
+    if g.mode == "cone":
+        scale = scale * orb.radius * dists / refs**2
+    return out, scale
 
 
 def fdk(projections, geometry: Geometry, filter: str = "ram-lak", short_scan="auto", dtype=np.float32,
@@ -217,7 +282,6 @@ def fdk(projections, geometry: Geometry, filter: str = "ram-lak", short_scan="au
     :func:`filter_projections` (``"auto"``: rows of an object wider than the detector are extended
     smoothly before filtering; untruncated scans are filtered exactly as before).
     """
-    require_circular(geometry)
     p = check_projections(projections, geometry, neg_tolerance=None, source="fdk")
     name = str(filter).lower()
     if name not in FILTERS:

@@ -44,14 +44,8 @@ def scale_bounds_for(geometry, scale_bounds, scale_floor):
 
 
 def fdk_volume(scan) -> np.ndarray:
-    """The start volume of the Gaussian methods: FDK of a circular scan; for a per-view (vector)
-    geometry, where FDK does not hold, 10 iterations of OS-SART (about as many subsets as views / 4)."""
-    if not scan.geometry.is_circular:
-        from clgs.ct.sart import sart
-
-        n = scan.geometry.n_views
-        return np.asarray(sart(scan.projections, scan.geometry, n_iter=10, subsets=max(1, n // 4), seed=0),
-                          dtype=np.float32)
+    """The start volume of the Gaussian methods: FDK of the scan, circular or per view (for a
+    per-view geometry on its own orbit, :mod:`clgs.ct.fdk_views`)."""
     return np.asarray(fdk(scan.projections, scan.geometry), dtype=np.float32)
 
 
