@@ -13,8 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from clgs.errors import ClgsError, InputError
+from clgs.errors import InputError
 from clgs.fit import checkpoint as ckpt
+from clgs.io.outputs import OutputError, claim
 
 CHECKPOINT = "checkpoint.pt"  # the file name of a run's checkpoint in its folder
 
@@ -146,8 +147,20 @@ class GaussianFitConfig(JsonConfig):
             self.scale_bounds = (lo, hi)
 
 
-class RunFolderError(ClgsError, ValueError):
-    """A run's output folder that would lose work or overwrite its input."""
+# A run's output folder that would lose work or overwrite its input (the rule of clgs.io.outputs).
+RunFolderError = OutputError
+
+
+def run_folder(out_dir, resume: bool = False, overwrite: bool = False):
+    """The run folder of a Python call (:func:`clgs.io.outputs.claim`): refused when it holds
+    anything, unless ``resume`` (continue its run) or ``overwrite`` (replace it: its clgs files go
+    first); locked while the run writes it. Nothing to claim without ``out_dir``."""
+    import contextlib
+
+    if out_dir is None:
+        return contextlib.nullcontext()
+    return claim(out_dir, kind="folder", overwrite=overwrite, resume=resume, param="out_dir",
+                 force_word="overwrite=True")
 
 
 def check_run_folder(out_dir, resume: bool) -> None:
