@@ -121,6 +121,8 @@ def remove_empty(folders) -> None:
     for folder in folders:
         try:
             folder.rmdir()
+        except FileNotFoundError:  # removed already (by the output's claim)
+            continue
         except OSError:
             return
 

@@ -211,8 +211,9 @@ def _check_existing(path: Path, kind: str, overwrite: bool, resume: bool, param:
         return  # the method checks its checkpoint
     if not overwrite:
         held = (f"a run already ({CHECKPOINT}); resume it (--resume, resume=True), or pass {force_word} to replace it"
-                if CHECKPOINT in mine else f"{_shown(mine + other)}; pass {force_word} to replace it")
-        raise OutputError(f"{path} holds {held} (or choose another {param})")
+                if CHECKPOINT in mine else f"already exists and holds {_shown(mine + other)}; pass {force_word} to "
+                                           "replace it")
+        raise OutputError(f"{path} {held} (or choose another {param})")
     if other:
         raise OutputError(f"{param} {path} holds {_shown(other)}, which no clgs run writes; {force_word} replaces "
                           f"only a clgs output's own files, so it is refused here: move them, or choose another "
@@ -369,7 +370,8 @@ def claim(path, *, kind: str = "folder", overwrite: bool = False, resume: bool =
         return
     check_output(path, kind=kind, overwrite=overwrite, resume=resume, within=within, param=param,
                  force_word=force_word)
-    with lock(path, param):
+    made = _new_folders(Path(os.path.abspath(path)).parent)
+    with lock(path, param), _remove_if_empty_on_failure(made):
         # checked again under the lock: another run may have finished there since
         check_output(path, kind=kind, overwrite=overwrite, resume=resume, within=within, param=param,
                      force_word=force_word)
@@ -381,6 +383,31 @@ def claim(path, *, kind: str = "folder", overwrite: bool = False, resume: bool =
         except BaseException:
             _after_failure(path, kind, resume, existed)
             raise
+
+
+def _new_folders(folder: Path) -> list:
+    """The folders, innermost first, that writing into ``folder`` creates."""
+    made = []
+    while not os.path.lexists(folder) and folder.parent != folder:
+        made.append(folder)
+        folder = folder.parent
+    return made
+
+
+@contextlib.contextmanager
+def _remove_if_empty_on_failure(folders):
+    """On a failure, the folders of ``folders`` (innermost first) left empty go again."""
+    try:
+        yield
+    except BaseException:
+        for folder in folders:
+            try:
+                folder.rmdir()
+            except FileNotFoundError:
+                continue
+            except OSError:
+                break
+        raise
 
 
 def _after_failure(path: Path, kind: str, resume: bool, existed: bool) -> None:
