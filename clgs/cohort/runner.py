@@ -29,6 +29,7 @@ class Stopped(KeyboardInterrupt):
     def __init__(self, signum: int):
         super().__init__(signum)
         self.signum = int(signum)
+        self.running = []  # keys of the tasks it cut (in this process)
 
 
 class StopSignals:
@@ -170,8 +171,12 @@ def run_tasks(tasks, workers: int | None = None, scheduler: str | None = None,
             for task in tasks:
                 if stop is not None and stop.signum is not None:
                     break
-                with _cut_now(stop, True):
-                    raw = call_task(task.fn, task.args, task.kwargs)
+                try:
+                    with _cut_now(stop, True):
+                        raw = call_task(task.fn, task.args, task.kwargs)
+                except Stopped as exc:
+                    exc.running = [task.key]
+                    raise
                 out = _outcome(task.key, raw)
                 outcomes[task.key] = out
                 bar.update(1)

@@ -32,8 +32,8 @@ from pathlib import Path
 
 from clgs.errors import ClgsError
 
-__all__ = ["OutputError", "OutputBusy", "CLGS_FILES", "claim", "check_output", "check_names", "lock",
-           "holder", "is_scan_folder", "clgs_entries"]
+__all__ = ["OutputError", "OutputBusy", "CLGS_FILES", "claim", "check_output", "check_place", "check_names", "lock",
+           "holder", "held", "clear", "is_scan_folder", "clgs_entries", "after_failure"]
 
 
 class OutputError(ClgsError, ValueError):
@@ -169,6 +169,16 @@ def check_output(path, *, kind: str = "folder", overwrite: bool = False, resume:
     if resume and overwrite:
         raise OutputError(f"resume and {force_word} contradict each other: resume continues the run in {path}, "
                           f"{force_word} replaces it; give one")
+    check_place(path, kind=kind, within=within, param=param, writable=False)
+    if os.path.lexists(path):
+        _check_existing(path, kind, overwrite, resume, param, force_word)
+    _check_writable(path, param)
+
+
+def check_place(path, *, kind: str = "folder", within=None, param: str = "--out", writable: bool = True) -> None:
+    """Where ``path`` lies, whatever it holds: names that fit, inside ``within``, never in a scan
+    folder, and (``writable``) a folder that accepts files."""
+    path = Path(path)
     check_names(path, param, folder=kind != "file")
     target = Path(os.path.abspath(path)).resolve()
     if within is not None:
@@ -183,9 +193,8 @@ def check_output(path, *, kind: str = "folder", overwrite: bool = False, resume:
             where = "is" if folder == target else f"lies inside {folder}, which is"
             raise OutputError(f"{param} {path} {where} a scan folder: outputs never go into a scan (they could "
                               f"replace or mix with its files); choose another {param}")
-    if os.path.lexists(target) or os.path.lexists(path):
-        _check_existing(path, kind, overwrite, resume, param, force_word)
-    _check_writable(path, param)
+    if writable:
+        _check_writable(path, param)
 
 
 def _check_existing(path: Path, kind: str, overwrite: bool, resume: bool, param: str, force_word: str) -> None:
@@ -381,7 +390,7 @@ def claim(path, *, kind: str = "folder", overwrite: bool = False, resume: bool =
         try:
             yield path
         except BaseException:
-            _after_failure(path, kind, resume, existed)
+            after_failure(path, kind, resume, existed)
             raise
 
 
@@ -410,7 +419,7 @@ def _remove_if_empty_on_failure(folders):
         raise
 
 
-def _after_failure(path: Path, kind: str, resume: bool, existed: bool) -> None:
+def after_failure(path: Path, kind: str, resume: bool, existed: bool) -> None:
     """A failed run: a folder with a checkpoint is kept (``--resume`` continues it); a new run's
     files go, so that running it again is not refused (the folder itself too, when the run made it)."""
     if kind != "folder" or resume or not path.is_dir() or (path / CHECKPOINT).is_file():
