@@ -23,6 +23,7 @@ from clgs.cli.cohort_options import check_cohort_options, cohort_options
 from clgs.cli.common import check_memory, check_not_input, exit_if_interrupted
 from clgs.cli.options import FiniteFloat, Seed, mesh_space_option
 from clgs.cli.settings import check_settings, parse_settings
+from clgs.errors import ClgsError
 
 # --------------------------------------------------------------------------------------- errors
 # The library reports bad input with these (ValueError's subclasses: ScanError, ModelFileError,
@@ -31,7 +32,8 @@ from clgs.cli.settings import check_settings, parse_settings
 # its traceback. Unknown subjects (KeyError) are caught where subjects are loaded (_load_subject),
 # not here: a KeyError elsewhere is a programming error.
 # FloatingPointError: a run whose loss or parameters turned NaN/Inf (the last good checkpoint is kept)
-INPUT_ERRORS = (ValueError, FileNotFoundError, FloatingPointError)
+# ClgsError: every error of clgs about what it was given or where it writes (a full disk included)
+INPUT_ERRORS = (ValueError, FileNotFoundError, FloatingPointError, ClgsError)
 
 
 def _message(exc: BaseException) -> str:
