@@ -206,7 +206,9 @@ def _resume_kwargs(fn, m, settings: dict) -> dict | None:
     """The keyword arguments that continue a method's run from its checkpoint (None: it cannot)."""
     if not _accepts(fn, m, "resume"):
         return None
-    kwargs = {"resume": True, "iterations": settings.get("iterations")}
+    kwargs = {"resume": True}
+    if _accepts(fn, m, "iterations"):  # None: to the iterations the run was started with
+        kwargs["iterations"] = settings.get("iterations")
     if "backend" in settings:
         kwargs["backend"] = settings["backend"]
     if _accepts(fn, m, "progress"):
