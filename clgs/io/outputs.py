@@ -219,7 +219,7 @@ def _check_existing(path: Path, kind: str, overwrite: bool, resume: bool, param:
     if resume:
         return  # the method checks its checkpoint
     if not overwrite:
-        held = (f"a run already ({CHECKPOINT}); resume it (--resume, resume=True), or pass {force_word} to replace it"
+        held = (f"holds a run already ({CHECKPOINT}); resume it (--resume, resume=True), or pass {force_word} to replace it"
                 if CHECKPOINT in mine else f"already exists and holds {_shown(mine + other)}; pass {force_word} to "
                                            "replace it")
         raise OutputError(f"{path} {held} (or choose another {param})")
