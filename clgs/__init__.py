@@ -10,8 +10,12 @@ Data
 Kernels (differentiable torch ops on OpenCL)
     ``project`` (Gaussians -> line integrals), ``voxelize``, ``voxelize_points``, ``CTProjector``
     (voxel volume projector pair).
+Simulation and units
+    ``simulate`` (a volume, 1/mm or HU, -> a noisy sparse-view ``Scan``, projected from a finer
+    grid than the reconstruction's; also ``simulate_scan``), ``add_noise``, ``hu_to_mu``,
+    ``mu_to_hu``.
 Classical CT
-    ``fdk``, ``sart``, ``add_noise``.
+    ``fdk``, ``sart``.
 Gaussian methods
     ``reconstruct_r2gs`` (R2-Gaussian), ``reconstruct_shape_guided`` (with an anatomy's shape model).
 Figures and anatomies
@@ -21,16 +25,13 @@ Errors
     ``ClgsError``: the base of every error clgs raises about its input.
 """
 import importlib as _importlib
-import os as _os
+from typing import TYPE_CHECKING as _TYPE_CHECKING
 
-# torch's OpenMP threads spin for a while after every parallel op by default and starve PoCL's
-# worker threads on the same cores (a 32^3 voxelizer block: 22-325 ms with spinning, 6-7 ms
-# without); ask them to sleep instead. Read when torch loads, so it is set here, first.
-_os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 __version__ = "0.1.0"
 
-# public name -> "module" (the name is an attribute of it) or "module:" (the name is the module)
+# public name -> "module" (the name is an attribute of it), "module:" (the name is the module) or
+# "module:attribute" (the name is another attribute of it)
 _HOMES = {
     "Scan": "clgs.io.scan",
     "Geometry": "clgs.geometry",
@@ -44,6 +45,10 @@ _HOMES = {
     "fdk": "clgs.ct.fdk",
     "sart": "clgs.ct.sart",
     "add_noise": "clgs.ct.noise",
+    "simulate": "clgs.ct.simulate:simulate_scan",
+    "simulate_scan": "clgs.ct.simulate",
+    "hu_to_mu": "clgs.io.units",
+    "mu_to_hu": "clgs.io.units",
     "reconstruct_r2gs": "clgs.methods.r2gs",
     "reconstruct_shape_guided": "clgs.methods.shape_guided",
     "metrics": "clgs.metrics:",
@@ -55,14 +60,34 @@ _HOMES = {
 
 __all__ = sorted(_HOMES)
 
+if _TYPE_CHECKING:  # what the lazy loading below gives, spelled out for type checkers and editors
+    from clgs import metrics, plugins  # noqa: F401
+    from clgs.anatomy.plugins import get_anatomy  # noqa: F401
+    from clgs.anatomy.record import Anatomy  # noqa: F401
+    from clgs.ct.fdk import fdk  # noqa: F401
+    from clgs.ct.noise import add_noise  # noqa: F401
+    from clgs.ct.sart import sart  # noqa: F401
+    from clgs.ct.simulate import simulate_scan  # noqa: F401
+    from clgs.ct.simulate import simulate_scan as simulate  # noqa: F401
+    from clgs.errors import ClgsError  # noqa: F401
+    from clgs.geometry import Geometry, Grid  # noqa: F401
+    from clgs.io.scan import Scan  # noqa: F401
+    from clgs.io.units import hu_to_mu, mu_to_hu  # noqa: F401
+    from clgs.io.volume import load_volume, save_volume  # noqa: F401
+    from clgs.methods.r2gs import reconstruct_r2gs  # noqa: F401
+    from clgs.methods.shape_guided import reconstruct_shape_guided  # noqa: F401
+    from clgs.ops.ct_projector import CTProjector  # noqa: F401
+    from clgs.ops.projector import project  # noqa: F401
+    from clgs.ops.voxelizer import voxelize, voxelize_points  # noqa: F401
+
 
 def __getattr__(name):
     home = _HOMES.get(name)
     if home is None:
         raise AttributeError(f"module 'clgs' has no attribute {name!r}")
-    module_name, is_module, _ = home.partition(":")
+    module_name, colon, attr = home.partition(":")
     module = _importlib.import_module(module_name)
-    value = module if is_module else getattr(module, name)
+    value = getattr(module, attr or name) if not colon or attr else module
     globals()[name] = value
     return value
 

@@ -332,7 +332,7 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
             metrics.update(psnr3d_fov=float(figures.masked_psnr3d(run["volume"], scan.truth, judge)),
                            ssim3d_fov=float(figures.masked_ssim3d(run["volume"], scan.truth, judge)),
                            fov_fraction=float(judge.mean()))
-    save_volume(out / "runs" / f"{tag}.nii.gz", run["volume"], scan.geometry)
+    save_volume(out / "runs" / f"{tag}.nii.gz", run["volume"], scan.geometry, units="1/mm")
     mesh = bone_surface(run["volume"], scan.geometry, surface_level(anatomy, scan.truth))
     surf = None if mesh is None else save_mesh(out / "runs" / f"{tag}.stl", mesh.vertices, mesh.faces)
     if run["model_surface"] is not None and scan.surface is not None:

@@ -77,6 +77,21 @@ def _scalar(name, value) -> float:
         raise GeometryError(f"{name} must be one number, got {value!r}")
     return float(arr[0])
 
+def check_orientation(codes) -> str:
+    """Axis codes of a volume file's array axes (i, j, k), as nibabel writes them: three letters,
+    one of L/R, one of A/P, one of S/I, in any order (``"RAS"``, ``"LAS"``, ``"LPS"``, ``"PSR"``)."""
+    if isinstance(codes, (list, tuple)) and all(isinstance(c, str) for c in codes):
+        codes = "".join(codes)
+    text = codes if isinstance(codes, str) else None
+    if text is None or len(text) != 3:
+        raise GeometryError(f"orientation must be three axis codes such as 'RAS' or 'LPS', got {codes!r}")
+    text = text.upper()
+    pairs = [("L", "R"), ("A", "P"), ("S", "I")]
+    if sorted(next((i for i, p in enumerate(pairs) if c in p), 9) for c in text) != [0, 1, 2]:
+        raise GeometryError(f"orientation {codes!r}: give one of L/R, one of A/P and one of S/I (e.g. 'LAS')")
+    return text
+
+
 def shadow_half_extents(size_zyx, DSO: float, DSD: float, mode: str = "cone") -> tuple:
     """(half width u, half height v) in mm on the detector of the shadow of a box of ``size_zyx``
     mm centred on the rotation axis, over every angle: what a detector must span to see the whole
@@ -182,6 +197,12 @@ class Geometry:
     #: is the origin of the vectors' frame in the world.
     isocentre: tuple = (0.0, 0.0, 0.0)
     vectors: np.ndarray | None = field(default=None, repr=False, compare=False)
+    #: How volume files of this scan store their array (not a TIGRE name): nibabel's axis codes of
+    #: the file's array axes (NIfTI's i, j, k), e.g. ``"LAS"`` (i grows towards the left, j
+    #: anterior, k superior) for the input a simulation took. Every array in memory is (Z, Y, X)
+    #: along +z, +y, +x (``"RAS"``); writers put the array back in this order, with its affine, so
+    #: outputs compare with the input index by index. The kernels never see it.
+    orientation: str = "RAS"
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
@@ -200,6 +221,7 @@ class Geometry:
         set_("offOrigin", _triple("offOrigin", self.offOrigin))
         set_("offDetector", _pair("offDetector", self.offDetector))
         set_("isocentre", _triple("isocentre", self.isocentre))
+        set_("orientation", check_orientation(self.orientation))
         set_("DSD", _scalar("DSD", self.DSD))
         set_("DSO", _scalar("DSO", self.DSO))
         if self.angles is None:
@@ -453,6 +475,7 @@ class Geometry:
             return {"mode": self.mode, "nDetector": list(self.nDetector), "nVoxel": list(self.nVoxel),
                     "dVoxel": list(self.dVoxel), "offOrigin": list(self.offOrigin),
                     **({"isocentre": list(self.isocentre)} if any(self.isocentre) else {}),
+                    **({"orientation": self.orientation} if self.orientation != "RAS" else {}),
                     "vectors": [[float(x) for x in row] for row in self.vectors]}
         return {
             "mode": self.mode,
@@ -466,11 +489,12 @@ class Geometry:
             "offDetector": list(self.offDetector),
             "angles": [float(a) for a in self.angles],
             **({"isocentre": list(self.isocentre)} if any(self.isocentre) else {}),
+            **({"orientation": self.orientation} if self.orientation != "RAS" else {}),
         }
 
     @classmethod
     def from_vectors(cls, vectors, nDetector, nVoxel, dVoxel, offOrigin=(0.0, 0.0, 0.0),
-                     mode: str = "cone", isocentre=(0.0, 0.0, 0.0)) -> "Geometry":
+                     mode: str = "cone", isocentre=(0.0, 0.0, 0.0), orientation: str = "RAS") -> "Geometry":
         """A per-view geometry: ``vectors`` (n_views, 12) in mm, (x, y, z), ASTRA's order per view:
         source (cone) or ray direction (parallel), detector centre, one pixel along u (columns), one
         pixel along v (rows). They share the frame of ``offOrigin`` (the volume's centre); the
@@ -481,19 +505,20 @@ class Geometry:
             raise GeometryError(f"mode must be 'cone' or 'parallel', got {mode!r}")
         vec = _check_vectors(vectors, mode)
         return cls(DSD=1.0, DSO=0.5, nDetector=nDetector, dDetector=(1.0, 1.0), nVoxel=nVoxel, dVoxel=dVoxel,
-                   angles=np.zeros(len(vec)), offOrigin=offOrigin, mode=mode, isocentre=isocentre, vectors=vec)
+                   angles=np.zeros(len(vec)), offOrigin=offOrigin, mode=mode, isocentre=isocentre, vectors=vec,
+                   orientation=orientation)
 
     def as_vectors(self) -> "Geometry":
         """The same scan as a per-view geometry (the circular description written as vectors)."""
         return Geometry.from_vectors(self.frame_vectors(), self.nDetector, self.nVoxel, self.dVoxel,
-                                     self.offOrigin, self.mode, self.isocentre)
+                                     self.offOrigin, self.mode, self.isocentre, self.orientation)
 
     def select(self, views) -> "Geometry":
         """The geometry of the views ``views`` (indices, in that order)."""
         idx = np.asarray(views, int).reshape(-1)
         if self.vectors is not None:
             return Geometry.from_vectors(self.vectors[idx], self.nDetector, self.nVoxel, self.dVoxel,
-                                         self.offOrigin, self.mode, self.isocentre)
+                                         self.offOrigin, self.mode, self.isocentre, self.orientation)
         return self.with_angles(self.angles[idx])
 
     @classmethod
@@ -505,7 +530,8 @@ class Geometry:
             if missing:
                 raise GeometryError(f"geometry is missing {', '.join(missing)} (needed beside vectors)")
             g = cls.from_vectors(d["vectors"], d["nDetector"], d["nVoxel"], d["dVoxel"],
-                                 d.get("offOrigin", (0, 0, 0)), d.get("mode", "cone"), d.get("isocentre", (0, 0, 0)))
+                                 d.get("offOrigin", (0, 0, 0)), d.get("mode", "cone"), d.get("isocentre", (0, 0, 0)),
+                                 d.get("orientation", "RAS"))
             n_angles = _numbers("angles", d["angles"]).size if d.get("angles") is not None else g.n_views
             if n_angles != g.n_views:
                 raise GeometryError(f"geometry has {n_angles} angles but {g.n_views} vectors: give one vector per "
@@ -527,6 +553,7 @@ class Geometry:
             offDetector=d.get("offDetector", (0, 0)),
             mode=d.get("mode", "cone"),
             isocentre=d.get("isocentre", (0, 0, 0)),
+            orientation=d.get("orientation", "RAS"),
         )
 
     def to_json(self) -> str:

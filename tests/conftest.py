@@ -4,7 +4,7 @@ import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before anything imports torch
 
-import clgs  # noqa: E402,F401  (sets the same default for library users)
+import clgs  # noqa: E402,F401
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 

@@ -223,19 +223,19 @@ def test_a_report_whose_scan_is_gone_is_said(runs, tmp_path):
 
 
 def test_to_hu_records_the_unit_in_each_format(ct, tmp_path):
-    from clgs.io.units import recorded_unit
+    from clgs.io.units import recorded_units
     from clgs.io.volume import load_volume
 
     d, mu = ct
     for name in ("hu.nii.gz", "hu.nrrd", "hu.mha"):
         res = run("convert", d / "ct.nii.gz", tmp_path / name, "--to-hu", "--kev", 90)
-        assert "HU at 90 keV" in res.output
-        assert recorded_unit(tmp_path / name) == "HU at 90 keV", name
+        assert "Hounsfield units at 90 keV" in res.output
+        assert recorded_units(tmp_path / name) == {"units": "HU", "kev": 90.0}, name
         v, sp, org = load_volume(tmp_path / name)
         assert org == pytest.approx(ORIGIN) and sp == pytest.approx(SPACING)
         np.testing.assert_allclose(v, mu_to_hu(mu, 90.0), atol=1e-3)
     run("convert", d / "ct.nii.gz", tmp_path / "mu.nii.gz")
-    assert recorded_unit(tmp_path / "mu.nii.gz") == "attenuation 1/mm"
+    assert recorded_units(tmp_path / "mu.nii.gz") == {"units": "1/mm"}
     import nibabel as nib
 
     hdr = nib.load(str(tmp_path / "hu.nii.gz")).header

@@ -1,4 +1,4 @@
-"""The README's comparison script runs end to end (tiny settings) and honours ``--set``."""
+"""The comparison script of docs/results.md runs end to end (tiny settings) and honours ``--set``."""
 import json
 import math
 import subprocess
@@ -63,7 +63,7 @@ def test_tooth_sparse_views_reports_every_method_against_the_reference(tmp_path)
 
 
 def test_femur_sizes_writes_subject_22_at_the_lengths_asked(tmp_path):
-    """The README's sizes experiment starts from these files: the subject's shape at each length."""
+    """The sizes experiment of docs/results.md starts from these files: the subject's shape at each length."""
     pytest.importorskip("clgs_femur", reason="install with: pip install -e anatomies/femur")
     from clgs.anatomy.population import surface_length
     from clgs.io.mesh import load_mesh

@@ -5,7 +5,7 @@ import sys
 
 from clgs.fit.training_log import TrainingLog
 
-#: a 100k-Gaussian R2-Gaussian-mode run on a 512^2 detector stays under this (README: Speed)
+#: a 100k-Gaussian R2-Gaussian-mode run on a 512^2 detector stays under this (docs/benchmarks.md)
 MEMORY_BOUND_MIB = 2048
 
 CHECK = r"""

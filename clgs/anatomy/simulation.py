@@ -153,30 +153,22 @@ def simulate_subject(anatomy, subject, n_views: int = 50, arc: float = 3.1415926
     with the scan (for evaluation)."""
     import numpy as np
 
-    from clgs.ct.simulation_grid import projection_volume
-    from clgs.geometry import Geometry
+    from clgs.ct.simulate import project_with_noise
     from clgs.io.scan import Scan
-    from clgs.ops.ct_projector import CTProjector
 
     if subject.volume is None:
         raise InputError(f"subject {subject.id} has no CT volume to simulate")
     geo = scan_geometry(anatomy, subject, n_views, arc, angles=angles, detector_mm=detector_mm,
                         geometry_file=geometry_file)
-    source = projection_volume(subject.volume, geo.nVoxel, protocol)
-    sim = geo.to_dict()
-    sim.update(nVoxel=list(source.shape), dVoxel=[n * d / m for n, d, m in zip(geo.nVoxel, geo.dVoxel, source.shape)])
-    proj = as_float32(CTProjector(Geometry.from_dict(sim)).forward(source))
-    acquisition = {"noise": bool(noise), "seed": int(seed),
-                   "simulation": {"protocol": protocol, "projected_grid": list(source.shape),
-                                  "reconstruction_grid": list(geo.nVoxel)}}
+    opts = dict(noise_options or {})
+    unknown = set(opts) - {"I0", "sigma", "scatter"}
+    if unknown:
+        raise InputError(f"noise options {sorted(unknown)} are not I0, sigma or scatter")
+    # the anatomy protocol keeps negative line integrals (counts above the flat field) as drawn
+    proj, acquisition = project_with_noise(subject.volume, geo, protocol=protocol, noise=noise, seed=seed,
+                                           clamp_negative=False, progress=False, **opts)
     if detector_mm is not None:
         acquisition["detector_fov_mm"] = [float(x) for x in np.broadcast_to(np.asarray(detector_mm, float), (2,))]
-    if noise:
-        from clgs.ct.noise import add_noise
-
-        opts = dict(noise_options or {})
-        proj = as_float32(add_noise(proj, seed=seed, **opts))
-        acquisition.update(opts)
     meta = {"anatomy": anatomy.name, "subject": subject.id, "acquisition": acquisition,
             "provenance": f"clgs {anatomy.name} simulate ({anatomy.package or 'plugin'} {anatomy.version})",
             "subject_meta": subject.meta}

@@ -168,7 +168,7 @@ def run_reconstruct(scan, anatomy, method: str, out=None, **options):
         # clgs.io.atomic.save_npy, so readers see the old file or the new one, never a torn one
         volume = as_float32(result["volume"])
         save_volume(os.path.join(out, "volume.npy"), volume, scan.geometry)
-        save_volume(os.path.join(out, "volume.nii.gz"), volume, scan.geometry)  # for viewers, placed in mm
+        save_volume(os.path.join(out, "volume.nii.gz"), volume, scan.geometry, units="1/mm")  # for viewers, in mm
     return result
 
 
@@ -372,7 +372,8 @@ def _reconstruct_command(anatomy) -> click.Command:
     @click.option("--resume", is_flag=True,
                   help="continue the run in --out from its checkpoint, with its settings (same as --set "
                        "resume=true); without --set iterations=N it runs to the checkpoint's planned iterations")
-    @click.option("--force", is_flag=True, help="start a new run in an --out that holds one (it is replaced)")
+    @click.option("--force", is_flag=True, help="replace what --out holds: an earlier clgs run's files are removed "
+                                               "first (anything else there is refused)")
     def reconstruct(scan_dir, out, method, views, settings, resume, force):
         """Reconstruct a scan folder with the anatomy's prior; writes OUT/volume.nii.gz and OUT/volume.npy."""
         method = method or default_method(anatomy)
@@ -487,7 +488,12 @@ def _evaluate_command(anatomy) -> click.Command:
             volume = os.path.join(volume, "volume.npy")
         scan = Scan.load(scan_dir)
         loaded = load_volume(volume)
-        _echo_metrics(_evaluate(anatomy, scan, loaded[0], os.path.dirname(volume)))
+        vol = loaded[0]
+        if str(volume).lower().endswith(".npy"):  # written in the scan's file order: back to the working one
+            from clgs.io.orientation import to_working
+
+            vol = to_working(vol, scan.geometry.orientation)
+        _echo_metrics(_evaluate(anatomy, scan, vol, os.path.dirname(volume)))
 
     return evaluate
 
@@ -504,7 +510,7 @@ def _demo_command(anatomy) -> click.Command:
     @click.option("--out", default=None, type=click.Path(file_okay=False), help="keep outputs here")
     @click.option("--iterations", default=600, show_default=True, type=click.IntRange(min=1),
                   help="optimisation steps for iterative methods (the papers use 30000: hours on a CPU; "
-                       "the shape-guided method peaks near 600 on the femur, see the README)")
+                       "the shape-guided method peaks near 600 on the femur, see docs/results.md)")
     @click.option("--seed", type=Seed(), default=0, show_default=True, help="random seed, 0 to 2**64 - 1")
     @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="method option (repeatable)")
     def demo(subject_id, views, method, out, iterations, seed, settings):
@@ -576,7 +582,7 @@ def _experiment_command(anatomy) -> click.Command:
     @mesh_space_option("--meshes")
     @click.option("--subjects", default=None, help="comma-separated held-out subject ids [default: all held out]")
     @click.option("--iterations", default=1000, show_default=True, type=click.IntRange(min=1),
-                  help="training iterations of every Gaussian run (the README's table: 1000, a few "
+                  help="training iterations of every Gaussian run (docs/results.md's tables: 1000, a few "
                        "minutes per subject on 2 cores; the paper: 30000, hours per run there)")
     @click.option("--ablation-views", default=5, show_default=True, type=click.IntRange(min=0),
                   help="view count of the ablation (0: none)")

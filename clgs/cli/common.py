@@ -226,14 +226,17 @@ def is_out_of_memory(exc: BaseException) -> bool:
     return isinstance(exc, MemoryError) or (isinstance(exc, RuntimeError) and "can't allocate memory" in str(exc))
 
 
-def load_volume_file(path: Path, spacing=None, label="volume", attenuation: bool = False, axes: str = "zyx"):
-    """(volume float32, spacing, origin) of a volume file; with ``attenuation``, values whose kind
-    cannot be attenuation are refused (complex, boolean masks) or warned about (integers). ``axes``:
-    the order of a ``.npy`` array's axes, ``zyx`` (clgs's) or ``xyz`` (R2-Gaussian's ``vol_gt.npy``);
-    files that carry their own orientation ignore it."""
+def load_volume_file(path: Path, spacing=None, label="volume", attenuation: bool = False, axes: str = "zyx",
+                     doubt_negatives: bool = True):
+    """(volume float32, spacing, origin) of a volume file, in the working (Z, Y, X) RAS+ order (a
+    :class:`clgs.io.volume.LoadedVolume`: its ``orientation`` is the file's axis codes). With
+    ``attenuation``, values whose kind cannot be attenuation are refused (complex, boolean masks)
+    or warned about (integers; values no tissue has, negatives below -0.01/mm unless not
+    ``doubt_negatives``). ``axes``: the order of a ``.npy`` array's axes, ``zyx`` (clgs's) or
+    ``xyz`` (R2-Gaussian's ``vol_gt.npy``); files that carry their own orientation ignore it."""
     import numpy as np
 
-    from clgs.io.volume import VolumeError, load_volume
+    from clgs.io.volume import LoadedVolume, VolumeError, load_volume
 
     if not (is_volume_path(path) or is_dicom_folder(path)):
         raise click.BadParameter(f"{path}: a {label} must be {', '.join(VOLUME_SUFFIXES)} or a folder of DICOM "
@@ -258,10 +261,15 @@ def load_volume_file(path: Path, spacing=None, label="volume", attenuation: bool
         if np.issubdtype(vol.dtype, np.integer):
             click.echo(f"warning: {path} holds integers (dtype {vol.dtype}): read as attenuation in 1/mm; for "
                        "Hounsfield units add --hu, for labels give attenuation instead", err=True)
+        from clgs.io.units import attenuation_doubt
+
+        doubt = attenuation_doubt(vol, negatives=doubt_negatives)
+        if doubt is not None:
+            click.echo(f"warning: {path}: {doubt}", err=True)
     vol = np.asarray(vol, np.float32)
     if spacing is not None:
         sp = tuple(float(s) for s in spacing)
-    return vol, sp, org
+    return LoadedVolume(vol, sp, org, loaded.orientation)
 
 
 def parse_spacing(value, param: str = "--spacing"):

@@ -133,7 +133,7 @@ def convert(volume, out, dicom, hu, to_hu, kev, scan_dir, report_path, series_nu
     """
     import numpy as np
 
-    from clgs.io.units import hu_to_mu, mu_to_hu, record_unit, unit_label
+    from clgs.io.units import HU, MU, header_text, hu_to_mu, mu_to_hu
     from clgs.io.volume import VolumeError, save_volume
 
     if not dicom and not is_volume_path(out):
@@ -151,7 +151,8 @@ def convert(volume, out, dicom, hu, to_hu, kev, scan_dir, report_path, series_nu
     if not dicom:
         check_output(out, force, param="OUT")
     check_writable(out, param="OUT")
-    vol, sp, org = load_volume_file(volume, parse_spacing(spacing), attenuation=not hu, axes=axes)
+    loaded = load_volume_file(volume, parse_spacing(spacing), attenuation=not hu, axes=axes)
+    vol, sp, org = loaded
     if sp is None:
         raise click.UsageError(f"{volume} is a .npy array without voxel size; give --spacing (mm)")
     if not np.all(np.isfinite(vol)):
@@ -165,12 +166,13 @@ def convert(volume, out, dicom, hu, to_hu, kev, scan_dir, report_path, series_nu
                          force)
             return
         data = np.asarray(mu_to_hu(mu, kev), np.float32) if to_hu else mu
-        save_volume(out, data, spacing=sp, origin=org, overwrite=force)
-        recorded = record_unit(out, unit_label(to_hu, kev))
+        units = HU if to_hu else MU
+        save_volume(out, data, spacing=sp, origin=org, overwrite=force,
+                    orientation=getattr(loaded, "orientation", None), units=units, kev=kev if to_hu else None)
     except (VolumeError, ValueError) as exc:
         raise click_error(exc) from None
-    click.echo(f"wrote {out} ({unit_label(to_hu, kev)})")
-    if to_hu and not recorded:
+    click.echo(f"wrote {out} ({header_text(units, kev if to_hu else None)[0].removeprefix('clgs: ')})")
+    if to_hu and out.name.lower().endswith(".npy"):
         click.echo(f"warning: {out.name} is a bare array: nothing records that it holds HU at {kev:g} keV; "
                    "prefer .nii.gz, .mha or .nrrd", err=True)
 

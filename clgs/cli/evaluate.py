@@ -20,7 +20,8 @@ from clgs.cli.options import FiniteFloat, mesh_space_option
 
 
 def _truth_from(path: Path, spacing, axes: str = "zyx"):
-    """A truth volume from a volume file or from a scan folder's truth."""
+    """A truth volume from a volume file or from a scan folder's truth; last, the array order of
+    the scan's files (a ``.npy`` beside it is read in that order), or None for a volume file."""
     if path.is_dir():
         from clgs.io.volume import grid_spacing_origin
 
@@ -28,9 +29,20 @@ def _truth_from(path: Path, spacing, axes: str = "zyx"):
         if sc.truth is None:
             raise click.BadParameter(f"{path}: this scan has no ground truth", param_hint="--truth")
         sp, org = grid_spacing_origin(sc.geometry)
-        return sc.truth, sp, org, (sc.surface, sc.meta.get("truth_surface_level"))
+        return sc.truth, sp, org, (sc.surface, sc.meta.get("truth_surface_level")), sc.geometry.orientation
     vol, sp, org = load_volume_file(path, spacing, "truth", axes=axes)
-    return vol, sp, org, (None, None)
+    return vol, sp, org, (None, None), None
+
+
+def _in_scan_order(path: Path, vol, orientation, axes: str):
+    """A ``.npy`` written by clgs for a scan holds the scan's file order (``orientation``, e.g.
+    LAS): bring it to the working order the scan's truth is in. Files that carry their own
+    orientation (NIfTI, ...) are in the working order already."""
+    if orientation is None or orientation == "RAS" or axes != "zyx" or not str(path).lower().endswith(".npy"):
+        return vol
+    from clgs.io.orientation import to_working
+
+    return to_working(vol, orientation)
 
 
 @click.command()
@@ -82,13 +94,15 @@ def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, 
         volume = volume / "volume.nii.gz"
     sp = parse_spacing(spacing)
     pred, psp, porg = load_volume_file(volume, sp, axes=axes)
-    tvol, tsp, torg, tsurf = _truth_from(truth, sp, axes)
+    tvol, tsp, torg, tsurf, order = _truth_from(truth, sp, axes)
+    pred = _in_scan_order(volume, pred, order, axes)
     if pred.shape != tvol.shape:
         raise click.UsageError(f"VOLUME {pred.shape} and --truth {tvol.shape} have different shapes (Z, Y, X)")
     _check_same_grid(volume, psp, porg, tsp, torg)
     mask = None
     if mask_path is not None:
         mvol, _, _ = load_volume_file(mask_path, sp, "mask", axes=axes)
+        mvol = _in_scan_order(mask_path, mvol, order, axes)
         if mvol.shape != tvol.shape:
             raise click.UsageError(f"--mask {mvol.shape} does not match the volumes' shape {tvol.shape}")
         mask = mvol != 0

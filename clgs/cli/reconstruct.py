@@ -25,7 +25,7 @@ from clgs.cli.common import (
     out_of_memory,
     remove_empty,
 )
-from clgs.cli.options import check_option_values, method_params
+from clgs.cli.options import FiniteFloat, check_option_values, method_params
 
 
 class _ReconstructCommand(click.Command):
@@ -124,16 +124,22 @@ def _prepare_outputs(scan, out, json_out, force, into_folder: bool, resuming: bo
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="also write the report (method, options, time, metrics) to this JSON file")
 @click.option("--force", is_flag=True, help="overwrite an existing --out")
+@click.option("--to-hu", "hu", is_flag=True,
+              help="write the volume in Hounsfield units, at the X-ray energy the scan records (a simulation of a "
+                   "CT with `simulate --hu`) or --kev [default: attenuation, 1/mm]")
+@click.option("--kev", type=FiniteFloat(min=40, max=150), default=None,
+              help="X-ray energy (keV) for --to-hu, when the scan records none (water's attenuation from NIST XCOM)")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
               help="a method setting, as clgs <anatomy> reconstruct takes them (repeatable); the method's own "
                    "options after SCAN say the same")
 @click.option("--help", "-h", "show_help", is_flag=True, help="show this message (with --method: its options)")
 @click.pass_context
-def reconstruct(ctx, scan, method_name, out, split, json_out, force, settings, show_help):
+def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, settings, show_help):
     """Reconstruct a volume from SCAN (a clgs scan folder or an R2-Gaussian dataset folder).
 
-    With a ground truth in the scan, prints 3D PSNR / SSIM (as R2-Gaussian computes them) and
-    the wall time.
+    The volume is attenuation in 1/mm (Hounsfield units with --to-hu), in the array order and with
+    the affine of the volume the scan was simulated from. With a ground truth in the scan, prints
+    3D PSNR / SSIM (as R2-Gaussian computes them, in 1/mm) and the wall time.
     \f
 
     (Long because the run's outputs are cleaned up on any failure: the try blocks hold the steps
@@ -154,6 +160,8 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, settings, s
         raise click.UsageError("missing argument SCAN (a scan folder)")
     if out is None:
         raise click.UsageError("missing option --out (a volume file or a folder)")
+    if kev is not None and not hu:
+        raise click.UsageError("--kev is the energy of --to-hu's Hounsfield units: add --to-hu, or leave out --kev")
     options, kwargs = _method_options(ctx, method, mcmd)
     if settings:
         _merge_settings(method, settings, options, kwargs)
@@ -166,7 +174,8 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, settings, s
     import numpy as np
 
     from clgs.io import atomic
-    from clgs.io.volume import save_volume
+    from clgs.io.reconstruction import output_units, save_reconstruction
+    from clgs.io.units import UnitsError
 
     def files_report(files) -> dict:
         """A method's ``files``: a dict name -> path, or a list of paths (keyed by file name)."""
@@ -205,11 +214,9 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, settings, s
                 s, axes = metrics.ssim3d(vol, sc.truth, return_axes=True)
                 figures.update(ssim3d=s, ssim3d_axes=axes)
             report["metrics"] = figures
-        if folder is None:
-            save_volume(out, vol, sc.geometry)
-        else:
-            save_volume(folder / "volume.nii.gz", vol, sc.geometry)
-            atomic.save_npy(folder / "volume.npy", vol)
+        save_reconstruction(out if folder is None else folder, vol, sc.geometry, hu=hu, kev=kev, meta=sc.meta,
+                            folder=folder is not None)
+        if folder is not None:
             atomic.write_json(folder / "report.json", report)
 
     sc = None
@@ -224,6 +231,11 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, settings, s
             from clgs.io.dicom_identity import scan_identity
 
             report["scan_identity"] = scan_identity(sc)  # the study and frame its DICOM series join
+            try:  # before the run: an unknown energy must not cost a reconstruction
+                report["volume_units"] = output_units(hu, kev, sc.meta)
+            except UnitsError as exc:
+                raise click.UsageError(str(exc)) from None
+            report["volume_orientation"] = sc.geometry.orientation
             click.echo(f"{method.name}: {sc.n_views} views, {'x'.join(map(str, sc.geometry.nVoxel))} voxels",
                        err=True)
             try:

@@ -1,7 +1,6 @@
 """``clgs simulate``: a sparse-view scan of any CT volume. Heavy modules load when it runs."""
 from __future__ import annotations
 
-import math
 import sys
 import time
 from pathlib import Path
@@ -19,29 +18,6 @@ from clgs.cli.common import (
     parse_spacing,
 )
 from clgs.cli.options import FiniteFloat, Seed, distance_options
-
-
-def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, pixel, centre_xyz=(0, 0, 0)):
-    """A scanner turning about the volume's centre (``centre_xyz``, world mm) whose square detector
-    sees all of it (5 % margin)."""
-    import numpy as np
-
-    from clgs.geometry import Geometry, GeometryError, shadow_half_extents
-
-    base = Geometry.default(n_views=views, arc=math.radians(arc_deg), mode=mode, n_voxel=max(shape),
-                            n_detector=detector, volume_mm=float(max(np.multiply(shape, spacing))))
-    DSO = base.DSO if DSO is None else DSO
-    DSD = base.DSD if DSD is None else DSD
-    try:
-        half_u, half_v = shadow_half_extents(np.multiply(shape, spacing), DSO, DSD, mode)
-    except GeometryError as exc:
-        raise click.UsageError(f"{exc} (--DSO)") from None
-    if pixel is None:
-        pixel = 2.0 * max(half_u, half_v) * 1.05 / detector
-    d = base.to_dict()
-    d.update(DSD=DSD, DSO=DSO, nVoxel=list(shape), dVoxel=list(spacing), dDetector=[pixel, pixel],
-             nDetector=[detector, detector], isocentre=[float(c) for c in np.asarray(centre_xyz, float)[::-1]])
-    return Geometry.from_dict(d)
 
 
 @click.command()
@@ -66,7 +42,9 @@ def _scanner_geometry(shape, spacing, views, arc_deg, mode, DSD, DSO, detector, 
 @click.option("--I0", "I0", type=FiniteFloat(min=1, min_open=True, hint="photons per pixel of an unattenuated ray; "
                                                  "counts are floored at 1, so at I0 <= 1 every projection is 0"),
               default=1e5, show_default=True,
-              help="photons per pixel of the flat field (Poisson noise); more than 1")
+              help="Poisson noise: photon count of an unattenuated ray, with TIGRE's normalisation: counts are "
+                   "I0 exp(-p / max p), so the most attenuating ray keeps I0/e whatever the object (a relative "
+                   "noise level, not a dose; docs/formats.md); more than 1")
 @click.option("--sigma", type=FiniteFloat(min=0), default=10.0, show_default=True,
               help="electronic (Gaussian) noise, in photon counts")
 @click.option("--scatter", type=FiniteFloat(min=0), default=0.0, show_default=True,
@@ -95,20 +73,20 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
     """Simulate a sparse-view X-ray scan of VOLUME (attenuation in 1/mm, or Hounsfield units with
     --hu): .npy, NIfTI, MetaImage (.mha/.mhd), NRRD, or a DICOM series (its folder or a .dcm file).
 
-    The rotation axis passes through the volume's centre, and every file written keeps the
-    input's world position (origin and spacing). The scan folder stores the projections, the
-    geometry, the acquisition settings and the truth on the reconstruction grid (--grid).
+    The rotation axis passes through the volume's centre, and every volume written (the truth,
+    later the reconstructions) keeps the input's affine and array order (LAS, LPS, permuted).
+    The scan folder stores the projections, the geometry, the acquisition settings and the
+    truth on the reconstruction grid (--grid).
     Projections come from a grid twice as fine as the reconstruction grid unless
     --simulation same.
     \f
 
-    (One function: the options' checks, the scanner, the projection and the writing share the
-    parsed values; the heavier parts are helpers.)
+    (The options' checks and the writing; the simulation is :func:`clgs.ct.simulate.simulate_scan`.)
     """
     import numpy as np
 
     from clgs.geometry import GeometryError
-    from clgs.io.scan import Scan, ScanError
+    from clgs.io.scan import ScanError
 
     check_not_input(out, [("volume", volume, False)])
     check_output(out, force, kind="scan")
@@ -123,7 +101,7 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
     # projections, their noisy copy and the parts joined: three float32 copies of views x detector^2
     check_memory(f"simulating {views} views of {detector} x {detector} pixels", 3.0 * 4 * views * detector ** 2,
                  "use fewer --views or a smaller --detector")
-    from clgs.ct.simulation_grid import fine_bytes, parse_grid, projection_volume, resample_box
+    from clgs.ct.simulation_grid import fine_bytes, parse_grid
     from clgs.errors import InputError
 
     if grid is not None and grid_spacing is not None:
@@ -133,7 +111,8 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
     except InputError as exc:
         raise click.BadParameter(str(exc), param_hint="--grid") from None
     grid_sp = parse_spacing(grid_spacing, "--grid-spacing") if grid_spacing is not None else None
-    vol, sp, org = load_volume_file(volume, sp_override, attenuation=not hu, axes=axes)
+    loaded = load_volume_file(volume, sp_override, attenuation=not hu, axes=axes, doubt_negatives=False)
+    vol, sp, org = loaded
     from clgs.io.dicom_identity import DicomIdentityError, input_identity
 
     try:  # a DICOM input's patient, study and frame of reference, for the reconstructions' series
@@ -148,126 +127,74 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
         recon_shape = tuple(max(1, int(round(float(e) / float(d)))) for e, d in zip(extent, grid_sp))
     recon_shape = tuple(vol.shape) if recon_shape is None else recon_shape
     recon_sp = tuple(float(e) / n for e, n in zip(extent, recon_shape))
-    # the world point the scanner turns about: the input's centre (0 for a bare .npy array)
-    centre_xyz = np.zeros(3)
-    if org is not None:
-        centre_xyz = np.asarray(org, float) + 0.5 * (np.asarray(vol.shape[::-1]) - 1) * np.asarray(sp[::-1], float)
     if protocol == "fine":
         check_memory(f"the fine simulation grid for a {'x'.join(map(str, recon_shape))} reconstruction grid",
                      2.0 * fine_bytes(recon_shape, vol.shape), "use --simulation same or a coarser --grid")
     if not np.all(np.isfinite(vol)):
         raise click.ClickException(f"{volume}: the volume contains NaN or Inf")
-    if hu:
-        from clgs.io.units import hu_to_mu
+    if geometry_file is not None:
+        from clgs.geometry import read_geometry
 
-        vol = hu_to_mu(vol, kev)
-    if float(vol.min()) < 0:
-        raise click.ClickException(
-            f"{volume}: negative values (min {float(vol.min()):.4g}); simulate expects attenuation (1/mm, >= 0); "
-            "for Hounsfield units (a CT) add --hu (and --kev for the energy)")
-    try:
-        if geometry_file is not None:
-            from clgs.geometry import Geometry, read_geometry
+        try:
+            peek = read_geometry(geometry_file, {"nVoxel": list(recon_shape), "dVoxel": list(recon_sp)})
+        except GeometryError as exc:
+            raise click_error(exc, "invalid scanner") from None
+        check_memory(f"simulating {peek.n_views} views of {peek.nDetector[0]} x {peek.nDetector[1]} pixels",
+                     3.0 * 4 * peek.n_views * peek.nDetector[0] * peek.nDetector[1],
+                     "use fewer views or a smaller detector")
+    from clgs.ct.simulate import simulate_scan
 
-            geo = read_geometry(geometry_file, {"nVoxel": list(recon_shape), "dVoxel": list(recon_sp)})
-            # the volume stays where the input lay: its centre is the file's offOrigin in the scanner's frame
-            iso = centre_xyz - np.asarray(geo.offOrigin[::-1], float)
-            geo = Geometry.from_dict({**geo.to_dict(), "isocentre": [float(c) for c in iso[::-1]]})
-            views, mode = geo.n_views, geo.mode
-            check_memory(f"simulating {views} views of {geo.nDetector[0]} x {geo.nDetector[1]} pixels",
-                         3.0 * 4 * views * geo.nDetector[0] * geo.nDetector[1], "use fewer views or a smaller detector")
-        else:
-            geo = _scanner_geometry(recon_shape, recon_sp, views, arc, mode, DSD, DSO, detector, pixel, centre_xyz)
-    except GeometryError as exc:
-        raise click_error(exc, "invalid scanner") from None
-    _warn_if_thinner_than_a_row(volume, vol.shape, sp, geo)
-    truth = resample_box(vol, recon_shape)
-    source = projection_volume(vol, recon_shape, protocol)
-    sim = geo.to_dict()
-    sim.update(nVoxel=list(source.shape), dVoxel=[float(e) / n for e, n in zip(extent, source.shape)])
-    sim_geo = type(geo).from_dict(sim)
-    try:
-        from clgs.ops.ct_projector import CTProjector
-    except ImportError as exc:  # pragma: no cover - the CT module ships with clgs
-        raise click.ClickException(f"the CT projector is unavailable ({exc})") from None
-
-    click.echo(f"projecting {views} {mode}-beam views of a {'x'.join(map(str, source.shape))} volume "
-               f"({protocol} grid; reconstruction grid {'x'.join(map(str, recon_shape))}) "
-               f"onto {geo.nDetector[0]}x{geo.nDetector[1]} pixels of {geo.dDetector[0]:.3g} mm ...", err=True)
-    t0 = time.perf_counter()
-    projector = CTProjector(sim_geo)
-    volume32 = np.ascontiguousarray(source, np.float32)
-    step = max(1, -(-views // 20))
-    chunks = [list(range(s, min(s + step, views))) for s in range(0, views, step)]
-    from clgs.progress import progress_bar
-
-    try:
-        with progress_bar(total=views, desc="simulate", unit="view", leave=False, disable=None) as bar:
-            parts = []
-            for chunk in chunks:
-                parts.append(np.asarray(projector.forward(volume32, views=chunk), np.float32))
-                bar.update(len(chunk))
-        proj = np.concatenate(parts, axis=0)
-    except MemoryError:
-        raise out_of_memory(f"to project {views} views of {geo.nDetector[0]}x{geo.nDetector[1]} pixels",
-                            vol.shape) from None
-    if not np.all(np.isfinite(proj)):
-        raise click.ClickException(
-            f"{volume}: its line integrals overflow 32-bit floats (attenuation up to {float(vol.max()):.3g} 1/mm "
-            f"over paths of up to {float(max(np.multiply(vol.shape, sp))):.0f} mm); attenuation is in 1/mm "
-            "(bone about 0.05): check the volume's units")
-    acquisition = {"noise": not no_noise, "I0": I0, "sigma": sigma, "scatter": scatter, "seed": seed,
-                   "simulation": {"protocol": protocol, "projected_grid": list(source.shape),
-                                  "reconstruction_grid": list(recon_shape)}}
-    if not no_noise:
-        from clgs.ct.noise import add_noise
-
-        max_p = float(proj.max()) if float(proj.max()) > 0 else 1.0  # add_noise's normalisation
-        proj = np.asarray(add_noise(proj, I0=I0, sigma=sigma, scatter=scatter, seed=seed), np.float32)
-        # a pixel whose count fell to the floor of 1 photon reads log(I0) * max_p: saturated
-        saturated = int((proj >= np.float32(math.log(I0) * max_p) * np.float32(1 - 1e-5)).sum())
-        acquisition["saturated"] = saturated
-        if saturated > 0.01 * proj.size:
-            click.echo(f"warning: {100.0 * saturated / proj.size:.1f} % of the detector pixels fell to the floor of "
-                       f"1 photon count (at --I0 {I0:g} with --sigma {sigma:g}): their line integrals saturate and "
-                       "carry no information; raise --I0", err=True)
-        neg = proj < 0
-        acquisition["clamped_negative"] = int(neg.sum())
-        proj[neg] = 0.0  # photon counts above the flat field: clamp as R2-Gaussian's generator does
-    elapsed = time.perf_counter() - t0
     meta = {
-        "acquisition": acquisition,
         "provenance": {"command": "clgs simulate", "argv": sys.argv[1:], "volume": str(volume),
                        "volume_origin_xyz": None if org is None else list(org),
+                       "volume_units": "HU" if hu else "1/mm",
+                       **_input_frame(loaded),
                        "clgs_version": __import__("clgs").__version__,
                        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())},
     }
     if dicom_source:
         meta["dicom_source"] = dicom_source
-    surface = None
-    if surface_level is not None:
-        meta["truth_surface_level"] = surface_level
-        from clgs.mesh.surface import SurfaceError, surface_from_volume
-
-        try:
-            surface = surface_from_volume(truth, surface_level, geometry=geo)
-        except SurfaceError as exc:
-            raise click_error(exc, "--surface-level") from None
+    t0 = time.perf_counter()
     try:
-        Scan(geo, proj, truth, meta, surface).save(out, overwrite=force)
+        scan = simulate_scan(
+            vol, sp, org, orientation=loaded.orientation, hu=hu, kev=kev, views=views, arc_deg=arc, mode=mode,
+            DSO=DSO, DSD=DSD, detector=detector, pixel=pixel, geometry=geometry_file,
+            grid=recon_shape, protocol=protocol, noise=not no_noise,
+            I0=I0, sigma=sigma, scatter=scatter, seed=seed, surface_level=surface_level, name=str(volume),
+            warn=lambda message: click.echo(f"warning: {message}", err=True), meta=meta,
+            announce=lambda geo, shape: click.echo(
+                f"projecting {geo.n_views} {geo.mode}-beam views of a {'x'.join(map(str, shape))} volume "
+                f"({protocol} grid; reconstruction grid {'x'.join(map(str, recon_shape))}) onto "
+                f"{geo.nDetector[0]}x{geo.nDetector[1]} pixels of {geo.dDetector[0]:.3g} mm ...", err=True))
+    except GeometryError as exc:
+        raise click_error(exc, "invalid scanner") from None
+    except MemoryError:
+        raise out_of_memory(f"to project {views} views", vol.shape) from None
+    except InputError as exc:
+        raise click_error(exc) from None
+    elapsed = time.perf_counter() - t0
+    views = scan.n_views
+    try:
+        scan.save(out, overwrite=force)
     except (ScanError, FileExistsError) as exc:
         raise click_error(exc) from None
     click.echo(f"wrote {out}: {views} views, {elapsed:.1f} s")
 
 
-def _warn_if_thinner_than_a_row(path, shape, spacing, geo) -> None:
-    """A volume less than one detector row high (at the rotation axis) projects between rows and
-    mostly vanishes from the scan: say so, with the numbers and what to change."""
+def _input_frame(loaded) -> dict:
+    """The input's frame as scan.json records it: its axis codes, and (for files that place
+    themselves) its voxel-to-world matrix and its array's shape as the file indexes it (i, j, k);
+    for an oblique file, those of the axis-aligned grid it was resampled onto."""
     import numpy as np
+    from nibabel.orientations import axcodes2ornt
 
-    height = shape[0] * float(spacing[0])
-    row = float(np.max(np.linalg.norm(geo.view_vectors(scene=False)[:, 9:12], axis=1) / geo.magnification()))
-    if height < row:
-        click.echo(f"warning: {path} is {height:.3g} mm high, less than one detector row at the rotation axis "
-                   f"({row:.3g} mm): its projection falls between rows and mostly vanishes; use a smaller --pixel, "
-                   "more --detector pixels, or a thicker volume", err=True)
+    from clgs.io.orientation import file_affine
+
+    vol, sp, org = loaded
+    frame = {"volume_orientation": loaded.orientation}
+    if sp is not None and org is not None:
+        aff = file_affine(sp, org, vol.shape, loaded.orientation)
+        frame["volume_affine"] = [[float(v) for v in row] for row in aff]
+        axes = axcodes2ornt(tuple(loaded.orientation))[:, 0].astype(int)  # world axis of each file axis
+        frame["volume_shape"] = [int(np.asarray(vol.shape[::-1])[a]) for a in axes]
+    return frame

@@ -234,7 +234,7 @@ def batch_run(scan: str, method: str, settings: dict, seed, out: str) -> dict:
     from clgs.fit.config import CHECKPOINT
     from clgs.io import atomic, outputs
     from clgs.io.scan import Scan
-    from clgs.io.volume import save_volume
+    from clgs.io.reconstruction import save_reconstruction
 
     m = methods.get(method)
     fn = m.callable()
@@ -290,8 +290,7 @@ def batch_run(scan: str, method: str, settings: dict, seed, out: str) -> dict:
                   "process_peak_mib": process_peak_mib()}
         if sc.truth is not None:
             record.update(metrics.volume_figures(vol, sc.truth))
-        save_volume(folder / "volume.nii.gz", vol, sc.geometry)
-        atomic.save_npy(folder / "volume.npy", vol)
+        record["volume_units"] = save_reconstruction(folder, vol, sc.geometry, folder=True)
         atomic.write_json(folder / RECORD, atomic.json_safe(record))
     return record
 

@@ -5,7 +5,9 @@ For line integrals ``p`` (value x mm):
 
 1. primary intensity ``I = I0 exp(-p / max_p)``, ``max_p`` = the largest line integral unless
    given, so the most attenuating ray keeps ``I0 / e`` counts (TIGRE's normalisation; ``I0`` is
-   then the photon count of an unattenuated ray);
+   then the photon count of an unattenuated ray). The noise level is thus relative to the object:
+   ``I0`` is not the flat field of a real dose, where a thick object's rays fall far below
+   ``I0 / e``;
 2. scatter (``scatter`` = scatter-to-primary ratio, SPR): per view, the primary image blurred by
    a wide Gaussian (standard deviation an eighth of the larger detector side, in pixels), scaled
    so that its mean is ``scatter`` times the mean primary. Scatter is smooth and low-frequency,
@@ -82,7 +84,8 @@ def simulate_counts(projections, I0=1e5, sigma=10.0, scatter=0.0, seed=0, max_p=
 def add_noise(projections, I0=1e5, sigma=10.0, scatter=0.0, seed=0, max_p=None) -> np.ndarray:
     """Noisy line integrals, same shape as ``projections``, float32 (model in the module docstring).
 
-    ``I0``: unattenuated photon count; ``sigma``: electronic noise (counts); ``scatter``:
+    ``I0``: photon count of an unattenuated ray, the line integrals divided by ``max_p`` first
+    (``I = I0 exp(-p / max_p)``); ``sigma``: electronic noise (counts); ``scatter``:
     scatter-to-primary ratio; ``max_p``: normalising line integral (default: the largest).
     """
     counts, max_p = simulate_counts(projections, I0, sigma, scatter, seed, max_p)

@@ -73,7 +73,7 @@ def write_outputs(trainer: Trainer, out_dir, value_scale: float, volume=None) ->
     out_dir.mkdir(parents=True, exist_ok=True)
     volume = voxelize_volume(trainer) / np.float32(value_scale) if volume is None else volume
     paths = {
-        "volume": save_volume(out_dir / "volume.nii.gz", volume, trainer.geometry),
+        "volume": save_volume(out_dir / "volume.nii.gz", volume, trainer.geometry, units="1/mm"),
         "gaussians": atomic.save_npz(out_dir / "gaussians.npz", **gaussians_in_scan_units(trainer, value_scale)),
         "log": trainer.log.write_csv(out_dir / "log.csv"),
         "config": atomic.write_json(out_dir / "config.json", trainer.config),

@@ -219,9 +219,11 @@ def _check_existing(path: Path, kind: str, overwrite: bool, resume: bool, param:
     if resume:
         return  # the method checks its checkpoint
     if not overwrite:
-        held = (f"holds a run already ({CHECKPOINT}); resume it (--resume, resume=True), or pass {force_word} to replace it"
-                if CHECKPOINT in mine else f"already exists and holds {_shown(mine + other)}; pass {force_word} to "
-                                           "replace it")
+        if CHECKPOINT in mine:
+            held = f"holds a run already ({CHECKPOINT}); resume it (--resume, resume=True), or pass {force_word} to "
+        else:
+            held = f"already exists and holds {_shown(mine + other)}; pass {force_word} to "
+        held += "replace it"
         raise OutputError(f"{path} {held} (or choose another {param})")
     if other:
         raise OutputError(f"{param} {path} holds {_shown(other)}, which no clgs run writes; {force_word} replaces "

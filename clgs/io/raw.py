@@ -12,15 +12,19 @@ of each are averaged.
 :func:`line_integrals` turns counts into ``-log((I - dark) / (flat - dark))``. Without flat
 fields the unattenuated intensity I0 is estimated per view from an air region (given columns, or
 by default the brightest 1 % of each view's pixels, which assumes some of each view sees past the
-object). Ratios at or below a floor (dead pixels, photon starvation) are set to the floor and
-counted; the count is reported. Line integrals below 0 (brighter than the flat field: noise, or
-the beam drifting between the flat fields and the projections) are set to 0 and counted too.
+object). Then, by default, each view's I0 is set from its own air (:mod:`clgs.io.air`): the air
+reads 0 whatever the beam did between the flat fields and the projections, and the background
+removed is reported per view. Ratios at or below a floor (dead pixels, photon starvation) are set
+to the floor and counted; line integrals still below 0 (noise in the air) are set to 0 and
+counted too. Zingers (:mod:`clgs.io.artefacts`) are removed on request before the air is
+measured; sinogram stripes (rings) after it, before the clipping.
 
-:func:`find_centre` estimates the column the rotation axis projects to, for a parallel or a
-circular cone-beam scan, by the centre-of-mass method: the attenuation-weighted mean column of
-each view follows ``c0 + a cos(theta) + b sin(theta)`` around the axis, so a least-squares fit
-over the views gives ``c0``. It needs views spread over at least about 90 degrees and an object
-that stays on the detector (truncated views bias it).
+HDF5 files are read as Data Exchange (``exchange/data``) or NeXus NXtomo (:mod:`clgs.io.nexus`).
+
+:func:`find_centre` finds the column the rotation axis projects to with every estimator of
+:mod:`clgs.io.axis` (a 180-degree pair, a sinogram sharpness search, the centre of mass after the
+air background is removed), and reports each one's figure and how far they agree; the pair also
+gives the detector's roll, applied through per-view vectors on request.
 """
 from __future__ import annotations
 
@@ -133,16 +137,30 @@ def _read_dicom_image(path) -> np.ndarray:
     return arr
 
 
-def _read_data_exchange(path: Path) -> RawProjections:
+def _read_hdf5(path: Path) -> RawProjections:
+    """Data Exchange or NXtomo, whichever the file holds."""
     try:
         import h5py
     except ImportError as exc:
         raise RawError("HDF5 files need h5py: pip install 'clgs[formats]' (the set-up installs it)") from exc
+    from clgs.io.nexus import is_nxtomo, read_nxtomo
+
     try:
         with h5py.File(path, "r") as f:
             if "exchange/data" not in f:
-                raise RawError(f"{path}: no 'exchange/data' dataset (not the Data Exchange layout); "
-                               "export the projections as TIFF or .npy instead")
+                if not is_nxtomo(f):
+                    raise RawError(f"{path}: neither the Data Exchange layout ('exchange/data') nor NeXus NXtomo "
+                                   "(an NXentry with an NXdetector holding 'data'); export the projections as "
+                                   "TIFF or .npy instead")
+                try:
+                    nx = read_nxtomo(f, path)
+                except ValueError as exc:
+                    raise RawError(str(exc)) from None
+                data = _as_views(nx["data"], f"{path}:projections")
+                flats = None if nx["flats"] is None else _as_views(nx["flats"], f"{path}:flats")
+                darks = None if nx["darks"] is None else _as_views(nx["darks"], f"{path}:darks")
+                return RawProjections(data, flats, darks, nx["angles_deg"], str(path),
+                                      [nx["layout"], *nx["notes"]])
             data = _as_views(f["exchange/data"][()], f"{path}:exchange/data")
             flats = _as_views(f["exchange/data_white"][()], f"{path}:exchange/data_white") \
                 if "exchange/data_white" in f else None
@@ -163,7 +181,7 @@ def read_raw(path, flats=None, darks=None) -> RawProjections:
     if path.suffix.lower() in (".h5", ".hdf5", ".hdf", ".nxs", ".cxi"):
         if not path.is_file():
             raise RawError(f"{path}: no such file")
-        raw = _read_data_exchange(path)
+        raw = _read_hdf5(path)
     else:
         raw = RawProjections(read_images(path), source=str(path))
     if flats is not None:
@@ -177,10 +195,18 @@ def read_raw(path, flats=None, darks=None) -> RawProjections:
     return raw
 
 
-def line_integrals(raw: RawProjections, air_columns=None, floor: float = DEFAULT_FLOOR):
+def line_integrals(raw: RawProjections, air_columns=None, floor: float = DEFAULT_FLOOR, air: bool = True,
+                   zingers=None, rings=None):
     """(line integrals (n_views, rows, columns) float32, report dict): ``-log`` of the flat- and
-    dark-corrected counts. ``air_columns`` (first, last) names detector columns that see only air,
-    for I0 when there are no flat fields."""
+    dark-corrected counts. ``air_columns`` (first, last exclusive) names detector columns that see
+    only air (found per view when None). ``air``: set each view's I0 from its air so that the air
+    reads 0 (:func:`clgs.io.air.normalise_air`). ``zingers``: None, ``"auto"`` or a threshold
+    (:func:`clgs.io.artefacts.remove_zingers`). ``rings``: None or the stripe filter's size in
+    columns (:func:`clgs.io.artefacts.remove_stripes`), before negative values are set to 0 (a
+    stripe clipped in the air and kept in the object is no longer a stripe)."""
+    from clgs.io.air import normalise_air
+    from clgs.io.artefacts import remove_stripes, remove_zingers
+
     if not (0 < floor < 1):
         raise RawError(f"the floor must lie in (0, 1), got {floor}")
     data = np.asarray(raw.data, np.float64)
@@ -189,6 +215,12 @@ def line_integrals(raw: RawProjections, air_columns=None, floor: float = DEFAULT
     dark = np.zeros(data.shape[1:]) if raw.darks is None else np.asarray(raw.darks, np.float64).mean(0)
     report = {"views": int(data.shape[0]), "flats": 0 if raw.flats is None else int(len(raw.flats)),
               "darks": 0 if raw.darks is None else int(len(raw.darks))}
+    if raw.notes:
+        report["notes"] = list(raw.notes)
+    if air_columns is not None:
+        a, b = (int(v) for v in air_columns)
+        if not (0 <= a < b <= data.shape[2]):
+            raise RawError(f"air columns {a}:{b} lie outside the detector's 0:{data.shape[2]}")
     if raw.flats is not None:
         flat = np.asarray(raw.flats, np.float64).mean(0)
         below = int(np.count_nonzero(flat <= dark))
@@ -202,9 +234,6 @@ def line_integrals(raw: RawProjections, air_columns=None, floor: float = DEFAULT
     else:
         signal = data - dark
         if air_columns is not None:
-            a, b = (int(v) for v in air_columns)
-            if not (0 <= a < b <= data.shape[2]):
-                raise RawError(f"air columns {air_columns} lie outside the detector's 0..{data.shape[2]}")
             i0 = signal[:, :, a:b].mean(axis=(1, 2))
             report["I0"] = f"air columns {a}-{b - 1}"
         else:
@@ -221,13 +250,29 @@ def line_integrals(raw: RawProjections, air_columns=None, floor: float = DEFAULT
     report["floored_fraction"] = float(starved.mean())
     ratio = np.where(starved, floor, ratio)
     proj = -np.log(ratio)
-    # brighter than the flat field (noise, beam drift between flat and projection): no negative
-    # attenuation exists, so these are set to 0 and counted
+    if zingers is not None:
+        try:
+            proj, report["zingers"] = remove_zingers(proj, zingers)
+        except ValueError as exc:
+            raise RawError(str(exc)) from None
+        proj = np.asarray(proj, np.float64)
+    if air:
+        try:
+            proj, report["air"] = normalise_air(proj, air_columns)
+        except ValueError as exc:
+            report["air"] = {"air": "none", "note": f"not normalised: {exc}; give --air-columns"}
+    if rings is not None:
+        try:
+            proj, report["rings"] = remove_stripes(proj, rings)
+        except ValueError as exc:
+            raise RawError(str(exc)) from None
+    # still below 0 (noise in the air, a beam brighter than the flat field without air
+    # normalisation): no negative attenuation exists, so these are set to 0 and counted
     negative = proj < 0
     report["brighter_than_flat_pixels"] = int(np.count_nonzero(negative))
     report["most_negative"] = float(proj.min()) if negative.any() else 0.0
-    proj[negative] = 0.0
-    return proj.astype(np.float32), report
+    proj = np.where(negative, 0.0, proj)
+    return np.asarray(proj, np.float32), report
 
 
 def crop_and_bin(proj: np.ndarray, crop=None, binning=(1, 1)) -> np.ndarray:
@@ -250,36 +295,41 @@ def crop_and_bin(proj: np.ndarray, crop=None, binning=(1, 1)) -> np.ndarray:
     return np.ascontiguousarray(p, np.float32)
 
 
-def find_centre(proj: np.ndarray, angles_rad) -> tuple[float, dict]:
-    """(column of the rotation axis, report) by the centre-of-mass fit of the module doc.
+def find_centre(proj: np.ndarray, angles_rad, mode: str = "parallel") -> tuple[float, dict]:
+    """(column of the rotation axis at the middle row, report) from every estimator of
+    :func:`clgs.io.axis.find_axis` (the report holds each one's column and figure, their spread,
+    ``agree``, ``warning`` when they disagree, and ``tilt_deg``)."""
+    from clgs.io.axis import AxisError, find_axis
 
-    ``proj`` (n_views, rows, columns) line integrals; ``angles_rad`` (n_views,)."""
-    p = np.clip(np.asarray(proj, np.float64), 0.0, None)
-    theta = np.asarray(angles_rad, np.float64).reshape(-1)
-    if theta.size != p.shape[0]:
-        raise RawError(f"{theta.size} angles for {p.shape[0]} views")
-    span = float(np.ptp(np.unwrap(theta))) if theta.size > 1 else 0.0
-    if theta.size < 3 or span < np.pi / 2:
-        raise RawError("finding the centre needs at least 3 views over at least 90 degrees; "
-                       "give the centre (--centre) instead")
-    mass = p.sum(axis=(1, 2))
-    if np.any(mass <= 0):
-        raise RawError("a view holds no attenuation: the centre cannot be found from it; give --centre")
-    cols = np.arange(p.shape[2], dtype=np.float64)
-    com = (p.sum(axis=1) * cols).sum(axis=1) / mass
-    A = np.stack([np.ones_like(theta), np.cos(theta), np.sin(theta)], axis=1)
-    coef, *_ = np.linalg.lstsq(A, com, rcond=None)
-    resid = com - A @ coef
-    report = {"method": "centre of mass, fitted sinusoid", "views": int(theta.size),
-              "rms_residual_pixels": float(np.sqrt(np.mean(resid ** 2))),
-              "amplitude_pixels": float(np.hypot(coef[1], coef[2]))}
-    return float(coef[0]), report
+    try:
+        column, tilt, report = find_axis(proj, angles_rad, mode)
+    except AxisError as exc:
+        raise RawError(str(exc)) from None
+    report["tilt_deg"] = tilt
+    return column, report
+
+
+def _rolled(geometry, column: float, roll_deg: float):
+    """``geometry`` (circular) as per-view vectors with the detector turned by ``roll_deg`` in its
+    plane (u towards v), the axis still meeting the middle row at ``column``."""
+    from clgs.geometry import Geometry
+
+    vec = geometry.frame_vectors()
+    g = np.deg2rad(float(roll_deg))
+    dv, du = geometry.dDetector
+    e_u, e_v = vec[:, 6:9] / du, vec[:, 9:12] / dv
+    nU = geometry.nDetector[1]
+    vec[:, 3:6] += (((nU - 1) / 2.0 - column) * du * np.cos(g) - geometry.offDetector[1]) * e_u
+    vec[:, 6:9] = du * (np.cos(g) * e_u + np.sin(g) * e_v)
+    vec[:, 9:12] = dv * (-np.sin(g) * e_u + np.cos(g) * e_v)
+    return Geometry.from_vectors(vec, geometry.nDetector, geometry.nVoxel, geometry.dVoxel, geometry.offOrigin,
+                                 geometry.mode, geometry.isocentre)
 
 
 def scan_from_raw(raw: RawProjections, *, mode: str = "parallel", pixel: float = 1.0, DSO: float | None = None,
                   DSD: float | None = None, angles_deg=None, arc_deg: float | None = None, centre="auto",
                   crop=None, binning=(1, 1), air_columns=None, floor: float = DEFAULT_FLOOR, views=None,
-                  geometry=None):
+                  geometry=None, air: bool = True, tilt=None, rings=None, zingers=None):
     """(clgs Scan, report) from raw counts: line integrals (:func:`line_integrals`), crop and bin,
     the angles (``angles_deg`` (n_views,), else the file's, else ``arc_deg`` evenly spaced with the
     last view one step short of the end), the rotation axis (``centre``: ``"auto"``
@@ -289,12 +339,15 @@ def scan_from_raw(raw: RawProjections, *, mode: str = "parallel", pixel: float =
     one pixel over the magnification). ``views``: keep this many evenly spaced views (after the
     centre is found on all of them). ``geometry``: a geometry file (:func:`clgs.geometry.read_geometry`:
     TIGRE's names or per-view vectors) that describes the detector after crop and binning; it
-    replaces the angles, centre, mode and distances."""
+    replaces the angles, centre, mode and distances. ``air``, ``zingers``: as for
+    :func:`line_integrals`, as is ``rings`` (a stripe filter's size in columns). ``tilt``: None (the roll
+    is estimated and reported, not applied), ``"auto"`` (the estimate applied) or degrees: a
+    rolled detector is written as per-view vectors."""
     from clgs.geometry import Geometry, GeometryError
     from clgs.io.scan import Scan
 
     if geometry is not None:
-        return _scan_with_geometry(raw, geometry, crop, binning, air_columns, floor, views)
+        return _scan_with_geometry(raw, geometry, crop, binning, air_columns, floor, views, air, rings, zingers)
     if mode not in ("parallel", "cone"):
         raise RawError(f"mode must be 'parallel' or 'cone', got {mode!r}")
     if not (np.isfinite(pixel) and pixel > 0):
@@ -316,14 +369,15 @@ def scan_from_raw(raw: RawProjections, *, mode: str = "parallel", pixel: float =
         raise RawError(f"{angles.size} angles for {n} projections ({source_of_angles}); give one angle per view")
     if not np.all(np.isfinite(angles)):
         raise RawError("the angles hold NaN or Inf")
-    proj, report = line_integrals(raw, air_columns, floor)
-    proj = crop_and_bin(proj, crop, binning)
+    proj, report = _corrected(raw, crop, binning, air_columns, floor, air, rings, zingers)
     bu = int(binning[1])
     d_det = float(pixel) * bu
     theta = np.deg2rad(angles)
     nV, nU = proj.shape[1:]
+    estimated_tilt = None
     if isinstance(centre, str) and centre == "auto":
-        column, centre_report = find_centre(proj, theta)
+        column, centre_report = find_centre(proj, theta, mode)
+        estimated_tilt = centre_report.pop("tilt_deg")
         report["centre"] = {"column": column, **centre_report}
     elif centre is None:
         column = (nU - 1) / 2.0
@@ -334,6 +388,24 @@ def scan_from_raw(raw: RawProjections, *, mode: str = "parallel", pixel: float =
             raise RawError(f"the centre column {column} lies outside the detector's 0..{nU - 1}")
         report["centre"] = {"column": column, "method": "given"}
     off_u = ((nU - 1) / 2.0 - column) * d_det
+    d_row = float(pixel) * int(binning[0])
+    if estimated_tilt is not None:  # pixels (columns per row) to the detector's physical roll
+        estimated_tilt = float(np.rad2deg(np.arctan(np.tan(np.deg2rad(estimated_tilt)) * d_det / d_row)))
+    report["tilt"] = {"estimated_deg": estimated_tilt, "applied_deg": None,
+                      "from": "180-degree pair" if estimated_tilt is not None else None}
+    if tilt is not None:
+        if isinstance(tilt, str):
+            if tilt != "auto":
+                raise RawError(f"tilt must be 'auto' or degrees, got {tilt!r}")
+            if estimated_tilt is None:
+                raise RawError("the detector's roll cannot be estimated here (it needs the axis found with "
+                               "--centre auto from a parallel-beam scan with two views 180 degrees apart and four "
+                               "rows or more); give it in degrees (--tilt DEG)")
+            report["tilt"]["applied_deg"] = estimated_tilt
+        else:
+            if not (np.isfinite(float(tilt)) and abs(float(tilt)) < 45):
+                raise RawError(f"the tilt must be a number of degrees within (-45, 45), got {tilt}")
+            report["tilt"]["applied_deg"] = float(tilt)
     if mode == "cone":
         if DSO is None or DSD is None:
             raise RawError("a cone-beam scan needs DSO and DSD (mm)")
@@ -354,13 +426,21 @@ def scan_from_raw(raw: RawProjections, *, mode: str = "parallel", pixel: float =
                             dDetector=(float(pixel) * int(binning[0]), d_det),
                             nVoxel=(nV, nU, nU), dVoxel=(float(pixel) * int(binning[0]) / mag, vox, vox),
                             offDetector=(0.0, off_u), angles=theta)
+        if report["tilt"]["applied_deg"]:
+            geometry = _rolled(geometry, column, report["tilt"]["applied_deg"])
     except GeometryError as exc:
         raise RawError(f"the scanner geometry is invalid: {exc}") from exc
     meta = {"acquisition": {"noise": True, "real": True}, "provenance": {"source": raw.source, "import": report}}
     return Scan(geometry, proj, None, meta), report
 
 
-def _scan_with_geometry(raw, path, crop, binning, air_columns, floor, views):
+def _corrected(raw, crop, binning, air_columns, floor, air, rings, zingers):
+    """(line integrals (:func:`line_integrals`) after crop and binning, report)."""
+    proj, report = line_integrals(raw, air_columns, floor, air=air, zingers=zingers, rings=rings)
+    return crop_and_bin(proj, crop, binning), report
+
+
+def _scan_with_geometry(raw, path, crop, binning, air_columns, floor, views, air=True, rings=None, zingers=None):
     """(Scan, report) of :func:`scan_from_raw` with the whole geometry from the file ``path``."""
     from clgs.geometry import GeometryError, read_geometry
     from clgs.io.scan import Scan
@@ -373,8 +453,7 @@ def _scan_with_geometry(raw, path, crop, binning, air_columns, floor, views):
     if geometry.n_views != n:
         raise RawError(f"{path}: the geometry has {geometry.n_views} views but {raw.source} holds {n} "
                        "projections; give one view per projection")
-    proj, report = line_integrals(raw, air_columns, floor)
-    proj = crop_and_bin(proj, crop, binning)
+    proj, report = _corrected(raw, crop, binning, air_columns, floor, air, rings, zingers)
     if tuple(proj.shape[1:]) != tuple(geometry.nDetector):
         raise RawError(f"{path}: nDetector {list(geometry.nDetector)} (rows, columns) differs from the images' "
                        f"{list(proj.shape[1:])} after crop and binning; describe the detector as imported")

@@ -4,16 +4,24 @@ Layout of a scan folder::
 
     scan.json            format name and version, Geometry.to_dict(), units, file list, meta
     projections.npy      (n_views, V, U) float32 line integrals
-    truth.npy            optional ground truth (Z, Y, X) float32, attenuation in 1/mm
+    truth.npy            optional ground truth float32, attenuation in 1/mm, in the input's order
     truth.nii.gz         optional copy of the truth for viewers (affine from the geometry)
     truth_surface.stl    optional true surface, world mm
+
+The truth's files keep the array order of the volume the scan was simulated from
+(``geometry.orientation``, e.g. ``"LAS"``; :mod:`clgs.io.orientation`): ``truth.nii.gz`` has the
+input's affine and ``truth.npy`` is its array with the axes reversed ((Z, Y, X) for ``"RAS"``).
+``Scan.truth`` in memory is always in the working (Z, Y, X) RAS+ order. A scan whose geometry
+has another orientation is written as version 2 (older clgs would read its truth.npy in the wrong
+order, and refuses it); any other as version 1.
 
 Projections are line integrals ``-log(I / I0)`` of the attenuation ``mu`` (1/mm) along each ray
 (lengths in mm), i.e. the units of ``UNITS``; row ``iv`` of a view grows with z and column ``iu``
 with the detector's u axis (see :mod:`clgs.geometry`).
 
 ``meta`` holds everything else, as JSON: ``acquisition`` (``noise`` true/false, ``I0``,
-``sigma``, ``scatter``, ``seed``), ``provenance`` (what made the scan), optionally ``subject``
+``sigma``, ``scatter``, ``seed``; ``kev`` when the input was in Hounsfield units), ``provenance``
+(what made the scan, with the input's frame and units), optionally ``subject``
 and ``anatomy``; further keys are kept as they are.
 
 Negative line integrals: a real or simulated noisy scan has small negatives where the object is
@@ -44,8 +52,9 @@ __all__ = ["Scan", "ScanError", "ScanWarning", "FORMAT", "VERSION", "UNITS", "NE
            "check_projections", "is_scan_folder"]
 
 FORMAT = "clgs-scan"
-VERSION = 1
+VERSION = 2
 UNITS = "line integral of mu (1/mm) x mm"
+TRUTH_UNITS = "1/mm"
 SCAN_JSON = "scan.json"
 PROJECTIONS = "projections.npy"
 TRUTH = "truth.npy"
@@ -116,18 +125,22 @@ class Scan:
             files.update(truth=TRUTH, truth_nifti=TRUTH_NIFTI)
         if self.surface is not None:
             files["truth_surface"] = TRUTH_SURFACE
-        return {
+        doc = {
             "format": FORMAT,
-            "version": VERSION,
+            "version": 1 if self.geometry.orientation == "RAS" else VERSION,
             "units": UNITS,
             "geometry": self.geometry.to_dict(),
             "projections_shape": list(self.projections.shape),
             "files": files,
             "meta": self.meta,
         }
+        if self.truth is not None:
+            doc["truth_units"] = TRUTH_UNITS
+        return doc
 
     def save(self, folder, overwrite: bool = False, truth_nifti: bool = True) -> Path:
         """Write the scan folder atomically (FileExistsError if it exists and not ``overwrite``)."""
+        from clgs.io.orientation import to_file
         from clgs.io.volume import save_volume
 
         folder = Path(folder)
@@ -137,9 +150,9 @@ class Scan:
         with atomic.atomic_dir(folder, overwrite=overwrite) as tmp:
             atomic.save_npy(tmp / PROJECTIONS, self.projections)
             if self.truth is not None:
-                atomic.save_npy(tmp / TRUTH, self.truth)
+                atomic.save_npy(tmp / TRUTH, to_file(self.truth, self.geometry.orientation))
                 if truth_nifti:
-                    save_volume(tmp / TRUTH_NIFTI, self.truth, self.geometry)
+                    save_volume(tmp / TRUTH_NIFTI, self.truth, self.geometry, units=TRUTH_UNITS)
             if self.surface is not None:
                 from clgs.io.mesh import save_mesh
 
@@ -196,8 +209,12 @@ class Scan:
             proj = check_projections(proj, geometry, neg_tolerance, source=str(folder / PROJECTIONS))
         truth = None
         if files.get("truth"):
-            truth = _check_truth(read_npy(inside_folder(folder, files["truth"], "truth", SCAN_JSON), "truth"), geometry,
-                                 str(folder / files["truth"]))
+            from clgs.io.orientation import to_working
+
+            stored = read_npy(inside_folder(folder, files["truth"], "truth", SCAN_JSON), "truth")
+            if np.ndim(stored) == 3 and geometry.orientation != "RAS":  # the file's order -> the working order
+                stored = to_working(stored, geometry.orientation)
+            truth = _check_truth(stored, geometry, str(folder / files["truth"]))
         surface = None
         if files.get("truth_surface"):
             from clgs.io.mesh import MeshError, load_mesh

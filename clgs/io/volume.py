@@ -1,19 +1,29 @@
 """Volumes on disk: ``.npy`` (the array only) or NIfTI (``.nii``/``.nii.gz``) with a correct affine.
 
-Our arrays are (Z, Y, X): ``volume[k, j, i]`` is the voxel whose centre, in world mm, is
-``origin + (i dX, j dY, k dZ)`` with ``origin`` the centre of voxel [0, 0, 0] as (x, y, z). For a
-:class:`~clgs.geometry.Geometry` that origin is ``centre_xyz - (nVoxel - 1) / 2 * dVoxel`` (per axis;
-centre_xyz is the isocentre plus TIGRE's ``offOrigin``).
+In memory our arrays are (Z, Y, X) along +z, +y, +x of the world: ``volume[k, j, i]`` is the
+voxel whose centre, in world mm, is ``origin + (i dX, j dY, k dZ)`` with ``origin`` the centre of
+voxel [0, 0, 0] as (x, y, z). For a :class:`~clgs.geometry.Geometry` that origin is
+``centre_xyz - (nVoxel - 1) / 2 * dVoxel`` (per axis; centre_xyz is the isocentre plus TIGRE's
+``offOrigin``). The world frame is the input's (a NIfTI's scanner frame, x, y, z in mm); NIfTI
+readers label it RAS, so in nibabel's axis codes the working array ``volume.T`` is ``"RAS"``.
 
-NIfTI indexes its data array as (i, j, k) = (x, y, z), so the array is transposed to (X, Y, Z) on
-write (and back on read), and the affine is ``diag(dX, dY, dZ)`` with translation ``origin``: a
-viewer then shows the true spacing and position. The world frame is the clgs scanner frame in mm
-(x, y in the rotation plane, z along the rotation axis); NIfTI readers label it RAS, clgs does not
-know the patient's orientation. On read, any NIfTI is first brought to the closest axis-aligned
-(RAS+) orientation with nibabel, so flipped or permuted scanner files come back as (Z, Y, X) with
-positive spacings; an oblique volume (its axes not along x, y, z) is resampled onto an
-axis-aligned grid of the same spacing that holds it whole (trilinear, zero outside), with a
-warning that says so, so every voxel stays where it was in the world.
+Files keep the order of the input (:mod:`clgs.io.orientation`). On read, any NIfTI, MetaImage,
+NRRD or DICOM series is brought to the working order with nibabel (flips and axis swaps, no
+interpolation), and :class:`LoadedVolume` says the file's axis codes (``orientation``: ``"LAS"``
+for dcm2niix's usual output, ``"LPS"`` for an axial DICOM series, ``"PSR"`` for a permuted file).
+On write, ``save_volume(path, volume, geometry)`` puts the array back in the order of
+``geometry.orientation`` (or ``orientation=``) with the matching affine: a NIfTI stored ``"LAS"``
+with affine ``diag(-2.5, 2.5, 2.5)`` comes back from a simulation and a reconstruction as
+``"LAS"`` with that same affine, so arrays compare with the input index by index, and every voxel
+lies where it lay. A ``.npy`` holds what the NIfTI holds, its axes reversed to (k, j, i) (for
+``"RAS"`` that is the working (Z, Y, X) array). An oblique volume (its axes not along x, y, z)
+is resampled onto an axis-aligned ``"RAS"`` grid of the same spacing that holds it whole
+(trilinear, zero outside), with a warning; that grid is then the input, and outputs keep it.
+
+Units: with ``units=`` ("1/mm" or "HU" at ``kev``), a NIfTI says them in its header
+(``descrip``, a sentence, and ``intent_name``, e.g. ``mu 1/mm`` or ``HU 70 keV``); MetaImage and
+NRRD in the fields ``clgs_units`` (and ``clgs_kev``). A ``.npy`` carries none (a run's
+``report.json`` and a scan's ``scan.json`` say them).
 
 MetaImage (``.mha``/``.mhd``), NRRD (``.nrrd``/``.nhdr``) and DICOM series (a folder of slices,
 or one ``.dcm`` file of the series) are read and written through SimpleITK (the ``formats``
@@ -32,7 +42,9 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from clgs.errors import ClgsError, InputError
+from clgs.geometry import GeometryError, check_orientation
 from clgs.io import atomic
+from clgs.io.orientation import WORKING, axis_codes, file_affine, to_file
 
 __all__ = ["VolumeError", "LoadedVolume", "save_volume", "load_volume", "volume_affine",
            "grid_spacing_origin", "VOLUME_SUFFIXES"]
@@ -45,13 +57,24 @@ class VolumeError(ClgsError, ValueError):
     """A volume file that cannot be read or written as asked."""
 
 
-class LoadedVolume(NamedTuple):
-    """``volume`` (Z, Y, X); ``spacing`` (dZ, dY, dX) mm and ``origin`` (x, y, z) mm of the centre of
-    voxel [0, 0, 0], both None for ``.npy`` files (which carry no geometry)."""
-
+class _Loaded(NamedTuple):
     volume: np.ndarray
     spacing: Optional[tuple]
     origin: Optional[tuple]
+
+
+class LoadedVolume(_Loaded):
+    """``volume`` (Z, Y, X) in the working order; ``spacing`` (dZ, dY, dX) mm and ``origin`` (x, y, z)
+    mm of the centre of voxel [0, 0, 0], both None for ``.npy`` files (which carry no geometry).
+    Unpacks as those three; ``orientation`` (an attribute) holds the file's axis codes (``"RAS"`` for
+    ``.npy`` files and resampled oblique volumes), what ``save_volume`` takes to write it back."""
+
+    orientation: str = WORKING
+
+    def __new__(cls, volume, spacing, origin, orientation: str = WORKING):
+        self = super().__new__(cls, volume, spacing, origin)
+        self.orientation = orientation
+        return self
 
 
 def _kind(path: Path) -> str:
@@ -122,13 +145,17 @@ def _storage_array(volume: np.ndarray) -> np.ndarray:
                       "give real attenuation values or integer labels")
 
 
-def save_volume(path, volume, geometry=None, *, spacing=None, origin=None, overwrite: bool = True) -> Path:
-    """Write a (Z, Y, X) volume to ``.npy``, ``.nii`` or ``.nii.gz`` atomically.
+def save_volume(path, volume, geometry=None, *, spacing=None, origin=None, orientation: Optional[str] = None,
+                units: Optional[str] = None, kev: Optional[float] = None, overwrite: bool = True) -> Path:
+    """Write a (Z, Y, X) working-order volume to ``.npy``, NIfTI, MetaImage or NRRD atomically.
 
     Position: a :class:`~clgs.geometry.Geometry` or :class:`~clgs.geometry.Grid` (``geometry``), or
     ``spacing`` (dZ, dY, dX) mm and ``origin`` (x, y, z) mm of the centre of voxel [0, 0, 0]
-    (default: 1 mm, centred). ``.npy`` keeps only the array. Floats are stored as float32,
-    booleans as uint8, integers as they are.
+    (default: 1 mm, centred). Array order in the file: ``orientation`` (axis codes, e.g. ``"LAS"``),
+    by default the geometry's (the input's), else ``"RAS"``. ``units``: ``"1/mm"`` or ``"HU"`` (with
+    ``kev``), written into the header; None for labels and masks. ``.npy`` keeps only the array
+    (in the file's order, axes reversed). Floats are stored as float32, booleans as uint8,
+    integers as they are.
     """
     path = Path(path)
     kind = _kind(path)
@@ -138,7 +165,18 @@ def save_volume(path, volume, geometry=None, *, spacing=None, origin=None, overw
     if geometry is not None and hasattr(geometry, "nVoxel") and tuple(geometry.nVoxel) != vol.shape:
         raise VolumeError(f"volume shape {vol.shape} does not match the geometry's nVoxel {geometry.nVoxel}")
     sp, org = grid_spacing_origin(geometry, spacing, origin, vol.shape)
-    data = _storage_array(vol)
+    try:
+        codes = check_orientation(orientation if orientation is not None else
+                                  getattr(geometry, "orientation", WORKING))
+    except GeometryError as exc:
+        raise VolumeError(str(exc)) from None
+    notes = None
+    if units is not None:
+        from clgs.io.units import header_text, units_record
+
+        notes = (units_record(units, kev), header_text(units, kev))
+    data = to_file(_storage_array(vol), codes)  # (k, j, i) of the file
+    aff = file_affine(sp, org, vol.shape, codes)
     if kind == "npy":
         return atomic.save_npy(path, data, overwrite=overwrite)
     if kind in ("itk", "dicom"):
@@ -148,14 +186,22 @@ def save_volume(path, volume, geometry=None, *, spacing=None, origin=None, overw
                               "here write .nii.gz, .nrrd or .mha")
         sitk = require_simpleitk()
         img = sitk.GetImageFromArray(np.ascontiguousarray(data))
-        img.SetSpacing(tuple(float(v) for v in sp[::-1]))
-        img.SetOrigin(tuple(float(v) for v in np.asarray(org) * LPS))
-        img.SetDirection((-1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0))  # RAS axes, in LPS terms
+        step = np.sqrt((aff[:3, :3] ** 2).sum(0))  # the file's (i, j, k) voxel sizes
+        img.SetSpacing(tuple(float(v) for v in step))
+        img.SetOrigin(tuple(float(v) for v in aff[:3, 3] * LPS))
+        img.SetDirection(tuple(float(v) for v in ((aff[:3, :3] / step) * LPS[:, None]).reshape(-1)))
+        if notes is not None:
+            img.SetMetaData("clgs_units", notes[0]["units"])
+            if "kev" in notes[0]:
+                img.SetMetaData("clgs_kev", f"{notes[0]['kev']:g}")
         return _write_itk(sitk, img, path, overwrite)
     import nibabel as nib
 
-    img = nib.Nifti1Image(np.ascontiguousarray(data.transpose(2, 1, 0)), volume_affine(sp, org))
+    img = nib.Nifti1Image(np.ascontiguousarray(data.T), aff)
     img.header.set_xyzt_units("mm")
+    if notes is not None:
+        img.header["descrip"] = notes[1][0].encode("ascii")[:80]
+        img.header["intent_name"] = notes[1][1].encode("ascii")[:16]
     img.set_sform(img.affine, code=1)  # scanner-anatomical frame
     img.set_qform(img.affine, code=1)
     with atomic.atomic_path(path, overwrite) as tmp:
@@ -282,14 +328,15 @@ def _read_itk(path: Path, kind: str):
 
 def _from_affine(path, arr, aff, dtype) -> LoadedVolume:
     """A volume indexed (i, j, k) with a voxel-to-world (RAS, mm) affine, as clgs's (Z, Y, X) array
-    with spacing and origin: brought to the closest axis-aligned orientation; an oblique one
-    resampled onto an axis-aligned grid (with a warning)."""
+    with spacing, origin and the file's axis codes: brought to the working (RAS+) order; an oblique
+    one resampled onto an axis-aligned grid (with a warning), whose codes are then ``"RAS"``."""
     import nibabel as nib
 
     arr = _check_3d(path, arr)
     if not np.all(np.isfinite(aff)) or abs(np.linalg.det(aff[:3, :3])) < 1e-12:
         raise VolumeError(f"{path}: the voxel-to-world matrix is degenerate ({aff.tolist()}); "
                           "a zero voxel size cannot be placed in the world")
+    codes = axis_codes(aff)
     img = nib.as_closest_canonical(nib.Nifti1Image(arr, aff))
     arr = np.asarray(img.dataobj)
     aff = np.asarray(img.affine, float)
@@ -299,13 +346,14 @@ def _from_affine(path, arr, aff, dtype) -> LoadedVolume:
         raise VolumeError(f"{path}: a voxel size is zero ({spacing_xyz.tolist()} mm); fix the file's header")
     if not np.allclose(lin, np.diag(spacing_xyz), atol=1e-6 * spacing_xyz.max()):
         arr, aff = _axis_aligned(arr, aff, spacing_xyz)
+        codes = WORKING  # the resampled grid is the input from here on
         warnings.warn(f"{path}: oblique volume (axes not along x, y, z); resampled onto an axis-aligned grid "
                       f"of {arr.shape[0]} x {arr.shape[1]} x {arr.shape[2]} voxels of "
                       f"{' x '.join(f'{v:g}' for v in spacing_xyz)} mm that holds it whole", stacklevel=3)
     vol = np.ascontiguousarray(arr.transpose(2, 1, 0))
     if dtype is not None:
         vol = vol.astype(dtype, copy=False)
-    return LoadedVolume(vol, tuple(float(s) for s in spacing_xyz[::-1]), tuple(float(o) for o in aff[:3, 3]))
+    return LoadedVolume(vol, tuple(float(s) for s in spacing_xyz[::-1]), tuple(float(o) for o in aff[:3, 3]), codes)
 
 
 def _axis_aligned(arr, aff, spacing_xyz):

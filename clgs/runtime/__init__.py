@@ -1,12 +1,14 @@
 """The OpenCL runtime: drivers, device choice, compiled programs and buffers.
 
-The only layer that sets up pyopencl. Importing it configures the drivers' environment
-(:mod:`.drivers`) before the ICD loader runs; :mod:`.devices` tries every device with a probe
+The only layer that sets up pyopencl. Importing it changes nothing in the process; the drivers'
+environment (:mod:`.drivers`) is set when the devices are first listed, before the ICD loader
+runs (``configure()`` does it earlier); :mod:`.devices` tries every device with a probe
 kernel and picks the first that works (or the one the user named); :mod:`.programs` compiles and
 caches the kernels; :mod:`.buffers` moves NumPy arrays in and out.
 """
 import pyopencl as cl  # noqa: F401  (operators reach pyopencl through the runtime)
 
+from .drivers import configure  # noqa: F401
 from .devices import (  # noqa: F401
     NoOpenCLDevice,
     candidates,

@@ -27,7 +27,6 @@ from clgs.errors import ClgsError
 
 from . import drivers
 
-drivers.configure()  # before pyopencl's ICD loader first runs
 
 try:
     import pyopencl as cl
@@ -43,7 +42,7 @@ CPU_PLATFORM_ORDER = ("portable computing language", "intel(r) opencl")
 INSTALL_HINT = (
     "To get a working OpenCL device on Linux x86-64: run clgs's set-up (bash setup.sh), or install "
     "Debian's PoCL (apt-get install pocl-opencl-icd) or Intel's CPU runtime "
-    "(pip install intel-opencl-rt intel-cmplr-lib-rt); for a GPU install its vendor's OpenCL driver (see the README)."
+    "(pip install intel-opencl-rt intel-cmplr-lib-rt); for a GPU install its vendor's OpenCL driver (see docs/devices.md)."
 )
 
 
@@ -89,6 +88,7 @@ def _listed():
     """(platform, device) pairs as the ICD loader lists them; platforms that fail are skipped."""
     global _devices
     if _devices is None:
+        drivers.configure()  # the drivers' environment, before the ICD loader first runs
         try:
             platforms = cl.get_platforms()
         except cl.Error as exc:

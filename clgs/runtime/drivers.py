@@ -1,7 +1,8 @@
 """OpenCL drivers: the environment they read, and Intel's CPU runtime from PyPI made visible.
 
 Everything here must happen before the OpenCL ICD loader first runs (pyopencl's first
-``get_platforms``), so :func:`configure` is called when :mod:`clgs.runtime` is imported.
+``get_platforms``): :func:`configure` runs once, when clgs first lists the devices (importing clgs
+changes nothing in the process; call :func:`configure` yourself to have it earlier).
 
 Two CPU drivers are supported and tested: PoCL (Debian's ``pocl-opencl-icd``, or
 ``pocl-binary-distribution`` from PyPI on CPUs its LLVM knows) and Intel's CPU runtime
@@ -37,7 +38,6 @@ def pocl_defaults() -> None:
     os.environ.setdefault("POCL_AFFINITY", "1")
     os.environ.setdefault("POCL_MAX_PTHREAD_COUNT", ncores)
     os.environ.setdefault("POCL_CPU_MAX_CU_NUM", ncores)
-    os.environ.setdefault("PYOPENCL_NO_CACHE", "1")  # the drivers keep their own kernel caches
 
 
 def intel_cpu_library() -> Path | None:
@@ -114,7 +114,17 @@ def register_intel_cpu_runtime() -> Path | None:
     return folder
 
 
+_configured = [False]
+
+
 def configure() -> None:
-    """Everything the drivers read from the environment, before pyopencl loads."""
+    """Everything the drivers read from the environment, once, before the ICD loader first runs:
+    PoCL's thread settings, Intel's runtime made visible, and torch's idle OpenMP threads asked to
+    sleep (they would spin on the cores PoCL's threads need; read when torch is first imported).
+    A user's own settings always win."""
+    if _configured[0]:
+        return
+    _configured[0] = True
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     pocl_defaults()
     register_intel_cpu_runtime()

@@ -33,7 +33,7 @@ class ShapeGuidedSet(GaussianSet):
     # step over LINEAR_TOL / 4: early, when its learning rate is high) a linearisation would last
     # a few iterations only, so there the exact path runs. Measured on the femur model at
     # LINEAR_TOL = 0.05: the centres within 0.0006 mm (0.0002 voxel) of the exact map, d centres /
-    # d alpha within about 1 % (README; tests/test_fixed_points.py checks a small model). None:
+    # d alpha within about 1 % (docs/methods.md; tests/test_fixed_points.py checks a small model). None:
     # the exact path every iteration.
     LINEAR_TOL = 0.05
 
