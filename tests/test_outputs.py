@@ -289,3 +289,32 @@ def test_worker_counts_beyond_the_machine_are_refused_and_dead_workers_explained
 
     msg = _worker_error(KilledWorker("('clgs-x', <WorkerState ...>)"), 8)
     assert "died" in msg and "8 workers shared" in msg and "GiB each" in msg and "--workers" in msg
+
+
+def test_a_second_model_build_waits_for_the_first_and_builds_nothing(tmp_path):
+    """Two builds of one model file at once: the second waits for the first's lock, then finds its
+    model up to date (it used to do the whole build again)."""
+    from test_model_builder import FAST, MAX_CELLS, _counting, _population, _template
+
+    from clgs.shape.builder import build_model
+
+    out, ready = tmp_path / "m.npz", tmp_path / "ready"
+    code = ("import sys\nfrom test_model_builder import FAST, MAX_CELLS, _population, _template\n"
+            "from clgs.shape.builder import build_model\n"
+            f"def hold(i, sid):\n    if i == 0:\n        open({str(ready)!r}, 'w').close()\n"
+            "        __import__('time').sleep(3)  # mid-build: a second build without the lock would start now\n"
+            f"build_model(_template(), _population(3, seed=3), {str(out)!r}, max_cells=MAX_CELLS, registration=FAST,"
+            " progress=False, on_subject=hold)\n")
+    env = child_env()
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT / "tests"), env["PYTHONPATH"]])
+    child = subprocess.Popen([sys.executable, "-c", code], env=env, stderr=subprocess.PIPE, text=True)
+    for _ in range(2400):
+        if ready.exists() or child.poll() is not None:
+            break
+        time.sleep(0.05)
+    assert ready.exists(), child.stderr.read() if child.poll() is not None else "the child never started"
+    log = []
+    build_model(_template(), _counting(_population(3, seed=3), log), out, max_cells=MAX_CELLS, registration=FAST,
+                progress=False)
+    assert child.wait(timeout=300) == 0
+    assert log == [] and out.is_file()  # nothing loaded, nothing registered: the first build's model

@@ -299,7 +299,7 @@ def _pid_alive(pid) -> bool:
     return True
 
 
-def _acquire(path, param: str) -> int:
+def _acquire(path, param: str, wait: bool = False) -> int:
     """An exclusive OS lock on ``path``'s lock file (released when this process ends, however)."""
     lp = lock_path(path)
     lp.parent.mkdir(parents=True, exist_ok=True)
@@ -323,8 +323,11 @@ def _acquire(path, param: str) -> int:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError:
-                os.close(fd)
-                raise _busy(path, param) from None
+                if not wait:
+                    os.close(fd)
+                    raise _busy(path, param) from None
+                print(f"waiting: {_busy(path, param)}", file=sys.stderr)
+                fcntl.flock(fd, fcntl.LOCK_EX)  # until the other process is done with it
             try:  # the file may have been removed by its holder between open and lock: lock the new one
                 if os.stat(lp).st_ino != os.fstat(fd).st_ino:
                     os.close(fd)
@@ -347,13 +350,14 @@ def _release(path, fd: int) -> None:
 
 
 @contextlib.contextmanager
-def lock(path, param: str = "--out"):
-    """Hold the exclusive lock of the output ``path`` for the block (re-entrant in one process)."""
+def lock(path, param: str = "--out", wait: bool = False):
+    """Hold the exclusive lock of the output ``path`` for the block (re-entrant in one process);
+    held elsewhere: refused (:class:`OutputBusy`), or with ``wait`` waited for."""
     key = _key(path)
     if key in _HELD:
         yield
         return
-    fd = _acquire(path, param)
+    fd = _acquire(path, param, wait)
     _HELD[key] = fd
     try:
         yield
