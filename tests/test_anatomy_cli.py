@@ -97,8 +97,11 @@ def assert_clean_error(res, *words, code=None):
 # --------------------------------------------------------------------------------------- 1. volume.npy
 def test_volume_npy_is_always_the_run_just_done(bare, stand_ins, tiny_scan, tmp_path):
     out = tmp_path / "rec"
-    for method, value in (("t-zeros", 0.0), ("t-ones", 1.0), ("t-zeros", 0.0)):
-        res = invoke(bare, "reconstruct", tiny_scan, "--out", out, "--method", method)
+    for i, (method, value) in enumerate((("t-zeros", 0.0), ("t-ones", 1.0), ("t-zeros", 0.0))):
+        if i:  # a folder that holds a run is replaced only with --force
+            assert_clean_error(invoke(bare, "reconstruct", tiny_scan, "--out", out, "--method", method),
+                               "holds volume.nii.gz, volume.npy", "--force")
+        res = invoke(bare, "reconstruct", tiny_scan, "--out", out, "--method", method, *(["--force"] if i else []))
         assert res.exit_code == 0, res.output
         vol = np.load(out / "volume.npy")
         assert vol.shape == (N_VOX,) * 3 and np.all(vol == value), method
@@ -109,7 +112,7 @@ def test_fdk_then_sart_in_one_folder_keeps_the_sart_volume(bare, tiny_scan, tmp_
     out = tmp_path / "rec"
     assert invoke(bare, "reconstruct", tiny_scan, "--out", out, "--method", "fdk").exit_code == 0
     fdk = np.load(out / "volume.npy")
-    res = invoke(bare, "reconstruct", tiny_scan, "--out", out, "--method", "sart",
+    res = invoke(bare, "reconstruct", tiny_scan, "--out", out, "--method", "sart", "--force",
                  "--set", "iterations=1", "--set", "progress=false")
     assert res.exit_code == 0, res.output
     sart = np.load(out / "volume.npy")
@@ -277,8 +280,9 @@ def test_resume_flag_passes_resume_and_no_default_iterations(bare, stand_ins, ti
     assert rec.calls[-1]["iterations"] == 7 and rec.calls[-1]["resume"] is True
     assert invoke(bare, *run, "--set", "resume=true").exit_code == 0  # the same thing, spelled as a setting
     assert rec.calls[-1]["resume"] is True and "iterations" not in rec.calls[-1]
-    assert invoke(bare, *run).exit_code == 0
+    assert invoke(bare, *run, "--force").exit_code == 0  # a new run where one was: --force
     assert "resume" not in rec.calls[-1] and "iterations" not in rec.calls[-1]
+    assert_clean_error(invoke(bare, *run, "--resume", "--force"), "--resume", "--force", code=2)  # contradictory
     n = len(rec.calls)
     assert_clean_error(invoke(bare, *run, "--resume", "--set", "resume=false"), "--resume", code=2)
     assert len(rec.calls) == n

@@ -286,9 +286,11 @@ def test_output_may_not_replace_or_overwrite_the_input_scan(scan_dir, tmp_path):
     _register("resumable_t", _constant, [click.Option(["--resume"], is_flag=True, default=None)], atomic_dir=False)
     res = run("reconstruct", scan, "-m", "resumable_t", "--resume", "--out", scan, ok=False)
     assert res.exit_code == 1 and "input scan folder" in res.output and _tree(scan) == before
-    # a new file next to the scan's files is fine
-    run("reconstruct", scan, "--out", scan / "fdk.npy")
-    assert (scan / "fdk.npy").is_file() and {k: v for k, v in _tree(scan).items() if k != "fdk.npy"} == before
+    # nor may a new file go next to the scan's files (the scan folder is the scan's alone)
+    for method in ("fdk", "sart"):
+        res = run("reconstruct", scan, "--method", method, "--out", scan / "fdk.nii.gz", ok=False)
+        assert res.exit_code == 1 and "inside" in res.output and "scan folder" in res.output, res.output
+    assert _tree(scan) == before
     # an R2-Gaussian folder's files are protected too
     to_r2gaussian_folder(Scan.load(scan_dir / "scan"), tmp_path / "r2")
     r2_before = _tree(tmp_path / "r2")
@@ -394,16 +396,22 @@ def test_a_failed_run_leaves_no_empty_output_folder(scan_dir, tmp_path):
                                         click.Option(["--interrupt"], is_flag=True, default=None),
                                         click.Option(["--write"], is_flag=True, default=None)], atomic_dir=False)
     out = tmp_path / "a" / "b" / "run"
-    for extra in (["--resume"], ["--interrupt"]):  # an error, or Ctrl-C while starting
+    for extra, code in ((["--resume"], 1), (["--interrupt"], 130)):  # an error, or Ctrl-C while starting
         res = run("reconstruct", scan_dir / "scan", "-m", "early_t", *extra, "--out", out, ok=False)
-        assert res.exit_code == 1, res.output
+        assert res.exit_code == code, res.output
         assert not (tmp_path / "a").exists()  # the folders this command made are gone again
     # a folder that existed before stays, and so does one the run wrote into
     out.mkdir(parents=True)
     run("reconstruct", scan_dir / "scan", "-m", "early_t", "--resume", "--out", out, ok=False)
     assert out.is_dir()
+    # a new run that failed with nothing to resume from leaves nothing, so that running it again is not refused
     res = run("reconstruct", scan_dir / "scan", "-m", "early_t", "--write", "--out", tmp_path / "w", ok=False)
-    assert res.exit_code == 1 and (tmp_path / "w" / "log.csv").is_file()
+    assert res.exit_code == 1 and not (tmp_path / "w").exists()
+    (tmp_path / "w").mkdir()
+    (tmp_path / "w" / "checkpoint.pt").write_bytes(b"a run's last checkpoint")
+    res = run("reconstruct", scan_dir / "scan", "-m", "early_t", "--write", "--resume", "--out", tmp_path / "w",
+              ok=False)
+    assert res.exit_code == 1 and (tmp_path / "w" / "checkpoint.pt").is_file()  # one to resume from is kept
     # atomic methods: a failure in a new nested folder leaves nothing either
     _register("oom_t", _out_of_memory)
     run("reconstruct", scan_dir / "scan", "-m", "oom_t", "--out", tmp_path / "x" / "y" / "rec", ok=False)

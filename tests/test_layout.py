@@ -15,7 +15,7 @@ PACKAGE = ROOT / "clgs"
 
 # Lowest first. A module may import its own layer and the layers before it, never a later one.
 LAYERS = [
-    ["clgs.errors", "clgs.geometry", "clgs.progress", "clgs.commands", "clgs.install_report"],
+    ["clgs.errors", "clgs.geometry", "clgs.progress", "clgs.commands", "clgs.install_report", "clgs.limits"],
     ["clgs.io"],
     ["clgs.mesh"],
     ["clgs.metrics"],

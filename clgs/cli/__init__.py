@@ -47,8 +47,12 @@ class LazyGroup(click.Group):
             return super().make_context(info_name, args, parent=parent, **extra)
 
     def invoke(self, ctx):
-        with clgs_errors_as_messages():
-            return super().invoke(ctx)
+        try:
+            with clgs_errors_as_messages():
+                return super().invoke(ctx)
+        except KeyboardInterrupt:  # a second Ctrl-C, or one outside a run's own handling
+            click.echo("interrupted (Ctrl-C): stopped at once; outputs are written whole or not at all", err=True)
+            ctx.exit(130)
 
     def _anatomy_names(self):
         try:

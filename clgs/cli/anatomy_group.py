@@ -23,6 +23,7 @@ from clgs.cli.cohort_options import check_cohort_options, cohort_options
 from clgs.cli.common import check_memory, check_not_input, exit_if_interrupted
 from clgs.cli.options import FiniteFloat, Seed, mesh_space_option
 from clgs.cli.settings import check_settings, parse_settings
+from clgs.errors import ClgsError
 
 # --------------------------------------------------------------------------------------- errors
 # The library reports bad input with these (ValueError's subclasses: ScanError, ModelFileError,
@@ -31,7 +32,8 @@ from clgs.cli.settings import check_settings, parse_settings
 # its traceback. Unknown subjects (KeyError) are caught where subjects are loaded (_load_subject),
 # not here: a KeyError elsewhere is a programming error.
 # FloatingPointError: a run whose loss or parameters turned NaN/Inf (the last good checkpoint is kept)
-INPUT_ERRORS = (ValueError, FileNotFoundError, FloatingPointError)
+# ClgsError: every error of clgs about what it was given or where it writes (a full disk included)
+INPUT_ERRORS = (ValueError, FileNotFoundError, FloatingPointError, ClgsError)
 
 
 def _message(exc: BaseException) -> str:
@@ -194,22 +196,22 @@ def _check_scan_memory(anatomy, views: int) -> None:
                      "use fewer --views")
 
 
-def _check_run_out(scan_dir, out, resume: bool, force: bool) -> None:
+def _check_run_out(scan_dir, out, resume: bool, force: bool):
     """``clgs <anatomy> reconstruct``'s output folder: never the scan folder or inside it; one that
-    holds a run needs --resume (continue) or --force (a new run replaces it)."""
+    holds anything needs --resume (continue its run) or --force (its clgs files go first); locked
+    while the run writes it. Returns the claim (a context manager, :func:`clgs.io.outputs.claim`)."""
     from pathlib import Path
 
+    from clgs.cli.common import claim_output
+
+    if resume and force:
+        raise click.UsageError("--resume continues the run in --out, --force replaces it: give one")
     check_not_input(Path(out), [("scan", Path(scan_dir), True)])
     scan_root, target = Path(scan_dir).resolve(), Path(out).resolve()
     if scan_root in target.parents:
         raise click.ClickException(f"--out {out} lies inside the scan folder {scan_dir}: a run's outputs may not go "
                                    "into its input; choose a folder outside it")
-    ckpt = Path(out) / "checkpoint.pt"
-    if ckpt.is_file() and not resume:
-        if not force:
-            raise click.ClickException(f"{out} holds a run already ({ckpt.name}); --resume continues it, --force "
-                                       "starts a new one in its place, or choose another --out")
-        ckpt.unlink()  # the new run writes every other file afresh
+    return claim_output(Path(out), force, kind="folder", resume=resume)
 
 
 def _echo_metrics(m: dict):
@@ -358,7 +360,6 @@ def _simulate_command(anatomy) -> click.Command:
 
 def _reconstruct_command(anatomy) -> click.Command:
     """``clgs <anatomy> reconstruct``."""
-    name = anatomy.name
 
     @click.command(cls=AnatomyCommand)
     @click.argument("scan_dir", type=click.Path(exists=True, file_okay=False))
@@ -371,11 +372,10 @@ def _reconstruct_command(anatomy) -> click.Command:
     @click.option("--resume", is_flag=True,
                   help="continue the run in --out from its checkpoint, with its settings (same as --set "
                        "resume=true); without --set iterations=N it runs to the checkpoint's planned iterations")
-    @click.option("--force", is_flag=True, help="start a new run in an --out that holds one (it is replaced)")
+    @click.option("--force", is_flag=True, help="replace what --out holds: an earlier clgs run's files are removed "
+                                               "first (anything else there is refused)")
     def reconstruct(scan_dir, out, method, views, settings, resume, force):
         """Reconstruct a scan folder with the anatomy's prior; writes OUT/volume.nii.gz and OUT/volume.npy."""
-        from clgs.io.scan import Scan
-
         method = method or default_method(anatomy)
         m, run = _get_method(method)
         raw = {}
@@ -388,26 +388,35 @@ def _reconstruct_command(anatomy) -> click.Command:
             opts["resume"] = True
         # no iterations unless given: a resumed run then goes on to its checkpoint's planned count
         opts = check_settings(method, m, run, opts, raw)
-        _check_run_out(scan_dir, out, bool(opts.get("resume")), force)
-        scan = Scan.load(scan_dir)
-        if views is not None:
-            if not 1 <= views <= scan.n_views:
-                raise click.BadParameter(f"{views}: the scan {scan_dir} has {scan.n_views} views; give 1 to "
-                                         f"{scan.n_views} (or leave --views out to use them all)",
-                                         param_hint="--views")
-            import numpy as np
-
-            scan = scan.subset(np.linspace(0, scan.n_views, views, endpoint=False).astype(int))
-        t0 = time.perf_counter()
-        result = run_reconstruct(scan, anatomy, method, out=out, **opts)
-        seconds = time.perf_counter() - t0
-        click.echo(f"{name}: {method} reconstruction of {scan.n_views} views in {seconds:.1f} s -> {out}")
-        if scan.truth is not None and "volume" in result:
-            _echo_metrics(_evaluate(anatomy, scan, result["volume"], out))
-            _surface_picture(anatomy, scan, result["volume"], out)
+        with _check_run_out(scan_dir, out, bool(opts.get("resume")), force):
+            result, scan = _reconstruct_into(anatomy, scan_dir, out, method, views, opts)
         exit_if_interrupted(result.get("info"))
 
     return reconstruct
+
+
+def _reconstruct_into(anatomy, scan_dir, out, method, views, opts) -> tuple:
+    """The run of ``clgs <anatomy> reconstruct`` in its claimed folder: (result, scan)."""
+    from clgs.io.scan import Scan
+
+    name = anatomy.name
+    scan = Scan.load(scan_dir)
+    if views is not None:
+        if not 1 <= views <= scan.n_views:
+            raise click.BadParameter(f"{views}: the scan {scan_dir} has {scan.n_views} views; give 1 to "
+                                     f"{scan.n_views} (or leave --views out to use them all)",
+                                     param_hint="--views")
+        import numpy as np
+
+        scan = scan.subset(np.linspace(0, scan.n_views, views, endpoint=False).astype(int))
+    t0 = time.perf_counter()
+    result = run_reconstruct(scan, anatomy, method, out=out, **opts)
+    seconds = time.perf_counter() - t0
+    click.echo(f"{name}: {method} reconstruction of {scan.n_views} views in {seconds:.1f} s -> {out}")
+    if scan.truth is not None and "volume" in result:
+        _echo_metrics(_evaluate(anatomy, scan, result["volume"], out))
+        _surface_picture(anatomy, scan, result["volume"], out)
+    return result, scan
 
 
 def _takes(fn, keyword: str) -> bool:

@@ -62,6 +62,9 @@ def batch(source, out, method_names, settings, seed, progress, workers, schedule
     from clgs.cohort.batch import read_list, run_batch, scan_folders
 
     check_cohort_options(workers, scheduler)
+    if source.is_dir() and (source / "scan.json").is_file():
+        raise click.BadParameter(f"{source} is a scan folder; give a folder of scan folders or a .csv/.json list",
+                                 param_hint="SOURCE")
     if source.is_dir():
         names = list(method_names) or ["fdk"]
         try:
@@ -86,7 +89,15 @@ def batch(source, out, method_names, settings, seed, progress, workers, schedule
         seconds = "" if r.get("seconds") is None else f", {r['seconds']:.1f} s"
         click.echo(f"  {r['name']}: {r['status']}{figures}{seconds}" + (f": {r['error']}" if r.get("error") else ""))
     c = summary["counts"]
-    click.echo(f"batch: {c['done']} done, {c['kept']} kept, {c['failed']} failed -> {out / 'summary.csv'}")
+    click.echo(f"batch: {c['done']} done, {c['kept']} kept, {c['failed']} failed"
+               + (f", {c['interrupted']} interrupted" if c.get("interrupted") else "") + f" -> {out / 'summary.csv'}")
+    if summary.get("stop_signal"):
+        import signal
+
+        sig = int(summary["stop_signal"])
+        click.echo(f"batch stopped by {signal.Signals(sig).name}: the run going on saved its checkpoint (FDK and SART "
+                   "runs are cut) and is recorded as interrupted; the same command resumes the batch", err=True)
+        raise SystemExit(128 + sig)
     if c["failed"]:
         raise click.ClickException(f"{c['failed']} run(s) failed (errors in {out / 'summary.csv'}); the others are "
                                    "done: run the same command again to retry them")

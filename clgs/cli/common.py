@@ -29,12 +29,46 @@ def click_error(exc: Exception, what: str = "") -> click.ClickException:
     return click.ClickException(msg)
 
 
-def check_output(path: Path, force: bool, param: str = "--out") -> None:
-    if path.exists() and not force:
-        raise click.ClickException(f"{path} already exists; pass --force to overwrite it (or choose another {param})")
-    if path.exists() and path.is_dir() != (not is_volume_path(path)):
-        kind = "a folder" if path.is_dir() else "a file"
-        raise click.ClickException(f"{path} exists and is {kind}; remove it or choose another {param}")
+def check_output(path: Path, force: bool, param: str = "--out", kind: str | None = None, resume: bool = False) -> None:
+    """The output rule of :mod:`clgs.io.outputs` (one home for every command) as a click error.
+    ``kind``: ``file``, ``folder``, ``scan``; default: a file for a volume or a ``.json`` name."""
+    from clgs.io.outputs import OutputError
+    from clgs.io.outputs import check_output as rule
+
+    if kind is None:
+        kind = "file" if is_volume_path(path) or Path(path).suffix.lower() == ".json" else "folder"
+    try:
+        rule(path, kind=kind, overwrite=force, resume=resume, param=param)
+    except OutputError as exc:
+        raise click.ClickException(str(exc)) from None
+
+
+def claim_output(path: Path, force: bool, kind: str | None = None, resume: bool = False, param: str = "--out"):
+    """:func:`clgs.io.outputs.claim` (checks, the lock, ``--force`` clearing the old output) for a
+    command's output; its refusals are click errors."""
+    import contextlib
+
+    from clgs.io.outputs import OutputError, claim
+
+    if kind is None:
+        kind = "file" if is_volume_path(path) else "folder"
+
+    @contextlib.contextmanager
+    def claimed():
+        cm = claim(path, kind=kind, overwrite=force, resume=resume, param=param)
+        try:
+            cm.__enter__()
+        except OutputError as exc:
+            raise click.ClickException(str(exc)) from None
+        try:
+            yield path
+        except BaseException:
+            if not cm.__exit__(*__import__("sys").exc_info()):
+                raise
+        else:
+            cm.__exit__(None, None, None)
+
+    return claimed()
 
 
 def nearest_existing(path: Path) -> Path:
@@ -52,6 +86,12 @@ def check_writable(path: Path, param: str = "--out", into: bool = False) -> None
     nor on read-only or virtual file systems such as /proc)."""
     import tempfile
 
+    from clgs.io.outputs import OutputError, check_names
+
+    try:  # names too long for the file system (with the temporary names of atomic writes) fail now too
+        check_names(path, param, folder=into or not (is_volume_path(path) or Path(path).suffix.lower() == ".json"))
+    except OutputError as exc:
+        raise click.ClickException(str(exc)) from None
     where = Path(path) if into else Path(os.path.abspath(path)).parent
     base = nearest_existing(where)
     if not base.is_dir():
@@ -81,6 +121,8 @@ def remove_empty(folders) -> None:
     for folder in folders:
         try:
             folder.rmdir()
+        except FileNotFoundError:  # removed already (by the output's claim)
+            continue
         except OSError:
             return
 

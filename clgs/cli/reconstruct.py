@@ -2,7 +2,9 @@
 modules load when it runs."""
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -10,6 +12,7 @@ import click
 
 from clgs.cli.common import (
     check_not_input,
+    claim_output,
     check_output,
     check_writable,
     click_error,
@@ -98,8 +101,7 @@ def _prepare_outputs(scan, out, json_out, force, into_folder: bool, resuming: bo
         check_not_input(json_out, [("scan", scan, True)], "--json")
         if Path(json_out).resolve() == Path(out).resolve():
             raise click.UsageError("--json and --out name the same file; give the report another name")
-    if not resuming:
-        check_output(out, force)
+    check_output(out, force, resume=resuming)
     if json_out is not None:
         check_output(json_out, force, "--json")
     check_writable(out, into=into_folder and out.is_dir())
@@ -163,6 +165,8 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
     options, kwargs = _method_options(ctx, method, mcmd)
     if settings:
         _merge_settings(method, settings, options, kwargs)
+    if options.get("resume") and force:
+        raise click.UsageError("--resume continues the run in --out, --force replaces it: give one")
     into_folder = not is_volume_path(out) and not method.atomic_dir
     resuming = bool(options.get("resume")) and into_folder and out.is_dir()
     created, created_json = _prepare_outputs(scan, out, json_out, force, into_folder, resuming)
@@ -217,7 +221,9 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
 
     sc = None
     report = {"method": method.name, "options": options, "scan": str(scan)}
+    claimed = contextlib.ExitStack()  # the lock on --out, held until the report is written
     try:
+        claimed.enter_context(claim_output(out, force, resume=resuming))
         try:
             sc = load_scan(scan, split)
             report["n_views"] = sc.n_views
@@ -256,6 +262,7 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
         except (ValueError, OSError, FloatingPointError) as exc:
             raise click_error(exc, f"{method.name} failed") from None
     except BaseException:  # errors and Ctrl-C alike: no empty output folder stays behind
+        claimed.__exit__(*sys.exc_info())
         remove_empty(created)
         remove_empty(created_json)
         raise
@@ -265,6 +272,9 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
         except OSError as exc:
             raise click.ClickException(f"wrote {out}, but the report could not be written to --json {json_out}: "
                                        f"{exc}") from None
+        finally:
+            claimed.close()
+    claimed.close()
     line = f"{method.name}: {report['seconds']:.2f} s"
     if "metrics" in report:
         m = report["metrics"]

@@ -12,13 +12,14 @@ import json
 import click
 
 from clgs.cli.options import method_params
+from clgs.limits import MAX_ITERATIONS
 
 _EXTRA_KEYWORDS = {  # method -> keyword arguments its run passes on beside its config's fields
     "shape": {"level": float | None},
 }
 _NOT_SETTINGS = {"scan", "out_dir", "out", "anatomy"}  # given by the command itself
-_RANGES = [  # for methods without a config dataclass (FDK, SART): the configs check their own ranges
-    (("iterations", "subsets"), lambda v: v >= 1, "at least 1"),
+_RANGES = [  # every method (the configs check their own ranges too); beyond MAX_ITERATIONS is a typo, not a plan
+    (("iterations", "subsets"), lambda v: 1 <= v <= MAX_ITERATIONS, f"between 1 and {MAX_ITERATIONS:,}"),
 ]
 
 
@@ -124,6 +125,9 @@ def check_settings(method: str, m, run, opts: dict, raw: dict | None = None) -> 
             raise click.BadParameter(f"unknown setting {key!r} for the {method} method; valid keys: "
                                      f"{', '.join(sorted(hints))}", param_hint="--set")
         hint = hints.get(key)
+        rule = _range_rule(key)
+        if rule and isinstance(value, (int, float)) and not isinstance(value, bool) and not rule[0](value):
+            raise click.BadParameter(f"{shown}: {key} must be {rule[1]}", param_hint="--set")
         if not _accepts(hint, value):
             raise click.BadParameter(f"{shown}: {key} must be {_describe(hint)}", param_hint="--set")
         if isinstance(value, float) and not math.isfinite(value):
@@ -133,7 +137,6 @@ def check_settings(method: str, m, run, opts: dict, raw: dict | None = None) -> 
                 value = options[key].type.convert(value, options[key], None)
             except click.BadParameter as exc:
                 raise click.BadParameter(f"{shown}: {exc.message}", param_hint="--set") from None
-        rule = _range_rule(key)
         if rule and isinstance(value, (int, float)) and not isinstance(value, bool) and not rule[0](value):
             raise click.BadParameter(f"{shown}: {key} must be {rule[1]}", param_hint="--set")
         out[key] = value

@@ -89,7 +89,7 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
     from clgs.io.scan import ScanError
 
     check_not_input(out, [("volume", volume, False)])
-    check_output(out, force)
+    check_output(out, force, kind="scan")
     check_writable(out)
     sp_override = parse_spacing(spacing)
     if geometry_file is not None:

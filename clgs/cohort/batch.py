@@ -25,6 +25,7 @@ import hashlib
 import inspect
 import json
 import os
+import signal
 from pathlib import Path
 
 from clgs.errors import InputError
@@ -129,21 +130,43 @@ def default_name(scan: str, method: str, settings: dict, seed) -> str:
     return name
 
 
+RESERVED = {"summary.csv", "summary.json"}  # the batch's own files
+
+
+def _row(i: int, r: dict) -> str:
+    return f"run {i} ({Path(str(r['scan'])).name} {r['method']})"
+
+
 def plan(runs, out_dir) -> list:
-    """Runs with their ``settings`` parsed, a ``name`` and an absolute ``out`` folder; two runs in
-    one folder are refused."""
-    out_dir = Path(out_dir).resolve()
+    """Runs with their ``settings`` parsed, a ``name`` and an absolute ``out`` folder, each checked
+    before any run: inside the batch folder (not the folder itself, nor its summary), never in a
+    scan folder, names the file system takes, no two runs in one folder or one inside another."""
+    from clgs.io.outputs import OutputError, check_place
+
+    out_dir = Path(os.path.abspath(out_dir)).resolve()
     planned, seen = [], {}
-    for r in runs:
+    for i, r in enumerate(runs, 1):
         settings = r["settings"] if isinstance(r["settings"], dict) else parse_setting_pairs(r["settings"])
         name = r.get("out") or default_name(r["scan"], r["method"], settings, r.get("seed"))
-        folder = Path(name) if Path(name).is_absolute() else out_dir / name
+        given = Path(os.path.expanduser(str(name)))
+        folder = Path(os.path.abspath(given if given.is_absolute() else out_dir / given))
+        try:
+            check_place(folder, within=out_dir, param=f"{_row(i, r)}: out", writable=False)
+        except OutputError as exc:
+            raise InputError(str(exc)) from None
         folder = folder.resolve()
+        if folder == out_dir or folder.name in RESERVED and folder.parent == out_dir:
+            raise InputError(f"{_row(i, r)}: out {name!r} is the batch folder or its summary; give the run a folder "
+                             "of its own inside the batch folder")
         if str(folder) in seen:
             raise InputError(f"two runs would write to {folder} ({seen[str(folder)]} and {r['scan']} {r['method']}): "
                              "give them different out folders")
+        for other in seen:
+            if Path(other) in folder.parents or folder in Path(other).parents:
+                raise InputError(f"{_row(i, r)}: its out folder {folder} and that of {seen[other]} ({other}) lie one "
+                                 "inside the other; give the runs separate folders")
         seen[str(folder)] = f"{r['scan']} {r['method']}"
-        planned.append({"name": os.path.relpath(folder, out_dir) if out_dir in folder.parents else str(folder),
+        planned.append({"name": os.path.relpath(folder, out_dir), "index": i,
                         "scan": str(r["scan"]), "method": r["method"], "settings": settings,
                         "seed": r.get("seed"), "out": str(folder)})
     return planned
@@ -166,16 +189,50 @@ def made_with(run: dict) -> dict:
             "settings": json.loads(json.dumps(run["settings"], sort_keys=True, default=str))}
 
 
+STATUS_RUNNING, STATUS_INTERRUPTED, STATUS_FAILED = "running", "interrupted", "failed"
+
+
+def read_record(folder):
+    """The run's ``run.json`` (None when there is none or it cannot be read). A record without a
+    ``status`` is a finished run (records made before runs had one)."""
+    try:
+        record = json.loads((Path(folder) / RECORD).read_text())
+    except (OSError, ValueError):
+        return None
+    return record if isinstance(record, dict) else None
+
+
+def _resume_kwargs(fn, m, settings: dict) -> dict | None:
+    """The keyword arguments that continue a method's run from its checkpoint (None: it cannot)."""
+    if not _accepts(fn, m, "resume"):
+        return None
+    kwargs = {"resume": True}
+    if _accepts(fn, m, "iterations"):  # None: to the iterations the run was started with
+        kwargs["iterations"] = settings.get("iterations")
+    if "backend" in settings:
+        kwargs["backend"] = settings["backend"]
+    if _accepts(fn, m, "progress"):
+        kwargs["progress"] = False
+    return kwargs
+
+
 def batch_run(scan: str, method: str, settings: dict, seed, out: str) -> dict:
     """One run of a batch, wherever it runs: load the scan, reconstruct with ``method`` and
     ``settings`` (plus ``seed`` where the method takes one), score against the scan's truth when it
-    has one, write the volume and then the record ``run.json``; returns the record."""
+    has one, write the volume and then the record ``run.json``; returns the record.
+
+    The run holds its folder's lock (:mod:`clgs.io.outputs`) and marks it ``running`` first. A run
+    stopped by a signal returns a record with status ``interrupted`` (its checkpoint kept); run
+    again, a run marked interrupted or running (a lost worker) with a checkpoint continues from it,
+    any other attempt's files go first (only clgs's files) and it starts afresh."""
     import time
 
     import numpy as np
 
     from clgs import methods, metrics
-    from clgs.io import atomic
+    from clgs.fit.checkpoint import CheckpointError
+    from clgs.fit.config import CHECKPOINT
+    from clgs.io import atomic, outputs
     from clgs.io.scan import Scan
     from clgs.io.reconstruction import save_reconstruction
 
@@ -186,29 +243,55 @@ def batch_run(scan: str, method: str, settings: dict, seed, out: str) -> dict:
         kwargs["seed"] = int(seed)
     if _accepts(fn, m, "progress"):
         kwargs.setdefault("progress", False)
-    from clgs.fit.config import CHECKPOINT
-
     folder = Path(out)
+    want = made_with({"scan": scan, "method": method, "seed": seed, "settings": settings})
     sc = Scan.load(scan)
-    folder.mkdir(parents=True, exist_ok=True)
-    stale = folder / CHECKPOINT
-    if stale.is_file() and not (folder / RECORD).is_file():
-        # an earlier attempt's (a killed worker, Ctrl-C): this one starts afresh, as any run does
-        stale.unlink()
-    t0 = time.perf_counter()
-    result = fn(sc, str(folder), **kwargs)
-    seconds = time.perf_counter() - t0
-    if not isinstance(result, dict) or "volume" not in result:
-        raise InputError(f"method {method} returned no volume")
-    vol = np.asarray(result["volume"], np.float32)
-    if not np.all(np.isfinite(vol)):
-        raise FloatingPointError(f"method {method} produced NaN or Inf voxels on {scan}")
-    record = {**made_with({"scan": scan, "method": method, "seed": seed, "settings": settings}),
-              "seconds": seconds, "n_views": sc.n_views, "process_peak_mib": process_peak_mib()}
-    if sc.truth is not None:
-        record.update(metrics.volume_figures(vol, sc.truth))
-    record["volume_units"] = save_reconstruction(folder, vol, sc.geometry, folder=True)
-    atomic.write_json(folder / RECORD, atomic.json_safe(record))
+    with outputs.lock(folder, param="out"):
+        before = read_record(folder)
+        resume = None
+        if (before and before.get("status") in (STATUS_RUNNING, STATUS_INTERRUPTED)
+                and {k: before.get(k) for k in want} == want and (folder / CHECKPOINT).is_file()):
+            resume = _resume_kwargs(fn, m, settings)
+        if resume is None:
+            outputs.clear(folder)  # an earlier attempt's files (a killed worker, a cut run): start afresh
+        existed = folder.is_dir()
+        folder.mkdir(parents=True, exist_ok=True)
+        atomic.write_json(folder / RECORD, {**want, "status": STATUS_RUNNING})
+        t0 = time.perf_counter()
+        try:
+            try:
+                result = fn(sc, str(folder), **(resume or kwargs))
+            except CheckpointError:
+                if resume is None:
+                    raise
+                outputs.clear(folder)  # a checkpoint that cannot be resumed: the run starts afresh
+                atomic.write_json(folder / RECORD, {**want, "status": STATUS_RUNNING})
+                result = fn(sc, str(folder), **kwargs)
+        except BaseException as exc:
+            if (folder / CHECKPOINT).is_file():
+                status = STATUS_INTERRUPTED if isinstance(exc, KeyboardInterrupt) else STATUS_FAILED
+                atomic.write_json(folder / RECORD, {**want, "status": status})
+            else:
+                outputs.after_failure(folder, "folder", False, existed)
+            raise
+        seconds = time.perf_counter() - t0
+        if not isinstance(result, dict) or "volume" not in result:
+            raise InputError(f"method {method} returned no volume")
+        info = result.get("info") or {}
+        if info.get("interrupted"):  # stopped by a signal: its checkpoint is kept, the run is not finished
+            record = {**want, "status": STATUS_INTERRUPTED, "stop_signal": info.get("stop_signal"),
+                      "iteration": info.get("iterations"), "seconds": seconds}
+            atomic.write_json(folder / RECORD, atomic.json_safe(record))
+            return record
+        vol = np.asarray(result["volume"], np.float32)
+        if not np.all(np.isfinite(vol)):
+            raise FloatingPointError(f"method {method} produced NaN or Inf voxels on {scan}")
+        record = {**want, "status": "done", "seconds": seconds, "n_views": sc.n_views,
+                  "process_peak_mib": process_peak_mib()}
+        if sc.truth is not None:
+            record.update(metrics.volume_figures(vol, sc.truth))
+        record["volume_units"] = save_reconstruction(folder, vol, sc.geometry, folder=True)
+        atomic.write_json(folder / RECORD, atomic.json_safe(record))
     return record
 
 
@@ -232,7 +315,7 @@ def _summary_row(run: dict, status: str, record=None, error=None) -> dict:
             "seconds": record.get("seconds"), "error": error, "out": run["out"]}
 
 
-def write_summary(out_dir, rows) -> None:
+def write_summary(out_dir, rows, stop_signal=None) -> None:
     import io
 
     from clgs.io import atomic
@@ -244,18 +327,57 @@ def write_summary(out_dir, rows) -> None:
     for r in rows:
         w.writerow({k: "" if r.get(k) is None else r.get(k) for k in SUMMARY_KEYS})
     atomic.write_text(out_dir / "summary.csv", buf.getvalue())
-    counts = {s: sum(r["status"] == s for r in rows) for s in ("done", "kept", "failed", "pending")}
-    atomic.write_json(out_dir / "summary.json", atomic.json_safe({"counts": counts, "runs": rows}))
+    counts = {s: sum(r["status"] == s for r in rows) for s in ("done", "kept", "failed", "interrupted", "pending")}
+    atomic.write_json(out_dir / "summary.json", atomic.json_safe({"counts": counts, "runs": rows,
+                                                                  "stop_signal": stop_signal}))
+
+
+def _existing_run(run: dict) -> str | None:
+    """What the run's folder holds already: None (nothing), ``kept`` (this run, finished) or
+    ``again`` (this run, unfinished: interrupted, lost or failed). A folder that holds anything and
+    is no run of a batch, or a run made with other settings, is refused: a batch replaces nothing."""
+    from clgs.io.outputs import clgs_entries
+
+    folder = Path(run["out"])
+    where = f"run {run['index']} ({Path(run['scan']).name} {run['method']}): out {folder}"
+    if os.path.lexists(folder) and not folder.is_dir():
+        raise InputError(f"{where} is a file; a run writes a folder: give it another out")
+    if not folder.is_dir():
+        return None
+    mine, other = clgs_entries(folder)
+    if not mine and not other:
+        return None
+    record = read_record(folder)
+    if record is None:
+        shown = ", ".join((mine + other)[:4]) + (" ..." if len(mine + other) > 4 else "")
+        raise InputError(f"{where} already holds {shown} and is no run of a batch (no readable {RECORD}); a batch "
+                         "replaces nothing: give this run another out, or empty that folder")
+    want = made_with(run)
+    had = {k: record.get(k) for k in want}
+    if had != want:
+        diff = sorted(k for k in want if had[k] != want[k])
+        raise InputError(f"{folder / RECORD} was made with other {', '.join(diff)} ({had}) than this batch asks "
+                         f"for ({want}): give this run another out folder, or remove that one")
+    return "kept" if record.get("status", "done") == "done" else "again"
 
 
 def run_batch(runs, out_dir, workers: int | None = None, scheduler: str | None = None, progress: bool = True,
               echo=print) -> dict:
     """Run (or resume) a batch: ``runs`` as :func:`read_list` gives them (or dicts with ``scan``,
     ``method`` and optional ``settings`` (dict or KEY=VALUE strings), ``seed``, ``out``); returns
-    the summary also written to ``out_dir/summary.json``."""
-    from clgs import methods
-    from clgs.cohort.runner import Task, run_tasks
+    the summary also written to ``out_dir/summary.json``.
 
+    Every run's folder is checked before any run starts (:func:`plan`, :func:`_existing_run`), and
+    the batch folder is locked while the batch runs (:mod:`clgs.io.outputs`). SIGINT (Ctrl-C) and
+    SIGTERM stop the batch like a run: the run going on saves its checkpoint (Gaussian methods; FDK
+    and SART are cut), it is recorded as ``interrupted``, no other run starts, and the summary's
+    ``stop_signal`` names the signal; the same batch run again resumes it."""
+    from clgs import methods
+    from clgs.cohort.cluster import check_choice
+    from clgs.cohort.runner import Stopped, Task, run_tasks, stop_signals
+    from clgs.io import outputs
+
+    check_choice(workers, scheduler)
     out_dir = Path(out_dir)
     runs = [dict({"settings": [], "seed": None, "out": None}, **r) for r in runs]
     for r in runs:
@@ -263,44 +385,52 @@ def run_batch(runs, out_dir, workers: int | None = None, scheduler: str | None =
             methods.get(r["method"])
         except LookupError as exc:
             raise InputError(f"run on {r['scan']}: {exc}") from None
+    try:
+        outputs.check_output(out_dir, kind="batch")
+    except outputs.OutputError as exc:
+        raise InputError(str(exc)) from None
     planned = plan(runs, out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    rows, tasks = {}, []
-    for run in planned:
-        rec_path = Path(run["out"]) / RECORD
-        if rec_path.is_file():
-            try:
-                record = json.loads(rec_path.read_text())
-            except (OSError, json.JSONDecodeError):
-                record = None  # damaged: run again
-            if record is not None:
-                want = made_with(run)
-                had = {k: record.get(k) for k in want}
-                if had != want:
-                    diff = sorted(k for k in want if had[k] != want[k])
-                    raise InputError(f"{rec_path} was made with other {', '.join(diff)} ({had}) than this batch asks "
-                                     f"for ({want}): give this run another out folder, or remove that one")
-                rows[run["name"]] = _summary_row(run, "kept", record)
+    with outputs.lock(out_dir):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        rows, tasks = {}, []
+        for run in planned:
+            if _existing_run(run) == "kept":
+                rows[run["name"]] = _summary_row(run, "kept", read_record(run["out"]))
                 continue
-        rows[run["name"]] = _summary_row(run, "pending")
-        tasks.append(Task(run["name"], batch_run, kwargs={k: run[k] for k in ("scan", "method", "settings", "seed",
-                                                                              "out")}))
-    kept = len(planned) - len(tasks)
-    echo(f"batch: {len(planned)} runs, {kept} finished before (kept), {len(tasks)} to run -> {out_dir}")
-    by_name = {r["name"]: r for r in planned}
+            rows[run["name"]] = _summary_row(run, "pending")
+            tasks.append(Task(run["name"], batch_run, kwargs={k: run[k] for k in ("scan", "method", "settings", "seed",
+                                                                                  "out")}))
+        kept = len(planned) - len(tasks)
+        echo(f"batch: {len(planned)} runs, {kept} finished before (kept), {len(tasks)} to run -> {out_dir}")
+        by_name = {r["name"]: r for r in planned}
+        with stop_signals() as stop:
 
-    def finished(outcome):
-        run = by_name[outcome.key]
-        if outcome.ok:
-            rows[outcome.key] = _summary_row(run, "done", outcome.result)
-        else:
-            rows[outcome.key] = _summary_row(run, "failed", error=outcome.error)
-            echo(f"  {outcome.key}: FAILED: {outcome.error}")
-        write_summary(out_dir, [rows[r["name"]] for r in planned])
+            def finished(outcome):
+                run = by_name[outcome.key]
+                if outcome.ok and (outcome.result or {}).get("status") == STATUS_INTERRUPTED:
+                    rows[outcome.key] = _summary_row(run, STATUS_INTERRUPTED, outcome.result)
+                    stop.request(outcome.result.get("stop_signal") or signal.SIGINT)
+                elif outcome.ok:
+                    rows[outcome.key] = _summary_row(run, "done", outcome.result)
+                else:
+                    rows[outcome.key] = _summary_row(run, "failed", error=outcome.error)
+                    echo(f"  {outcome.key}: FAILED: {outcome.error}")
+                write_summary(out_dir, [rows[r["name"]] for r in planned])
 
-    write_summary(out_dir, [rows[r["name"]] for r in planned])
-    run_tasks(tasks, workers=workers, scheduler=scheduler, on_outcome=finished, desc="batch runs",
-              progress=progress, echo=echo)
-    ordered = [rows[r["name"]] for r in planned]
-    write_summary(out_dir, ordered)
+            write_summary(out_dir, [rows[r["name"]] for r in planned])
+            try:
+                run_tasks(tasks, workers=workers, scheduler=scheduler, on_outcome=finished, desc="batch runs",
+                          progress=progress, echo=echo, stop=stop)
+            except Stopped as exc:
+                stop.request(exc.signum)
+                for key in exc.running:  # cut where it stood (no checkpoint to keep, or none written yet)
+                    rows[key] = _summary_row(by_name[key], STATUS_INTERRUPTED)
+        if stop.signum is not None:
+            for run in planned:  # runs a stopped cluster was running: their folders say so
+                record = read_record(run["out"])
+                if rows[run["name"]]["status"] == "pending" and record and record.get("status") in (
+                        STATUS_RUNNING, STATUS_INTERRUPTED):
+                    rows[run["name"]] = _summary_row(run, STATUS_INTERRUPTED)
+        ordered = [rows[r["name"]] for r in planned]
+        write_summary(out_dir, ordered, stop.signum)
     return json.loads((out_dir / "summary.json").read_text())

@@ -15,6 +15,7 @@ tasks at once as it has threads.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 
 from clgs.errors import InputError
@@ -48,6 +49,68 @@ def check_choice(workers, scheduler) -> None:
         raise InputError(f"workers must be a whole number >= 0 (0: run here, one after another), got {workers!r}")
     if scheduler is not None and (not isinstance(scheduler, str) or "://" not in scheduler):
         raise InputError(f"scheduler {scheduler!r} is not an address: give it as tcp://HOST:PORT")
+    if workers and not scheduler:
+        check_workers(workers)
+
+
+# memory a worker process takes before its first run (Python, NumPy, torch, PyOpenCL, Dask: about
+# 0.4 GiB measured) plus a small run's working set: the floor under which workers start dying
+WORKER_MIB = 600
+# more worker processes than this many per core only share the cores (each has at least one thread)
+WORKERS_PER_CORE = 2
+
+
+def total_memory() -> int | None:
+    """Bytes of memory this machine has (None where unknown)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def available_memory() -> int | None:
+    """Bytes of memory the system can give now (Linux ``MemAvailable``; None where unknown)."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def suggested_workers() -> int:
+    """The most local workers this machine runs well: one per core, fewer where memory is short."""
+    free = available_memory()
+    by_memory = cores() if free is None else max(1, int(free // (WORKER_MIB * 2**20)))
+    return max(1, min(cores(), by_memory))
+
+
+def memory_advice(workers) -> str:
+    """What each local worker had against the machine's memory, and a worker count to try."""
+    total, free = total_memory(), available_memory()
+    if workers and total:
+        share = f"{int(workers)} workers shared {total / 2**30:.1f} GiB, {total / int(workers) / 2**30:.2f} GiB each"
+    else:
+        share = "the workers' memory is set where they were started"
+    now = f" ({free / 2**30:.1f} GiB available now)" if free is not None else ""
+    return (f"{share}{now}; a run needs its scan, volume and Gaussians in memory: run again with fewer workers "
+            f"(--workers {max(1, min(suggested_workers(), int(workers or 2) // 2 or 1))}) or on a machine with more "
+            "memory")
+
+
+def check_workers(workers) -> None:
+    """Refuse, before any work, a local cluster far beyond this machine's cores or memory."""
+    if not workers:
+        return
+    n, c, free = int(workers), cores(), available_memory()
+    need = n * WORKER_MIB * 2**20
+    if n > WORKERS_PER_CORE * c or (free is not None and need > free):
+        mem = f"{free / 2**30:.1f} GiB of memory available" if free is not None else "memory unknown"
+        raise InputError(f"{n} workers is far beyond this machine: {c} cores and {mem}; each worker process takes "
+                         f"about {WORKER_MIB} MiB before its first run ({need / 2**30:.1f} GiB for {n}), and workers "
+                         f"beyond the cores only share them: use --workers {suggested_workers()} (or fewer)")
 
 
 def distributed_wanted(workers, scheduler) -> bool:
@@ -106,7 +169,7 @@ def open_client(workers=None, scheduler=None, echo=print):
             threads = max(1, cores() // n)
             cluster = LocalCluster(n_workers=n, threads_per_worker=threads, processes=True,
                                    resources={RESOURCE: 1}, env=thread_env(threads),
-                                   dashboard_address=":0", silence_logs=40)
+                                   dashboard_address=":0", silence_logs=logging.CRITICAL)
             client = Client(cluster)
         try:
             if scheduler:

@@ -23,6 +23,58 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 
+class Stopped(KeyboardInterrupt):
+    """A list of tasks stopped by SIGINT (Ctrl-C) or SIGTERM: ``signum`` says which."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = int(signum)
+        self.running = []  # keys of the tasks it cut (in this process)
+
+
+class StopSignals:
+    """SIGINT and SIGTERM while a list of tasks runs (installed by :func:`stop_signals`).
+
+    The first signal asks the list to stop: no task starts after it. A training run in this
+    process takes the signal itself (its trainer's handler stands in for this one while it trains):
+    it saves its checkpoint and returns as interrupted. Anything else that runs (FDK, SART, a run
+    still loading; or this process waiting for Dask workers) cannot save where it is and is cut at
+    once (:class:`Stopped` is raised there). A second signal cuts whatever runs."""
+
+    def __init__(self):
+        self.signum = None
+        self.cut_now = False  # set while a task that does not stop by itself runs here, or while waiting
+
+    def __call__(self, signum, frame):
+        first = self.signum is None
+        self.signum = self.signum or int(signum)
+        if self.cut_now or not first:
+            raise Stopped(self.signum)
+
+    def request(self, signum) -> None:
+        """A task stopped by a signal it took itself: stop the list too."""
+        self.signum = self.signum or int(signum)
+
+
+@contextlib.contextmanager
+def stop_signals():
+    """A :class:`StopSignals` installed for SIGINT and SIGTERM in the block (main thread only;
+    elsewhere it is never triggered), the previous handlers restored after."""
+    import signal
+    import threading
+
+    stop = StopSignals()
+    old = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old[sig] = signal.signal(sig, stop)
+    try:
+        yield stop
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
 @dataclass
 class Task:
     """One run: ``fn(*args, **kwargs)``; ``key`` names it (unique within a list)."""
@@ -96,8 +148,9 @@ def _check_keys(tasks) -> None:
 
 def run_tasks(tasks, workers: int | None = None, scheduler: str | None = None,
               on_outcome: Callable[[Outcome], None] | None = None, desc: str = "runs", progress: bool = True,
-              echo=print) -> list:
-    """Run ``tasks`` (:class:`Task`) and return their :class:`Outcome` in the tasks' order.
+              echo=print, stop: StopSignals | None = None) -> list:
+    """Run ``tasks`` (:class:`Task`) and return their :class:`Outcome` in the tasks' order (of those
+    that ran: with ``stop``, a signal ends the list early, see :class:`StopSignals`).
 
     workers: None or 0 runs them here, one after another; N >= 1 starts a local cluster of N
     worker processes. scheduler: the address (tcp://HOST:PORT) of a running Dask scheduler.
@@ -116,19 +169,39 @@ def run_tasks(tasks, workers: int | None = None, scheduler: str | None = None,
     try:
         if not distributed_wanted(workers, scheduler):
             for task in tasks:
-                out = _outcome(task.key, call_task(task.fn, task.args, task.kwargs))
+                if stop is not None and stop.signum is not None:
+                    break
+                try:
+                    with _cut_now(stop, True):
+                        raw = call_task(task.fn, task.args, task.kwargs)
+                except Stopped as exc:
+                    exc.running = [task.key]
+                    raise
+                out = _outcome(task.key, raw)
                 outcomes[task.key] = out
                 bar.update(1)
                 if on_outcome is not None:
                     on_outcome(out)
         else:
-            _run_on_dask(tasks, workers, scheduler, outcomes, bar, on_outcome, echo)
+            _run_on_dask(tasks, workers, scheduler, outcomes, bar, on_outcome, echo, stop)
     finally:
         bar.close()
-    return [outcomes[t.key] for t in tasks]
+    return [outcomes[t.key] for t in tasks if t.key in outcomes]
 
 
-def _run_on_dask(tasks, workers, scheduler, outcomes, bar, on_outcome, echo) -> None:
+@contextlib.contextmanager
+def _cut_now(stop, value: bool):
+    if stop is None:
+        yield
+        return
+    before, stop.cut_now = stop.cut_now, value
+    try:
+        yield
+    finally:
+        stop.cut_now = before
+
+
+def _run_on_dask(tasks, workers, scheduler, outcomes, bar, on_outcome, echo, stop=None) -> None:
     from distributed import as_completed
 
     from clgs.cohort.cluster import open_client
@@ -141,14 +214,33 @@ def _run_on_dask(tasks, workers, scheduler, outcomes, bar, on_outcome, echo) -> 
                                 key=f"clgs-{task.key}-{uuid.uuid4().hex[:8]}")
             futures.append(fut)
             keys[fut.key] = task.key
-        for fut in as_completed(futures):
+        if stop is not None and stop.signum is not None:
+            raise Stopped(stop.signum)
+        waiting = as_completed(futures)
+        while True:
+            with _cut_now(stop, True):  # a signal while waiting for workers stops the list at once
+                fut = next(waiting, None)
+            if fut is None:
+                break
             key = keys[fut.key]
             try:
                 raw = fut.result()
             except Exception as exc:  # noqa: BLE001 - the task's worker died too often (KilledWorker), ...
-                raw = {"error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
+                raw = {"error": _worker_error(exc, workers), "traceback": traceback.format_exc()}
             out = _outcome(key, raw)
             outcomes[key] = out
             bar.update(1)
             if on_outcome is not None:
                 on_outcome(out)
+            if stop is not None and stop.signum is not None:
+                raise Stopped(stop.signum)
+
+
+def _worker_error(exc: BaseException, workers) -> str:
+    """A task's error on Dask as one line; a worker process that kept dying gets its likely cause."""
+    if type(exc).__name__ != "KilledWorker":
+        return f"{type(exc).__name__}: {exc}"
+    from clgs.cohort.cluster import ALLOWED_FAILURES, memory_advice
+
+    return (f"KilledWorker: the worker process running it died {ALLOWED_FAILURES + 1} times (killed from outside, "
+            f"or for lack of memory); {memory_advice(workers)}")

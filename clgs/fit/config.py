@@ -13,8 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from clgs.errors import ClgsError, InputError
+from clgs.errors import InputError
 from clgs.fit import checkpoint as ckpt
+from clgs.io.outputs import OutputError, claim
+from clgs.limits import MAX_ITERATIONS
 
 CHECKPOINT = "checkpoint.pt"  # the file name of a run's checkpoint in its folder
 
@@ -36,6 +38,7 @@ class JsonConfig:
     CHOICES: dict = {}  # setting -> allowed strings
     POSITIVE: frozenset = frozenset()  # numbers that must be > 0 (every number must be >= 0)
     AT_LEAST: dict = {}  # setting -> smallest allowed value
+    AT_MOST: dict = {"iterations": MAX_ITERATIONS, "schedule_iterations": MAX_ITERATIONS}  # -> largest allowed
 
     def __post_init__(self):
         for f in fields(self):
@@ -71,7 +74,9 @@ class JsonConfig:
             value = int(value)
         else:
             value = float(value)
-        low = self.AT_LEAST.get(name, 0)
+        low, high = self.AT_LEAST.get(name, 0), self.AT_MOST.get(name)
+        if high is not None and not low <= value <= high:
+            raise InputError(f"{where} must be between {low:,} and {high:,}, got {value!r}")
         if value < low or (name in self.POSITIVE and value <= 0):
             need = "> 0" if name in self.POSITIVE else f">= {low:g}"
             raise InputError(f"{where} must be {need}, got {value!r}")
@@ -100,7 +105,7 @@ class GaussianFitConfig(JsonConfig):
     """Settings every Gaussian reconstruction shares (R2-Gaussian's defaults): loss weights,
     FDK-based initialisation, densification, scale bounds, the projector and the run's logging."""
 
-    iterations: int = setting(30_000, "--iterations", "training iterations (one view each)")
+    iterations: int = setting(30_000, "--iterations", "training iterations (one view each)", max=MAX_ITERATIONS)
     init_threshold: float = 0.05  # of the FDK range
     density_factor: float = 0.15
     lambda_dssim: float = setting(0.25, "--dssim", "weight of the D-SSIM term")
@@ -146,8 +151,20 @@ class GaussianFitConfig(JsonConfig):
             self.scale_bounds = (lo, hi)
 
 
-class RunFolderError(ClgsError, ValueError):
-    """A run's output folder that would lose work or overwrite its input."""
+# A run's output folder that would lose work or overwrite its input (the rule of clgs.io.outputs).
+RunFolderError = OutputError
+
+
+def run_folder(out_dir, resume: bool = False, overwrite: bool = False):
+    """The run folder of a Python call (:func:`clgs.io.outputs.claim`): refused when it holds
+    anything, unless ``resume`` (continue its run) or ``overwrite`` (replace it: its clgs files go
+    first); locked while the run writes it. Nothing to claim without ``out_dir``."""
+    import contextlib
+
+    if out_dir is None:
+        return contextlib.nullcontext()
+    return claim(out_dir, kind="folder", overwrite=overwrite, resume=resume, param="out_dir",
+                 force_word="overwrite=True")
 
 
 def check_run_folder(out_dir, resume: bool) -> None:
@@ -173,8 +190,8 @@ def run_config(config_cls, iterations: int | None, settings: dict, resume: bool,
 
     ``iterations=None``: the default (30 000) for a new run; for a resumed one, the iterations it
     was started with (an interrupted run is finished, not extended)."""
-    if iterations is not None and int(iterations) < 1:
-        raise InputError(f"iterations must be at least 1, got {iterations}")
+    if iterations is not None and not 1 <= iterations <= MAX_ITERATIONS:
+        raise InputError(f"iterations must be between 1 and {MAX_ITERATIONS:,}, got {iterations}")
     check_run_folder(out_dir, resume)
     settings = dict(settings)
     if not resume:

@@ -41,8 +41,13 @@ def _reraise(exc: OSError, target: Path):
         room = f"{free / 2**20:.0f} MiB left there"
     except OSError:
         room = "no room left"
+    advice = "free some space and run again"
+    checkpoint = target.parent / "checkpoint.pt"  # clgs.fit.config.CHECKPOINT: a run that can be resumed
+    if checkpoint.is_file():
+        advice = (f"the run's last checkpoint ({checkpoint}) is kept: free some space, then continue the run with "
+                  "--resume (resume=True in Python)")
     raise DiskFullError(exc.errno, f"the disk is full while writing {target} ({room}); nothing was replaced "
-                                   "and no partial output was left: free some space and run again") from None
+                                   f"and no partial output was left: {advice}") from None
 
 
 def _temp_sibling(path: Path) -> Path:

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from typing import Callable, Optional, Union
 
 from clgs.errors import ClgsError
+from clgs.limits import MAX_ITERATIONS
 
 __all__ = ["Method", "Option", "register", "register_lazy", "get", "names", "describe", "MethodError"]
 
@@ -204,8 +205,9 @@ register(Method(
     "sart", "clgs.methods.sart:run", help="SART / OS-SART iterative reconstruction (non-negative)",
     options=[
         Option("--iterations", "iterations", "int", "number of SART iterations (full passes over the views)",
-               min=1),
-        Option("--subsets", "subsets", "int", "ordered subsets per iteration (1 = SART, more = OS-SART)", min=1),
+               min=1, max=MAX_ITERATIONS),
+        Option("--subsets", "subsets", "int", "ordered subsets per iteration (1 = SART, more = OS-SART)", min=1,
+               max=MAX_ITERATIONS),
         Option("--relaxation", "relaxation", "float", "relaxation factor of each update, in (0, 2)", min=0, max=2,
                min_open=True, max_open=True),
     ],

@@ -38,7 +38,7 @@ import numpy as np
 
 from clgs.fit.assembly import (fdk_volume, make_trainer, projection_losses, restore, scale_bounds_for,
                                value_scale_from, volume_box)
-from clgs.fit.config import CHECKPOINT, GaussianFitConfig, run_config, setting
+from clgs.fit.config import CHECKPOINT, GaussianFitConfig, run_config, run_folder, setting
 from clgs.fit.gaussians import GaussianSet, init_from_volume, init_random, r2gs_schedules
 from clgs.fit.outputs import gaussians_in_scan_units, voxelize_volume, write_outputs
 from clgs.fit.trainer import Trainer
@@ -114,16 +114,24 @@ def build_trainer(scan, cfg: R2GSConfig, out_dir=None, *, progress=False, fdk=No
 
 
 def reconstruct_r2gs(scan, out_dir=None, iterations: int | None = None, *, resume: bool = False,
-                     progress: bool = True, fdk=None, **settings) -> R2GSResult:
+                     overwrite: bool = False, progress: bool = True, fdk=None, **settings) -> R2GSResult:
     """Reconstruct ``scan`` (a :class:`clgs.io.scan.Scan` or a scan folder) with R2-Gaussian.
 
     ``settings`` are :class:`R2GSConfig` fields (``backend``, ``seed``, ``lambda_tv``, ...).
-    ``out_dir`` gets the outputs and checkpoints (none without it). ``resume=True`` continues the
-    run in ``out_dir`` from its checkpoint, with the checkpoint's settings, to the iterations it
-    was started with, or to ``iterations`` when given (to train longer). ``iterations=None`` on a
-    new run: 30 000, R2-Gaussian's. ``fdk``: a ready FDK volume (else computed). Ctrl-C stops cleanly:
-    outputs so far are written and ``result.interrupted`` is True.
+    ``out_dir`` gets the outputs and checkpoints (none without it); one that holds anything is
+    refused unless ``resume=True`` (continue its run from its checkpoint, with the checkpoint's
+    settings, to the iterations it was started with, or to ``iterations`` when given) or
+    ``overwrite=True`` (its clgs files are removed first): :func:`clgs.fit.config.run_folder`.
+    ``iterations=None`` on a new run: 30 000, R2-Gaussian's. ``fdk``: a ready FDK volume (else
+    computed). Ctrl-C stops cleanly: outputs so far are written and ``result.interrupted`` is True.
     """
+    with run_folder(out_dir, resume, overwrite):
+        return _reconstruct_r2gs(scan, out_dir, iterations, resume=resume, progress=progress, fdk=fdk, **settings)
+
+
+def _reconstruct_r2gs(scan, out_dir=None, iterations: int | None = None, *, resume: bool = False,
+                      progress: bool = True, fdk=None, **settings) -> R2GSResult:
+    """:func:`reconstruct_r2gs` in a run folder already claimed."""
     if not isinstance(scan, Scan):
         scan = Scan.load(scan)
     cfg, state = run_config(R2GSConfig, iterations, settings, resume, out_dir)

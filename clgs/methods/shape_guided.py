@@ -65,7 +65,7 @@ from clgs.fit.assembly import (
     value_scale_from,
     volume_box,
 )
-from clgs.fit.config import GaussianFitConfig, run_config, setting
+from clgs.fit.config import GaussianFitConfig, run_config, run_folder, setting
 from clgs.fit.gaussians import GaussianSet, Schedule, init_from_volume, r2gs_schedules
 from clgs.fit.outputs import gaussians_in_scan_units, voxelize_volume
 from clgs.fit.outputs import write_outputs as write_common
@@ -380,8 +380,19 @@ def deformed_template_surface(template, shape_set) -> tuple:
 
 
 def reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | None = None, *, resume: bool = False,
-                             progress: bool = True, fdk=None, level: float | None = None,
+                             overwrite: bool = False, progress: bool = True, fdk=None, level: float | None = None,
                              **settings) -> ShapeGuidedResult:
+    """See :func:`_reconstruct_shape_guided`. ``out_dir``: one that holds anything is refused
+    unless ``resume=True`` or ``overwrite=True`` (its clgs files go first), and it is locked while
+    the run writes it (:func:`clgs.fit.config.run_folder`)."""
+    with run_folder(out_dir, resume, overwrite):
+        return _reconstruct_shape_guided(scan, anatomy, out_dir, iterations, resume=resume, progress=progress,
+                                         fdk=fdk, level=level, **settings)
+
+
+def _reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | None = None, *, resume: bool = False,
+                              progress: bool = True, fdk=None, level: float | None = None,
+                              **settings) -> ShapeGuidedResult:
     """Reconstruct ``scan`` with the shape-guided method and the parts of ``anatomy``.
 
     ``anatomy``: a :class:`clgs.anatomy.Anatomy` (its template, shape model and atlas are loaded)

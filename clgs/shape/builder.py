@@ -154,7 +154,22 @@ def population_pca(velocities: np.ndarray, variance: Optional[float] = 0.95, n_m
     return mean, vt[:m], np.sqrt(var[:m]), kept, var
 
 
-def build_model(template: Template, subjects: Union[Iterable[Subject], Mapping], out_path,
+def build_model(template, subjects, out_path, *args, **kwargs) -> str:
+    """:func:`_build_model` holding the model file's lock (:mod:`clgs.io.outputs`): a second build
+    of the same file started meanwhile waits for the first, then finds its model up to date."""
+    import contextlib
+
+    from clgs.io.outputs import lock
+
+    with contextlib.ExitStack() as held:
+        try:
+            held.enter_context(lock(out_path, "the model file", wait=True))
+        except OSError:  # a folder that takes no lock file (read-only): an up-to-date model is still read
+            pass
+        return _build_model(template, subjects, out_path, *args, **kwargs)
+
+
+def _build_model(template: Template, subjects: Union[Iterable[Subject], Mapping], out_path,
                 variance: float = 0.95, n_modes: Optional[int] = None, max_cells: int = 64,
                 registration: Optional[dict] = None, atlas: bool = True, force: bool = False,
                 keep_cache: bool = False, progress: bool = True, extra_meta: Optional[dict] = None,
@@ -262,3 +277,7 @@ def build_model(template: Template, subjects: Union[Iterable[Subject], Mapping],
     if not keep_cache:
         shutil.rmtree(cache, ignore_errors=True)
     return out_path
+
+
+build_model.__wrapped__ = _build_model
+build_model.__doc__ = f"{build_model.__doc__}\n\n{_build_model.__doc__}"
