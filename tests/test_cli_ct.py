@@ -88,10 +88,15 @@ def test_reconstruct_fdk_file_and_folder(scan_dir, tmp_path):
     assert report["metrics"]["psnr3d"] > 15.0
     assert sp == (2.0, 2.0, 2.0) and org == pytest.approx((-100.0, -50.0, 30.0))  # where the input lay
     assert f"{report['metrics']['psnr3d']:.4f}" in res.output
-    run("reconstruct", scan_dir / "scan", "--out", tmp_path / "rec", "--filter", "hann")
-    assert sorted(p.name for p in (tmp_path / "rec").iterdir()) == ["report.json", "volume.nii.gz", "volume.npy"]
+    res = run("reconstruct", scan_dir / "scan", "--out", tmp_path / "rec", "--filter", "hann")
+    # the slice panel, and the bone surface at the level the scan's true surface was made at
+    assert sorted(p.name for p in (tmp_path / "rec").iterdir()) == ["report.json", "slices.png", "surface.json",
+                                                                   "surface.stl", "volume.nii.gz", "volume.npy"]
     rep = json.loads((tmp_path / "rec" / "report.json").read_text())
     assert rep["method"] == "fdk" and rep["options"] == {"filter": "hann"} and rep["seconds"] > 0
+    assert rep["slices"]["path"] == str(tmp_path / "rec" / "slices.png") and rep["slices"]["path"] in res.output
+    assert rep["surface"]["surface_level"] == 0.005 and rep["surface"]["surface_level_source"] == "scan"
+    assert f"{rep['surface']['distance_mean_mm']:.3f}" in res.output
     # existing outputs need --force
     res = run("reconstruct", scan_dir / "scan", "--out", tmp_path / "rec", ok=False)
     assert res.exit_code != 0 and "already exists" in res.output and "--force" in res.output
