@@ -96,7 +96,7 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
 
 
 # settings that change how often a run logs or saves, not its result
-_BOOKKEEPING = {"log_every", "checkpoint_every", "checkpoint_dir", "progress"}
+_BOOKKEEPING = {"log_every", "log_early", "checkpoint_every", "checkpoint_dir", "progress"}
 _OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings", "detector_fov_mm": "--detector-mm",
            "simulation": "--simulation", "fit_size": "shape-guided setting fit_size"}
 

@@ -58,7 +58,7 @@ class R2GSConfig(GaussianFitConfig):
     init: str = setting("fdk", "--init", "initialise from an FDK volume or uniformly at random")  # "fdk" | "random"
 
     CLI = ("iterations", "n_gaussians", "max_gaussians", "init", "seed", "backend", "projector_mode", "scale_floor",
-           "lambda_tv", "lambda_dssim", "log_every", "checkpoint_every")
+           "lambda_tv", "lambda_dssim", "log_every", "log_early", "checkpoint_every")
     KIND = "r2gs"
     CHOICES = {**GaussianFitConfig.CHOICES, "init": ("fdk", "random")}
     AT_LEAST = {**GaussianFitConfig.AT_LEAST, "n_gaussians": 1}
