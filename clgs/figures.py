@@ -23,14 +23,15 @@ def _central(volume: np.ndarray) -> list:
 
 
 def slice_panel(path, volume, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), truth=None, title: str = "",
-                figures: dict | None = None, label: str = "reconstruction") -> str:
+                figures: dict | None = None, label: str = "reconstruction", units: str = "mm") -> str:
     """Write ``path`` (PNG): ``volume``'s three central slices and, with ``truth`` (same shape),
     the truth's and the error's; returns the path as a string.
 
     ``spacing`` (dZ, dY, dX) mm and ``origin`` (x, y, z) mm of voxel [0, 0, 0]'s centre place the
     slices in world mm. Volume and truth share one grey scale (0 to the 99.9th percentile of the
     truth, else of the volume); the error a symmetric red-blue one. ``figures`` (e.g. PSNR, SSIM)
-    go into the title as ``name value`` pairs; ``label`` names the volume's row."""
+    go into the title as ``name value`` pairs; ``label`` names the volume's row; ``units`` the
+    axes' (``"voxels"`` for a volume of unknown voxel size, with unit spacing)."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -59,7 +60,7 @@ def slice_panel(path, volume, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), t
     dz, dy, dx = (float(s) for s in spacing)
     ox, oy, oz = (float(o) for o in origin)
     nz, ny, nx = vol.shape
-    # extents (left, right, bottom, top) in mm of each slice: voxel edges, not centres
+    # extents (left, right, bottom, top) of each slice: voxel edges, not centres
     span = {"x": (ox - dx / 2, ox + (nx - 0.5) * dx), "y": (oy - dy / 2, oy + (ny - 0.5) * dy),
             "z": (oz - dz / 2, oz + (nz - 0.5) * dz)}
     widths = [span[h][1] - span[h][0] for h in ("x", "x", "y")]
@@ -75,8 +76,8 @@ def slice_panel(path, volume, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), t
         for c, (name, sl, h, v) in enumerate(_central(data)):
             ax = fig.add_subplot(grid[r, c])
             image = ax.imshow(sl, origin="lower", extent=(*span[h], *span[v]), interpolation="nearest", **kw)
-            ax.set_xlabel(f"{h} (mm)", fontsize=7)
-            ax.set_ylabel(f"{v} (mm)", fontsize=7)
+            ax.set_xlabel(f"{h} ({units})", fontsize=7)
+            ax.set_ylabel(f"{v} ({units})", fontsize=7)
             ax.tick_params(labelsize=6)
             ax.set_title(f"{row_label}\n{name}" if c == 0 else name, fontsize=8, loc="left" if c == 0 else "center")
         cb = fig.colorbar(image, cax=fig.add_subplot(grid[r, 3]))

@@ -10,7 +10,8 @@ The level is chosen, first found first (:func:`choose_level`):
 ``scene``   the anatomy plugin's ``scene['surface_level']``;
 ``truth``   a simulated scan's true volume: the upper of its 3-class Otsu thresholds (air, soft
             tissue, bone); for a truth of two values (a surface filled with one density) Otsu's
-            threshold;
+            threshold; half way to the next density up where the truth has a gap there
+            (:func:`truth_level`);
 ``atlas``   the anatomy's density atlas: half way between its soft tissue just outside the
             template's bone and its bone just inside (:func:`atlas_level`).
 
@@ -59,17 +60,23 @@ class BoneLevel:
 
 def truth_level(truth) -> float:
     """The upper of the true volume's 3-class Otsu thresholds (Otsu's threshold for a truth of
-    two values; a ValueError for a constant one)."""
+    two values; a ValueError for a constant one), moved to the middle of the gap above it when the
+    truth holds no values there. Otsu's threshold is a histogram bin: on a truth of a few discrete
+    densities (soft tissue 0.02, bone 0.05) it is the soft tissue's own value, where a blurred
+    reconstruction's tissue lies on both sides; half way to the next density is the edge between
+    the two. On a truth of continuous densities (the femur's) the gap is nil and nothing moves."""
     from skimage.filters import threshold_multiotsu, threshold_otsu
 
     t = np.asarray(truth, np.float32)
     sub = t[:: max(1, t.shape[0] // 64)]
+    if float(sub.min()) == float(sub.max()):
+        raise ValueError("the true volume is constant: it has no bone level")
     try:
-        return float(threshold_multiotsu(sub, classes=3)[-1])
+        level = float(threshold_multiotsu(sub, classes=3)[-1])
     except ValueError:  # two values only (a surface filled with one density): bone against air
-        if float(sub.min()) == float(sub.max()):
-            raise ValueError("the true volume is constant: it has no bone level") from None
-        return float(threshold_otsu(sub))
+        level = float(threshold_otsu(sub))
+    above = sub[sub > level]
+    return 0.5 * (level + float(above.min())) if above.size else level
 
 
 def atlas_level(atlas, template) -> float:
