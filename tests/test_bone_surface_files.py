@@ -172,3 +172,77 @@ def test_a_users_level_is_the_written_surfaces_and_is_named(anatomy, tmp_path):
     record = json.loads((tmp_path / "recon" / "surface.json").read_text())
     assert record["surface_level"] == 0.04 and record["surface_level_source"] == "user"
     assert "source: user" in out and printed(out, "surface_level") == 0.04
+
+
+# ------------------------------------------------------------------------------ where the level comes from
+def test_the_level_comes_from_the_user_the_scan_the_scene_the_truth_then_the_atlas(parts):
+    from clgs.anatomy.bone_level import atlas_level, choose_level, truth_level
+
+    template, model, atlas = parts
+    plain = make_anatomy(*parts)
+    truth = plain.load_subject("a").volume
+    assert choose_level(user=0.04, anatomy=plain, truth=truth).record() == {"surface_level": 0.04,
+                                                                           "surface_level_source": "user"}
+    assert choose_level(anatomy=plain, truth=truth, scan_meta={"truth_surface_level": 0.03}).source == "scan"
+    assert choose_level(anatomy=make_anatomy(*parts, surface_level=0.033), truth=truth).source == "scene"
+    level = choose_level(anatomy=plain, truth=truth)
+    # the truth's densities are 0, 0.02 and 0.05: half way from the soft tissue to the bone
+    assert level.source == "truth" and level.value == pytest.approx(0.035, abs=0.001) == truth_level(truth)
+    # no truth (a real scan): the atlas's soft tissue and bone at the template's surface
+    level = choose_level(anatomy=plain)
+    assert level.source == "atlas" and level.value == pytest.approx(0.5 * (TISSUE + BONE), abs=0.002)
+    assert level.value == atlas_level(atlas, template)
+    # an atlas of the bone alone (air around it): half the bone's density
+    from clgs.shape.model import DensityAtlas
+
+    bare = DensityAtlas(np.where(template.label, BONE, 0.0).astype(np.float32), np.zeros(template.shape, np.float32),
+                        template.spacing, template.origin)
+    assert atlas_level(bare, template) == pytest.approx(0.5 * BONE, abs=0.002)
+    # nothing that knows the bone: no level (and no surface is written)
+    assert choose_level() is None and choose_level(scan_meta={}) is None
+
+
+def test_a_folder_never_keeps_a_surface_that_is_not_its_volumes(parts, tmp_path):
+    """A second run whose volume has no bone above the level removes the first run's surface."""
+    from clgs.anatomy.bone_level import BoneLevel
+    from clgs.anatomy.evaluation import read_bone_surface, write_bone_surface
+
+    anatomy = make_anatomy(*parts)
+    subject = anatomy.load_subject("a")
+    geo = grid_geometry()
+    first = write_bone_surface(tmp_path, subject.volume, geo, BoneLevel(0.035, "truth"))
+    mesh, level = read_bone_surface(tmp_path)
+    assert first["path"] == str(tmp_path / "surface.stl") and level == BoneLevel(0.035, "truth")
+    assert_the_bone_not_the_limb(tmp_path / "surface.stl", _saved(subject, tmp_path / "truth.stl"))
+    none = write_bone_surface(tmp_path, np.zeros_like(subject.volume), geo, BoneLevel(0.035, "truth"))
+    assert none["path"] is None and "above the bone level" in none["reason"]
+    assert read_bone_surface(tmp_path) is None and not (tmp_path / "surface.stl").exists()
+    assert "no bone level" in write_bone_surface(tmp_path, subject.volume, geo, None)["reason"]
+
+
+def _saved(subject, path):
+    from clgs.io.mesh import save_mesh
+
+    return save_mesh(path, subject.vertices, subject.faces)
+
+
+# ------------------------------------------------------------------------------ the femur
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["shape", "r2gs"])
+def test_the_femur_demo_writes_the_femur_not_the_thigh(tmp_path, method):
+    """`clgs femur demo` (held-out subject 20, 5 views, a few iterations): the written surface is
+    the femur's (bounds within 10 mm of the true femur's; the thigh's lie 25-40 mm beyond them),
+    and its distance to the true surface is the one printed."""
+    pytest.importorskip("clgs_femur", reason="install with: pip install -e anatomies/femur")
+    from clgs.cli import main
+
+    res = CliRunner().invoke(main, ["femur", "demo", "--method", method, "--iterations", "30", "--out",
+                                    str(tmp_path), "--set", "progress=false", "--set", "checkpoint_every=0"])
+    assert res.exit_code == 0, res.output
+    surface, truth = tmp_path / "recon" / "surface.stl", tmp_path / "scan" / "truth_surface.stl"
+    s, t = trimesh.load(surface), trimesh.load(truth)
+    assert np.abs(s.bounds - t.bounds).max() < 10.0, (s.bounds, t.bounds)
+    assert s.area < 2.5 * t.area, (s.area, t.area)  # the thigh's: 3.5 to 5.5 times the femur's
+    assert independent_mean_distance(surface, truth) == pytest.approx(printed(res.output, "surface_mean_mm"),
+                                                                      rel=0.03, abs=0.02)
+    assert re.search(r"^\s*surface_level_source\s+truth\s*$", res.output, re.M)
