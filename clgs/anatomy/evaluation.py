@@ -80,7 +80,7 @@ def write_bone_surface(out_dir, volume, geometry, level: BoneLevel | None) -> di
     if mesh is None:
         for name in (SURFACE_FILE, SURFACE_RECORD):
             (out_dir / name).unlink(missing_ok=True)
-        reason = ("no bone level (give one: --surface-level, surface_level=)" if level is None else
+        reason = ("no bone level: give one with --surface-level (Python: surface_level=)" if level is None else
                   f"no voxel of the volume is above the bone level {level.value:.4g} (or every voxel is)")
         return {"path": None, "reason": reason, **({} if level is None else level.record())}
     path = save_mesh(out_dir / SURFACE_FILE, mesh.vertices, mesh.faces)
