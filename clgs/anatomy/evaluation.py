@@ -157,4 +157,6 @@ def evaluate_volume(anatomy, scan, volume, surface=None, level: BoneLevel | None
             out.update({f"surface_{k}_mm": v for k, v in sd.items()}, **level.record())
         except SurfaceError as exc:
             out["surface_error"] = str(exc)
+            if level is not None:
+                out.update(level.record())
     return out
