@@ -527,7 +527,9 @@ def _evaluate_command(anatomy) -> click.Command:
             volume = os.path.join(volume, "volume.npy")
         scan = Scan.load(scan_dir)
         loaded = load_volume(volume)
-        _echo_metrics(_evaluate(anatomy, scan, loaded[0], os.path.dirname(volume)))
+        # a run folder's surfaces are its volume's: another volume file lying there is measured alone
+        run_volume = os.path.basename(volume) in ("volume.npy", "volume.nii.gz")
+        _echo_metrics(_evaluate(anatomy, scan, loaded[0], os.path.dirname(volume) if run_volume else None))
 
     return evaluate
 
