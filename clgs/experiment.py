@@ -96,7 +96,7 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
 
 
 # settings that change how often a run logs or saves, not its result
-_BOOKKEEPING = {"log_every", "checkpoint_every", "checkpoint_dir", "progress"}
+_BOOKKEEPING = {"log_every", "log_early", "checkpoint_every", "checkpoint_dir", "progress"}
 _OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings", "detector_fov_mm": "--detector-mm",
            "simulation": "--simulation", "fit_size": "shape-guided setting fit_size"}
 
@@ -291,7 +291,8 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
     ``views`` is a view count or a view-set key (then ``angles``, radians, are its views);
     ``detector_mm``: a truncating detector; ``judge_fov``: also score inside that detector's field
     of view (the untruncated twin of a truncated scan); ``meshes``: the user's own subjects."""
-    from clgs.anatomy.evaluation import bone_surface, evaluate_volume, surface_level
+    from clgs.anatomy.bone_level import choose_level
+    from clgs.anatomy.evaluation import bone_surface, evaluate_volume
     from clgs.anatomy.simulation import scan_geometry, simulate_subject
     from clgs.anatomy.surface_figure import reconstruction_figure
     from clgs.io import atomic
@@ -323,7 +324,10 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
     made_with = dict(_made_with(method, iterations, seed, settings, simulation),
                      detector_fov_mm=None if detector_mm is None else [float(x) for x in detector_mm])
     run = _run_one(method, scan, parts, iterations, seed, progress, settings)
-    metrics = evaluate_volume(anatomy, scan, run["volume"])
+    # the surface scored is the surface written: one mesh, at one level (named in the record)
+    level = choose_level(anatomy=anatomy, truth=scan.truth, scan_meta=scan.meta)
+    mesh = None if level is None else bone_surface(run["volume"], scan.geometry, level)
+    metrics = evaluate_volume(anatomy, scan, run["volume"], surface=mesh, level=level)
     if judge_fov is not None and metrics.get("psnr3d") is not None:
         judge = scan_geometry(anatomy, subject, n, math.pi, angles=angles, detector_mm=judge_fov).field_of_view()
         if judge.any():
@@ -333,7 +337,6 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
                            ssim3d_fov=float(figures.masked_ssim3d(run["volume"], scan.truth, judge)),
                            fov_fraction=float(judge.mean()))
     save_volume(out / "runs" / f"{tag}.nii.gz", run["volume"], scan.geometry, units="1/mm")
-    mesh = bone_surface(run["volume"], scan.geometry, surface_level(anatomy, scan.truth))
     surf = None if mesh is None else save_mesh(out / "runs" / f"{tag}.stl", mesh.vertices, mesh.faces)
     if run["model_surface"] is not None and scan.surface is not None:
         # the shape model's own bone surface: the template moved by the fitted alpha
@@ -341,7 +344,7 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
         metrics.update({f"model_surface_{k}_mm": x for k, x in sd.items()})
         save_mesh(out / "runs" / f"{tag}_model.stl", *run["model_surface"])
     reconstruction_figure(out / "runs" / f"{tag}_surface.png", anatomy, scan, run["volume"], run["model_surface"],
-                          mesh=mesh, title=f"{subject_id}, {views_label(v)}, {METHOD_LABELS[method]}")
+                          mesh=mesh, level=level, title=f"{subject_id}, {views_label(v)}, {METHOD_LABELS[method]}")
     row = {"subject": subject_id, "views": v, "method": method, "seconds": run["seconds"], **made_with,
            "angles_deg": [round(math.degrees(a), 6) for a in scan.geometry.angles],
            "jacobian_min": run["jacobian_min"], "model_size": run.get("model_size"),

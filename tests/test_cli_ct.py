@@ -88,14 +88,45 @@ def test_reconstruct_fdk_file_and_folder(scan_dir, tmp_path):
     assert report["metrics"]["psnr3d"] > 15.0
     assert sp == (2.0, 2.0, 2.0) and org == pytest.approx((-100.0, -50.0, 30.0))  # where the input lay
     assert f"{report['metrics']['psnr3d']:.4f}" in res.output
-    run("reconstruct", scan_dir / "scan", "--out", tmp_path / "rec", "--filter", "hann")
-    assert sorted(p.name for p in (tmp_path / "rec").iterdir()) == ["report.json", "volume.nii.gz", "volume.npy"]
+    res = run("reconstruct", scan_dir / "scan", "--out", tmp_path / "rec", "--filter", "hann")
+    # the slice panel, and the bone surface at the level the scan's true surface was made at
+    assert sorted(p.name for p in (tmp_path / "rec").iterdir()) == ["report.json", "slices.png", "surface.json",
+                                                                   "surface.stl", "volume.nii.gz", "volume.npy"]
     rep = json.loads((tmp_path / "rec" / "report.json").read_text())
     assert rep["method"] == "fdk" and rep["options"] == {"filter": "hann"} and rep["seconds"] > 0
+    assert rep["slices"]["path"] == str(tmp_path / "rec" / "slices.png") and rep["slices"]["path"] in res.output
+    assert rep["surface"]["surface_level"] == 0.005 and rep["surface"]["surface_level_source"] == "scan"
+    assert f"{rep['surface']['distance_mean_mm']:.3f}" in res.output
     # existing outputs need --force
     res = run("reconstruct", scan_dir / "scan", "--out", tmp_path / "rec", ok=False)
     assert res.exit_code != 0 and "already exists" in res.output and "--force" in res.output
     run("reconstruct", scan_dir / "scan", "--out", tmp_path / "rec", "--force")
+
+
+def test_a_folder_run_gets_slices_and_a_bone_surface_only_at_a_named_level(scan_dir, tmp_path):
+    """R2-Gaussian mode knows no anatomy: no bone surface unless a level is named (--surface-level,
+    or the scan's own); then report.json names it, with the distance of the file written."""
+    trimesh = pytest.importorskip("trimesh")
+    pytest.importorskip("rtree")
+    sc = Scan.load(scan_dir / "scan")
+    sc.meta.pop("truth_surface_level")
+    sc.save(tmp_path / "plain")
+    res = run("reconstruct", tmp_path / "plain", "-m", "sart", "--iterations", 2, "--out", tmp_path / "a")
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["report.json", "slices.png", "volume.nii.gz",
+                                                                 "volume.npy"]
+    assert "bone surface: none written (no bone level" in res.output and "--surface-level" in res.output
+    assert f"slices: {tmp_path / 'a' / 'slices.png'}" in res.output
+    res = run("reconstruct", tmp_path / "plain", "-m", "r2gs", "--iterations", 30, "--gaussians", 400,
+              "--no-progress", "--surface-level", 0.012, "--out", tmp_path / "b")
+    rep = json.loads((tmp_path / "b" / "report.json").read_text())["surface"]
+    assert rep["path"] == str(tmp_path / "b" / "surface.stl") and rep["surface_level_source"] == "user"
+    assert rep["surface_level"] == 0.012 and "source: user" in res.output
+    a, b = trimesh.load(tmp_path / "b" / "surface.stl"), trimesh.load(scan_dir / "scan" / "truth_surface.stl")
+    d = [trimesh.proximity.closest_point(y, trimesh.sample.sample_surface(x, 20000, seed=k)[0])[1]
+         for k, (x, y) in enumerate(((a, b), (b, a)))]
+    assert float(np.concatenate(d).mean()) == pytest.approx(rep["distance_mean_mm"], rel=0.03, abs=0.02)
+    res = run("reconstruct", tmp_path / "plain", "--surface-level", 0.01, "--out", tmp_path / "c.nii.gz", ok=False)
+    assert res.exit_code == 2 and "give a folder as --out" in res.output
 
 
 def test_reconstruct_sart_options(scan_dir, tmp_path):
@@ -126,7 +157,7 @@ def test_evaluate(scan_dir, tmp_path):
     # same volume as truth: inf dB (JSON null), SSIM 1, zero surface distance
     save_volume(tmp_path / "t.nii.gz", ball_volume(), spacing=2.0)
     res = run("evaluate", tmp_path / "t.nii.gz", "--truth", tmp_path / "t.nii.gz", "--level", 0.015,
-              "--json", tmp_path / "same.json")
+              "--json", tmp_path / "same.json", "--no-figure")
     same = json.loads((tmp_path / "same.json").read_text())
     assert same["psnr3d"] is None and same["ssim3d"] == pytest.approx(1.0) and "PSNR inf" in res.output
     assert same["surface"]["hausdorff"] == pytest.approx(0.0, abs=1e-9)
@@ -134,6 +165,29 @@ def test_evaluate(scan_dir, tmp_path):
     run("reconstruct", scan_dir / "scan", "--out", tmp_path / "rec")
     res = run("evaluate", tmp_path / "rec", "--truth", scan_dir / "scan")
     assert f"{figures['psnr3d']:.4f}" in res.output
+
+
+def test_evaluate_draws_the_slices_of_the_volume_the_truth_and_the_error(scan_dir, tmp_path):
+    from PIL import Image
+
+    run("reconstruct", scan_dir / "scan", "--out", tmp_path / "fdk.nii.gz")
+    res = run("evaluate", tmp_path / "fdk.nii.gz", "--truth", scan_dir / "scan", "--json", tmp_path / "e.json")
+    png = tmp_path / "fdk_vs_truth.png"  # next to the volume
+    assert f"figure: {png}" in res.output and json.loads((tmp_path / "e.json").read_text())["figure"] == str(png)
+    w, h = Image.open(png).size
+    assert h > w  # three rows of three square slices: the volume, the truth, the error
+    run("reconstruct", scan_dir / "scan", "--out", tmp_path / "rec")
+    res = run("evaluate", tmp_path / "rec", "--truth", scan_dir / "scan", "--figure", tmp_path / "f.png")
+    assert (tmp_path / "f.png").is_file() and not (tmp_path / "rec" / "evaluation.png").exists()
+    res = run("evaluate", tmp_path / "rec", "--truth", scan_dir / "scan", "--figure", tmp_path / "f.png", ok=False)
+    assert "already exists" in res.output and "--force" in res.output
+    run("evaluate", tmp_path / "rec", "--truth", scan_dir / "scan")
+    assert (tmp_path / "rec" / "evaluation.png").is_file()
+    res = run("evaluate", tmp_path / "rec", "--truth", scan_dir / "scan", "--figure", tmp_path / "f.jpg", ok=False)
+    assert res.exit_code == 2 and "PNG" in res.output and not (tmp_path / "f.jpg").exists()
+    res = run("evaluate", tmp_path / "rec", "--truth", scan_dir / "scan", "--figure", tmp_path / "g.png",
+              "--no-figure", ok=False)
+    assert res.exit_code == 2 and "not both" in res.output
 
 
 def test_bad_inputs_give_clear_errors(scan_dir, tmp_path):

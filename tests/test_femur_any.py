@@ -125,7 +125,8 @@ def test_a_constant_truth_leaves_the_anatomy_evaluation_undefined_not_failed(fem
                 surface=(v * 0.1, f))
     out = evaluate_volume(femur.anatomy(), scan, np.full((8, 8, 8), 0.01, np.float32))
     assert out["psnr3d"] is None and "constant" in out["metrics_undefined"]
-    assert "no bone level" in out["surface_error"]
+    # the truth gives no bone level; the anatomy's atlas does, and no voxel is above it
+    assert out["surface_level_source"] == "atlas" and "no bone surface" in out["surface_error"]
 
 
 # --------------------------------------------------------------------------------------- command line

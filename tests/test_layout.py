@@ -18,7 +18,7 @@ LAYERS = [
     ["clgs.errors", "clgs.geometry", "clgs.progress", "clgs.commands", "clgs.install_report", "clgs.limits"],
     ["clgs.io"],
     ["clgs.mesh"],
-    ["clgs.metrics"],
+    ["clgs.metrics", "clgs.figures"],
     ["clgs.runtime"],
     ["clgs.ops"],
     ["clgs.reference"],

@@ -3,6 +3,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from clgs.fit.training_log import TrainingLog
 
 #: a 100k-Gaussian R2-Gaussian-mode run on a 512^2 detector stays under this (docs/benchmarks.md)
@@ -27,13 +29,19 @@ def test_100k_gaussians_on_a_512_detector_stay_within_the_memory_bound():
     assert 200 < out["peak_mib"] < MEMORY_BOUND_MIB, out
 
 
-def test_time_to_quality_is_the_first_row_at_or_above_each_level():
+def test_time_to_quality_interpolates_between_the_rows_around_each_level():
     log = TrainingLog([
         {"iteration": 0, "seconds": 0.0, "wall": 0.5, "psnr3d": 24.6},
         {"iteration": 100, "seconds": 5.0, "wall": 6.0, "psnr3d": 26.2},
         {"iteration": 200, "seconds": 10.0, "wall": 11.5, "psnr3d": 25.9},
         {"iteration": 300, "seconds": 15.0, "wall": 17.0, "psnr3d": 27.0},
     ])
-    assert log.time_to_quality() == [(25.0, 5.0, 6.0), (26.0, 5.0, 6.0), (27.0, 15.0, 17.0)]
-    assert "27 dB at 15.0 / 17.0 s" in log.summary()
+    got = log.time_to_quality()
+    assert [g[0] for g in got] == [25.0, 26.0, 27.0]
+    # 25 and 26 dB both lie between the first two rows: each its own time, in proportion
+    assert got[0][1:] == pytest.approx((0.4 / 1.6 * 5.0, 0.5 + 0.4 / 1.6 * 5.5))
+    assert got[1][1:] == pytest.approx((1.4 / 1.6 * 5.0, 0.5 + 1.4 / 1.6 * 5.5))
+    # 27 dB: first reached at the last row (the dip at 200 does not count as reaching it earlier)
+    assert got[2][1:] == pytest.approx((15.0, 17.0))
+    assert "27 dB at 15.0 / 17.0 s" in log.summary() and "linear between" in log.summary()
     assert TrainingLog([{"seconds": 0.0, "psnr3d": 20.0}]).time_to_quality() == []

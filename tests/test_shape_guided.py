@@ -226,12 +226,14 @@ def test_bone_surface_is_the_outer_surface_of_the_solid_bone():
     vol = np.where(r < 20.0, 0.05, 0.02).astype(np.float32)
     vol[r < 14.0] = 0.02  # a hollow shell (a canal of marrow)
     vol[2, 2, 2] = 0.05  # a speck: not part of the bone
-    mesh = bone_surface(vol, geo)  # default level: half way between median and 99.5th percentile
+    mesh = bone_surface(vol, geo, 0.035)  # between the marrow and soft tissue (0.02) and the bone (0.05)
     dist = np.linalg.norm(mesh.vertices, axis=1)
     assert np.abs(dist - 20.0).max() < 2.0  # the outer sphere only (no inner one, no speck)
     tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
     assert tm.volume == pytest.approx(4 / 3 * np.pi * 20.0**3, rel=0.08)
-    assert bone_surface(np.zeros_like(vol), geo) is None
+    assert bone_surface(np.zeros_like(vol), geo, 0.035) is None
+    with pytest.raises(TypeError, match="bone level"):  # never a level guessed from the volume's values
+        bone_surface(vol, geo, None)
 
 
 def _tiny_anatomy(template, shape_model, atlas):

@@ -249,6 +249,37 @@ def test_reconstruct_r2gs_writes_outputs_and_resumes(scene, tmp_path):
         reconstruct_r2gs(scene, tmp_path / "nothing", 10, resume=True)
 
 
+def test_early_log_points_and_the_plot_named_by_method(scene, tmp_path, monkeypatch):
+    """log_early adds rows at 10, 20, 50, ... below the first log_every (the curve's fast part);
+    log.png is titled by the method that ran."""
+    from clgs.fit.trainer import early_log_points
+    from clgs.fit.training_log import TrainingLog
+
+    assert early_log_points(500) == {10, 20, 50, 100, 200} and early_log_points(10) == set()
+    titles = []
+    plot = TrainingLog.plot
+    monkeypatch.setattr(TrainingLog, "plot",
+                        lambda self, path, title="": titles.append(title) or plot(self, path, title))
+    for early, rows in ((True, [0, 10, 20, 50, 60]), (False, [0, 60])):
+        res = reconstruct_r2gs(scene, tmp_path / str(early), 60, progress=False, fdk=scene.truth,
+                               **{**SMALL, "n_gaussians": 100, "log_every": 100, "log_early": early})
+        assert [r["iteration"] for r in res.log.rows] == rows
+    assert titles == ["R2-Gaussian: 60 iterations"] * 2
+
+
+def test_each_quality_level_gets_its_own_time(scene):
+    """With the default logging (every 500, and early), a short run's quality levels are each
+    reached at their own time: a log of the first and last rows alone gave them all one."""
+    res = reconstruct_r2gs(scene, None, 200, progress=False, fdk=scene.truth,
+                           **{**SMALL, "n_gaussians": 100, "log_every": 500, "log_early": True})
+    assert [r["iteration"] for r in res.log.rows] == [0, 10, 20, 50, 100, 200]
+    reached = res.log.time_to_quality(step=0.5)
+    assert len(reached) >= 3, res.log.rows
+    times = [t for _, t, _ in reached]
+    assert all(a < b for a, b in zip(times, times[1:])), reached
+    assert "linear between the two evaluations" in res.log.summary()
+
+
 def test_resume_without_iterations_finishes_the_interrupted_run(scene, tmp_path, monkeypatch):
     """An interrupted run resumed with no iterations given ends where it was planned to end, not at
     the 30 000 default; given iterations extend it."""

@@ -1,31 +1,30 @@
-"""Evaluation of a reconstruction against a simulated scan's truth: the bone iso-level, the solid
-bone mask (and its outer surface) and the metrics (PSNR, SSIM, surface distance). Library code
-shared by ``clgs <anatomy> ...``, :mod:`clgs.experiment` and :mod:`clgs.methods.shape_guided`."""
+"""Evaluation of a reconstruction against a simulated scan's truth: the solid bone mask, its outer
+surface (written to a run folder as ``surface.stl`` with ``surface.json`` naming the level and its
+source; :mod:`clgs.anatomy.bone_level` says where levels come from) and the metrics (PSNR, SSIM,
+surface distance of that same surface). Library code shared by ``clgs <anatomy> ...``,
+:mod:`clgs.experiment` and :mod:`clgs.methods.shape_guided`."""
 from __future__ import annotations
+
+from pathlib import Path
+
+from clgs.anatomy.bone_level import BoneLevel, choose_level
 from clgs.errors import InputError
 
-__all__ = ["surface_level", "bone_mask", "bone_surface", "evaluate_volume", "truncated_field_of_view"]
+__all__ = ["surface_level", "bone_mask", "bone_surface", "write_bone_surface", "read_bone_surface",
+           "evaluate_volume", "truncated_field_of_view", "SURFACE_FILE", "SURFACE_RECORD"]
+
+#: the bone surface of a run folder, and the record of the level it was taken at
+SURFACE_FILE = "surface.stl"
+SURFACE_RECORD = "surface.json"
 
 
 def surface_level(anatomy, truth) -> float:
-    """The bone iso-level: ``scene['surface_level']`` or the upper of 3-class Otsu thresholds (Otsu's
-    threshold for a truth of two values; a ValueError for a constant one)."""
-    level = (anatomy.scene or {}).get("surface_level")
-    if level is not None:
-        return float(level)
-    import numpy as np
-    from skimage.filters import threshold_multiotsu
-
-    t = np.asarray(truth, np.float32)
-    sub = t[:: max(1, t.shape[0] // 64)]
-    try:
-        return float(threshold_multiotsu(sub, classes=3)[-1])
-    except ValueError:  # two values only (a surface filled with one density): bone against air
-        from skimage.filters import threshold_otsu
-
-        if float(sub.min()) == float(sub.max()):
-            raise
-        return float(threshold_otsu(sub))
+    """The bone iso-level for evaluating against ``truth``: :func:`clgs.anatomy.bone_level.choose_level`
+    (the anatomy's scene level, else the truth's); a ValueError when neither gives one."""
+    level = choose_level(anatomy=anatomy, truth=truth)
+    if level is None:
+        raise ValueError("no bone level: the anatomy names none and the truth has no bone class")
+    return level.value
 
 
 def bone_mask(volume, level: float, min_piece: float = 0.1):
@@ -46,23 +45,64 @@ def bone_mask(volume, level: float, min_piece: float = 0.1):
     return ndimage.binary_fill_holes(mask)
 
 
-def bone_surface(volume, geometry, level: float | None = None):
+def bone_surface(volume, geometry, level: float):
     """The outer bone surface (:class:`clgs.io.mesh.Mesh`, mm) of a (Z, Y, X) volume on
     ``geometry``'s grid: :func:`clgs.mesh.surface.surface_from_volume` of :func:`bone_mask` at
-    ``level`` (1/mm; default, with no truth to take an iso-level from, half way between the
-    volume's median and its 99.5th percentile). None when no surface separates bone from the rest
-    (nothing, or everything, above the level)."""
+    ``level`` (1/mm, or a :class:`clgs.anatomy.bone_level.BoneLevel`; see that module for where a
+    level comes from). None when no surface separates bone from the rest (nothing, or everything,
+    above the level)."""
     import numpy as np
 
     from clgs.mesh.surface import surface_from_volume
 
-    vol = np.asarray(volume, np.float32)
+    if isinstance(level, BoneLevel):
+        level = level.value
     if level is None:
-        level = 0.5 * (float(np.median(vol)) + float(np.percentile(vol, 99.5)))
-    mask = bone_mask(vol, level)
+        raise TypeError("bone_surface needs the bone level (clgs.anatomy.bone_level.choose_level gives one)")
+    vol = np.asarray(volume, np.float32)
+    mask = bone_mask(vol, float(level))
     if not mask.any() or mask.all():
         return None
     return surface_from_volume(mask, geometry=geometry)
+
+
+def write_bone_surface(out_dir, volume, geometry, level: BoneLevel | None) -> dict:
+    """Write ``out_dir/surface.stl`` (the bone surface of ``volume`` at ``level``) and
+    ``out_dir/surface.json`` (the level, its source, the file); returns that record plus ``path``
+    (None when nothing was written: no level, or no bone above it, and then ``reason``). A stale
+    surface of an earlier run in the folder is removed, so the folder never holds a surface that is
+    not its volume's."""
+    from clgs.io import atomic
+    from clgs.io.mesh import save_mesh
+
+    out_dir = Path(out_dir)
+    mesh = None if level is None else bone_surface(volume, geometry, level)
+    if mesh is None:
+        for name in (SURFACE_FILE, SURFACE_RECORD):
+            (out_dir / name).unlink(missing_ok=True)
+        reason = ("no bone level: give one with --surface-level (Python: surface_level=)" if level is None else
+                  f"no voxel of the volume is above the bone level {level.value:.4g} (or every voxel is)")
+        return {"path": None, "reason": reason, **({} if level is None else level.record())}
+    path = save_mesh(out_dir / SURFACE_FILE, mesh.vertices, mesh.faces)
+    record = {"surface": SURFACE_FILE, "what": "the outer bone surface of the volume (world mm): solid bone above "
+              "the level, cavities filled, specks dropped", **level.record()}
+    atomic.write_json(out_dir / SURFACE_RECORD, record)
+    return {**record, "path": str(path)}
+
+
+def read_bone_surface(folder):
+    """(mesh, :class:`BoneLevel`) of a run folder's ``surface.stl`` and ``surface.json``, read back
+    from disk; None when the folder holds no such pair."""
+    import json
+
+    from clgs.io.mesh import load_mesh
+
+    folder = Path(folder)
+    if not ((folder / SURFACE_FILE).is_file() and (folder / SURFACE_RECORD).is_file()):
+        return None
+    record = json.loads((folder / SURFACE_RECORD).read_text(encoding="utf-8"))
+    level = BoneLevel(float(record["surface_level"]), str(record["surface_level_source"]))
+    return load_mesh(folder / SURFACE_FILE), level
 
 
 def truncated_field_of_view(scan):
@@ -74,9 +114,14 @@ def truncated_field_of_view(scan):
     return scan.geometry.field_of_view()
 
 
-def evaluate_volume(anatomy, scan, volume) -> dict:
+def evaluate_volume(anatomy, scan, volume, surface=None, level: BoneLevel | None = None) -> dict:
     """PSNR/SSIM against the scan's truth and, when the scan has the true surface, the surface
-    distance (mm) from the reconstruction's outer bone surface (:func:`bone_mask`) to it."""
+    distance (mm) from the reconstruction's outer bone surface to it, with the level
+    (``surface_level``) and its source (``surface_level_source``).
+
+    ``surface``: the bone surface to measure (the one a run wrote, read back: then ``level`` is
+    the level it was written at); without it the surface is taken from ``volume`` at ``level``,
+    or at :func:`clgs.anatomy.bone_level.choose_level`'s level for this anatomy and scan."""
     from clgs import metrics
     from clgs.anatomy.simulation import as_float32
 
@@ -100,16 +145,18 @@ def evaluate_volume(anatomy, scan, volume) -> dict:
         from clgs.mesh.surface import SurfaceError
 
         try:
-            try:
-                level = surface_level(anatomy, scan.truth)
-            except ValueError as exc:  # a truth with fewer than three values has no bone level
-                raise SurfaceError(f"no bone level in the truth ({exc})") from None
-            mesh = bone_surface(vol, scan.geometry, level)
+            if level is None:
+                level = choose_level(anatomy=anatomy, truth=scan.truth, scan_meta=scan.meta)
+            if level is None:
+                raise SurfaceError("no bone level: the anatomy names none and the truth has no bone class")
+            mesh = surface if surface is not None else bone_surface(vol, scan.geometry, level)
             if mesh is None:
-                raise SurfaceError(f"no bone surface: no voxel of the reconstruction is above the level {level:.4g} "
-                                   "(or every voxel is)")
+                raise SurfaceError(f"no bone surface: no voxel of the reconstruction is above the level "
+                                   f"{level.value:.4g} (or every voxel is)")
             sd = metrics.surface_distance(mesh, scan.surface, n_samples=20000)
-            out.update({f"surface_{k}_mm": v for k, v in sd.items()}, surface_level=level)
+            out.update({f"surface_{k}_mm": v for k, v in sd.items()}, **level.record())
         except SurfaceError as exc:
             out["surface_error"] = str(exc)
+            if level is not None:
+                out.update(level.record())
     return out

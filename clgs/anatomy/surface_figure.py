@@ -71,22 +71,26 @@ def surface_distance_figure(path, surfaces: dict, truth, max_mm: float = DEFAULT
     return str(path)
 
 
-def reconstruction_figure(path, anatomy, scan, volume, model_surface=None, mesh=None, title: str = ""):
+def reconstruction_figure(path, anatomy, scan, volume, model_surface=None, mesh=None, title: str = "", level=None):
     """:func:`surface_distance_figure` of a reconstruction of ``scan``: its outer bone surface
-    (``mesh``, or extracted from ``volume`` at the truth's bone level) and, for a shape-guided run,
-    the fitted model's surface, against the scan's true surface. None (nothing written) when the
-    scan has no true surface or the reconstruction no bone surface."""
+    (``mesh``, the surface a run wrote, taken at ``level``; or extracted from ``volume`` at
+    :func:`clgs.anatomy.bone_level.choose_level`'s level) and, for a shape-guided run, the fitted
+    model's surface, against the scan's true surface; the row names the level and its source. None
+    (nothing written) when the scan has no true surface or the reconstruction no bone surface."""
     if scan.surface is None or scan.truth is None:
         return None
-    from clgs.anatomy.evaluation import bone_surface, surface_level
+    from clgs.anatomy.bone_level import choose_level
+    from clgs.anatomy.evaluation import bone_surface
     from clgs.mesh.surface import SurfaceError
 
     if mesh is None:
+        level = choose_level(anatomy=anatomy, truth=scan.truth, scan_meta=scan.meta)
         try:
-            mesh = bone_surface(volume, scan.geometry, surface_level(anatomy, scan.truth))
+            mesh = None if level is None else bone_surface(volume, scan.geometry, level)
         except (SurfaceError, ValueError):
             mesh = None
-    surfaces = {"volume surface": mesh, "model surface": model_surface}
+    label = "volume surface" if level is None else f"volume surface (level {level.value:.4g}, {level.source})"
+    surfaces = {label: mesh, "model surface": model_surface}
     if all(m is None for m in surfaces.values()):
         return None
     return surface_distance_figure(path, surfaces, scan.surface, title=title)

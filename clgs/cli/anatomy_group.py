@@ -84,12 +84,20 @@ def _simulate(anatomy, subject, *args, **kwargs):
 
 
 def _evaluate(anatomy, scan, volume, folder=None) -> dict:
-    """:func:`clgs.anatomy.evaluation.evaluate_volume` (input errors: see :class:`AnatomyCommand`); plus, when
+    """:func:`clgs.anatomy.evaluation.evaluate_volume` (input errors: see :class:`AnatomyCommand`) of
+    the bone surface ``folder`` holds (``surface.stl``, read back from disk, at the level its
+    ``surface.json`` names), so the figure printed is the file's; without one, of the surface taken
+    from the volume at the anatomy's level (not written: ``surface_file`` says so). Plus, when
     ``folder`` holds a shape-guided run's ``shape_surface.stl`` (the template moved by the fitted
     shape coefficients), that surface's distance to the truth."""
-    from clgs.anatomy.evaluation import evaluate_volume
+    from clgs.anatomy.evaluation import SURFACE_FILE, evaluate_volume, read_bone_surface
 
-    out = evaluate_volume(anatomy, scan, volume)
+    written = read_bone_surface(folder) if folder else None
+    mesh, level = written if written is not None else (None, None)
+    out = evaluate_volume(anatomy, scan, volume, surface=mesh, level=level)
+    if scan.surface is not None:
+        out["surface_file"] = (os.path.join(folder, SURFACE_FILE) if written is not None
+                               else "not written (taken from the volume for this evaluation)")
     model = os.path.join(folder, "shape_surface.stl") if folder else None
     if model and os.path.isfile(model) and scan.surface is not None:
         from clgs.io.mesh import load_mesh
@@ -101,8 +109,10 @@ def _evaluate(anatomy, scan, volume, folder=None) -> dict:
 
 
 def _surface_picture(anatomy, scan, volume, folder) -> None:
-    """FOLDER/surface_distance.png: the reconstruction's bone surface (and a shape-guided run's
-    model surface) coloured by distance to the truth, when the scan has a true surface."""
+    """FOLDER/surface_distance.png: the bone surface the folder holds (surface.stl, the one
+    measured) and a shape-guided run's model surface, coloured by distance to the truth, when the
+    scan has a true surface."""
+    from clgs.anatomy.evaluation import read_bone_surface
     from clgs.anatomy.surface_figure import reconstruction_figure
 
     model = os.path.join(folder, "shape_surface.stl")
@@ -111,8 +121,13 @@ def _surface_picture(anatomy, scan, volume, folder) -> None:
         from clgs.io.mesh import load_mesh
 
         model_mesh = load_mesh(model, space="RAS")  # clgs's own (tagged) file
+    written = read_bone_surface(folder)
+    if written is None and model_mesh is None:
+        return
     png = reconstruction_figure(os.path.join(folder, "surface_distance.png"), anatomy, scan, volume, model_mesh,
-                                title=f"{anatomy.name} {scan.meta.get('subject', '')}".strip())
+                                mesh=None if written is None else written[0],
+                                title=f"{anatomy.name} {scan.meta.get('subject', '')}".strip(),
+                                level=None if written is None else written[1])
     if png:
         click.echo(f"  surface picture        {png}")
 
@@ -147,20 +162,30 @@ def _get_method(method: str):
         raise click.ClickException(f"reconstruction method {method!r} could not be loaded: {exc}")
 
 
-def run_reconstruct(scan, anatomy, method: str, out=None, **options):
+def run_reconstruct(scan, anatomy, method: str, out=None, surface_level=None, **options):
     """Reconstruct with a method of the registry (:mod:`clgs.methods`); the anatomy goes to the
     methods that name an ``anatomy`` parameter (the others would take it for a setting). Returns
     the method's result dict (at least ``volume``). With ``out``, ``out/volume.npy`` is (over)written
     atomically with the volume just computed, whatever an earlier run left there (and
-    ``out/volume.nii.gz`` for viewers)."""
+    ``out/volume.nii.gz`` for viewers), and so are the bone surface ``out/surface.stl`` (with
+    ``surface.json``: the level and its source, :func:`clgs.anatomy.bone_level.choose_level`, or
+    ``surface_level`` when given; a method that writes its own, as the shape-guided one does, is
+    given the level) and the slice panel ``out/slices.png``; ``result["surface"]`` and
+    ``result["slices"]`` record them."""
     import inspect
 
     _, run = _get_method(method)
-    if "anatomy" in inspect.signature(run).parameters:
+    params = inspect.signature(run).parameters
+    if "anatomy" in params:
         options["anatomy"] = anatomy
+    if "surface_level" in params and surface_level is not None:
+        options["surface_level"] = surface_level
     result = run(scan, out, **options)
     if out is not None and "volume" in result:
+        from clgs.anatomy.bone_level import choose_level
+        from clgs.anatomy.evaluation import write_bone_surface
         from clgs.anatomy.simulation import as_float32
+        from clgs.figures import SLICES_FILE, volume_slices
         from clgs.io.volume import save_volume
 
         os.makedirs(out, exist_ok=True)
@@ -169,7 +194,29 @@ def run_reconstruct(scan, anatomy, method: str, out=None, **options):
         volume = as_float32(result["volume"])
         save_volume(os.path.join(out, "volume.npy"), volume, scan.geometry)
         save_volume(os.path.join(out, "volume.nii.gz"), volume, scan.geometry, units="1/mm")  # for viewers, in mm
+        info = result.get("info") or {}
+        if "surface_level_source" in info or "surface_note" in info:  # the method wrote (or ruled out) its own
+            result["surface"] = {"path": info.get("surface_file"), "reason": info.get("surface_note"),
+                                 **{k: info[k] for k in ("surface_level", "surface_level_source") if k in info}}
+        else:
+            level = choose_level(user=surface_level, anatomy=anatomy, truth=scan.truth, scan_meta=scan.meta)
+            result["surface"] = write_bone_surface(out, volume, scan.geometry, level)
+        result["slices"] = volume_slices(os.path.join(out, SLICES_FILE), volume, scan.geometry, truth=scan.truth,
+                                         title=f"{anatomy.name}: {method}, {scan.n_views} views")
     return result
+
+
+def _echo_outputs(result) -> None:
+    """The bone surface written (and its level's source) and the slice panel."""
+    surface = result.get("surface")
+    if surface is not None:
+        if surface.get("path"):
+            click.echo(f"  bone surface           {surface['path']} (level {surface['surface_level']:.4g} 1/mm, "
+                       f"source: {surface['surface_level_source']})")
+        else:
+            click.echo(f"  bone surface           none written: {surface.get('reason')}")
+    if result.get("slices"):
+        click.echo(f"  slices                 {result['slices']}")
 
 
 def _geometry_views(path) -> int:
@@ -374,7 +421,10 @@ def _reconstruct_command(anatomy) -> click.Command:
                        "resume=true); without --set iterations=N it runs to the checkpoint's planned iterations")
     @click.option("--force", is_flag=True, help="replace what --out holds: an earlier clgs run's files are removed "
                                                "first (anything else there is refused)")
-    def reconstruct(scan_dir, out, method, views, settings, resume, force):
+    @click.option("--surface-level", type=FiniteFloat(min=0, min_open=True), default=None,
+                  help="bone level (1/mm) of OUT/surface.stl [default: the anatomy's, or the truth's for a simulated "
+                       "scan; docs/outputs.md]")
+    def reconstruct(scan_dir, out, method, views, settings, resume, force, surface_level):
         """Reconstruct a scan folder with the anatomy's prior; writes OUT/volume.nii.gz and OUT/volume.npy."""
         method = method or default_method(anatomy)
         m, run = _get_method(method)
@@ -389,13 +439,13 @@ def _reconstruct_command(anatomy) -> click.Command:
         # no iterations unless given: a resumed run then goes on to its checkpoint's planned count
         opts = check_settings(method, m, run, opts, raw)
         with _check_run_out(scan_dir, out, bool(opts.get("resume")), force):
-            result, scan = _reconstruct_into(anatomy, scan_dir, out, method, views, opts)
+            result, scan = _reconstruct_into(anatomy, scan_dir, out, method, views, opts, surface_level)
         exit_if_interrupted(result.get("info"))
 
     return reconstruct
 
 
-def _reconstruct_into(anatomy, scan_dir, out, method, views, opts) -> tuple:
+def _reconstruct_into(anatomy, scan_dir, out, method, views, opts, surface_level=None) -> tuple:
     """The run of ``clgs <anatomy> reconstruct`` in its claimed folder: (result, scan)."""
     from clgs.io.scan import Scan
 
@@ -410,9 +460,10 @@ def _reconstruct_into(anatomy, scan_dir, out, method, views, opts) -> tuple:
 
         scan = scan.subset(np.linspace(0, scan.n_views, views, endpoint=False).astype(int))
     t0 = time.perf_counter()
-    result = run_reconstruct(scan, anatomy, method, out=out, **opts)
+    result = run_reconstruct(scan, anatomy, method, out=out, surface_level=surface_level, **opts)
     seconds = time.perf_counter() - t0
     click.echo(f"{name}: {method} reconstruction of {scan.n_views} views in {seconds:.1f} s -> {out}")
+    _echo_outputs(result)
     if scan.truth is not None and "volume" in result:
         _echo_metrics(_evaluate(anatomy, scan, result["volume"], out))
         _surface_picture(anatomy, scan, result["volume"], out)
@@ -493,7 +544,9 @@ def _evaluate_command(anatomy) -> click.Command:
             from clgs.io.orientation import to_working
 
             vol = to_working(vol, scan.geometry.orientation)
-        _echo_metrics(_evaluate(anatomy, scan, vol, os.path.dirname(volume)))
+        # a run folder's surfaces are its volume's: another volume file lying there is measured alone
+        run_volume = os.path.basename(volume) in ("volume.npy", "volume.nii.gz")
+        _echo_metrics(_evaluate(anatomy, scan, vol, os.path.dirname(volume) if run_volume else None))
 
     return evaluate
 
@@ -513,7 +566,9 @@ def _demo_command(anatomy) -> click.Command:
                        "the shape-guided method peaks near 600 on the femur, see docs/results.md)")
     @click.option("--seed", type=Seed(), default=0, show_default=True, help="random seed, 0 to 2**64 - 1")
     @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="method option (repeatable)")
-    def demo(subject_id, views, method, out, iterations, seed, settings):
+    @click.option("--surface-level", type=FiniteFloat(min=0, min_open=True), default=None,
+                  help="bone level (1/mm) of the surface written and measured [default: the truth's]")
+    def demo(subject_id, views, method, out, iterations, seed, settings, surface_level):
         """Simulate a held-out subject, reconstruct it from few views, print error vs time."""
         import math
         import tempfile
@@ -538,7 +593,8 @@ def _demo_command(anatomy) -> click.Command:
         work = out or tempfile.mkdtemp(prefix=f"clgs-{name}-demo-")
         scan.save(os.path.join(work, "scan"), overwrite=True)
         t1 = time.perf_counter()
-        result = run_reconstruct(scan, anatomy, method, out=os.path.join(work, "recon"), **opts)
+        result = run_reconstruct(scan, anatomy, method, out=os.path.join(work, "recon"), surface_level=surface_level,
+                                 **opts)
         elapsed = time.perf_counter() - t1
         history = result.get("history") or (result.get("info") or {}).get("history")
         if history:
@@ -548,8 +604,9 @@ def _demo_command(anatomy) -> click.Command:
                 it, tt = row.pop("iteration", ""), row.pop("time", row.pop("seconds", float("nan")))
                 click.echo(f"  {it!s:>9} {tt:10.1f}   " + "  ".join(
                     f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
-        click.echo(f"reconstructed in {elapsed:.1f} s; final error:")
+        click.echo(f"reconstructed in {elapsed:.1f} s; final error (volume surface: the bone surface written):")
         _echo_metrics(_evaluate(anatomy, scan, result["volume"], os.path.join(work, "recon")))
+        _echo_outputs(result)
         _surface_picture(anatomy, scan, result["volume"], os.path.join(work, "recon"))
         from clgs.bench.train import peak_memory_mib
 

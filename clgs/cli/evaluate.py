@@ -65,9 +65,13 @@ def _in_scan_order(path: Path, vol, orientation, axes: str):
               help="axis order of .npy inputs: zyx (clgs) or xyz (R2-Gaussian's vol_gt.npy)")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="write the figures to this JSON file (an infinite PSNR is written as null)")
-@click.option("--force", is_flag=True, help="overwrite an existing --json")
+@click.option("--figure", "figure_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="slice panel PNG (central slices of VOLUME, the truth and the error) [default: next to VOLUME, "
+                   "VOLUME_vs_truth.png, or evaluation.png in a run folder]")
+@click.option("--no-figure", is_flag=True, help="draw no slice panel")
+@click.option("--force", is_flag=True, help="overwrite an existing --json or --figure")
 def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, mesh_space, spacing, axes, json_out,
-             force):
+             figure_out, no_figure, force):
     """Compare VOLUME with the truth: 3D PSNR / SSIM (as R2-Gaussian), masked variants, and the
     surface distance in mm when --level is given. VOLUME may also be a reconstruct output folder.
 
@@ -88,6 +92,12 @@ def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, 
         check_writable(json_out, "--json")
     if mask_path is not None and mask_level is not None:
         raise click.UsageError("give either --mask or --mask-level, not both")
+    if figure_out is not None:
+        if no_figure:
+            raise click.UsageError("give --figure or --no-figure, not both")
+        _check_figure_path(figure_out, force, [("volume", volume, False), ("truth", truth, truth.is_dir()),
+                                                ("mask", mask_path, False), ("surface", surface_path, False),
+                                                ("json", json_out, False)])
     if volume.is_dir():
         if not (volume / "volume.nii.gz").is_file():
             raise click.BadParameter(f"{volume}: a folder without volume.nii.gz", param_hint="VOLUME")
@@ -152,9 +162,63 @@ def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, 
     if "surface" in res:
         s = res["surface"]
         click.echo(f"surface distance (mm): mean {s['mean']:.3f}   p95 {s['p95']:.3f}   Hausdorff {s['hausdorff']:.3f}")
+    if not no_figure:
+        figure = _draw_figure(figure_out, volume, pred, tvol, psp if psp is not None else tsp,
+                              porg if porg is not None else torg, res, truth)
+        if figure is not None:
+            res["figure"] = figure
     if json_out is not None:
         atomic.write_json(json_out, res, overwrite=True)
         click.echo(f"wrote {json_out}")
+
+
+def _check_figure_path(path: Path, force: bool, inputs) -> None:
+    """A --figure path: a .png file that is no input and may be written (an existing one with --force)."""
+    if path.suffix.lower() != ".png":
+        raise click.BadParameter(f"{path}: the figure is a PNG; name it ....png", param_hint="--figure")
+    check_not_input(path, inputs, "--figure")
+    if path.is_dir():
+        raise click.BadParameter(f"{path} is a folder", param_hint="--figure")
+    if path.exists() and not force:
+        raise click.ClickException(f"{path} already exists; pass --force to overwrite it (or choose another --figure)")
+    check_writable(path, "--figure")
+
+
+def _default_figure(volume: Path) -> Path:
+    """Next to the volume: ``evaluation.png`` in a run folder, else ``<name>_vs_truth.png``."""
+    if volume.name == "volume.nii.gz":
+        return volume.parent / "evaluation.png"
+    name = volume.name
+    for suffix in (".nii.gz", ".nii", ".npy", ".mha", ".mhd", ".nrrd", ".nhdr"):
+        if name.lower().endswith(suffix):
+            name = name[: -len(suffix)]
+            break
+    return volume.parent / f"{name}_vs_truth.png"
+
+
+def _draw_figure(path, volume: Path, pred, truth, spacing, origin, res, truth_arg) -> str | None:
+    """The slice panel (:func:`clgs.figures.slice_panel`); at the default place, a folder that
+    will not take it is said and skipped (the figures printed are the command's result)."""
+    from clgs.figures import slice_panel
+
+    given = path is not None
+    path = path if given else _default_figure(volume)
+    figures = {"3D PSNR (dB)": res.get("psnr3d"), "3D SSIM": res.get("ssim3d")}
+    units = "mm" if spacing is not None else "voxels"
+    try:
+        if not given:
+            check_not_input(path, [("truth", truth_arg, truth_arg.is_dir())], "--figure")
+        out = slice_panel(path, pred, spacing if spacing is not None else (1.0, 1.0, 1.0),
+                          origin if origin is not None else (0.0, 0.0, 0.0), truth=truth,
+                          title=f"{volume.name} against the truth", figures=figures, label="volume", units=units)
+    except (OSError, click.ClickException) as exc:
+        if given:
+            raise click.ClickException(f"cannot write --figure {path}: {exc}") from None
+        msg = exc.format_message() if isinstance(exc, click.ClickException) else str(exc)
+        click.echo(f"no figure written next to the volume ({msg}); give --figure PATH", err=True)
+        return None
+    click.echo(f"figure: {out}")
+    return out
 
 
 def _check_same_grid(volume, psp, porg, tsp, torg) -> None:

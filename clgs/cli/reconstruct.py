@@ -132,14 +132,20 @@ def _prepare_outputs(scan, out, json_out, force, into_folder: bool, resuming: bo
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
               help="a method setting, as clgs <anatomy> reconstruct takes them (repeatable); the method's own "
                    "options after SCAN say the same")
+@click.option("--surface-level", type=FiniteFloat(min=0, min_open=True), default=None,
+              help="bone level (1/mm): also write OUT/surface.stl, the volume's outer bone surface there [default: "
+                   "the level the scan's true surface was made at, if it names one; else no surface]")
 @click.option("--help", "-h", "show_help", is_flag=True, help="show this message (with --method: its options)")
 @click.pass_context
-def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, settings, show_help):
+def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, settings, surface_level, show_help):
     """Reconstruct a volume from SCAN (a clgs scan folder or an R2-Gaussian dataset folder).
 
     The volume is attenuation in 1/mm (Hounsfield units with --to-hu), in the array order and with
     the affine of the volume the scan was simulated from. With a ground truth in the scan, prints
-    3D PSNR / SSIM (as R2-Gaussian computes them, in 1/mm) and the wall time.
+    3D PSNR / SSIM (as R2-Gaussian computes them, in 1/mm) and the wall time. A folder OUT also
+    gets slices.png (central slices; with a truth, the truth's and the error's) and, at a bone
+    level (--surface-level, or the one the scan records), surface.stl with its distance to the
+    scan's true surface; `clgs <anatomy> reconstruct` takes the anatomy's level (docs/outputs.md).
     \f
 
     (Long because the run's outputs are cleaned up on any failure: the try blocks hold the steps
@@ -167,6 +173,10 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
         _merge_settings(method, settings, options, kwargs)
     if options.get("resume") and force:
         raise click.UsageError("--resume continues the run in --out, --force replaces it: give one")
+    if surface_level is not None and is_volume_path(out):
+        raise click.UsageError("--surface-level writes OUT/surface.stl next to the volume: give a folder as --out")
+    if surface_level is not None and _takes_surface_level(method):
+        kwargs["surface_level"] = surface_level  # a method that writes its own bone surface
     into_folder = not is_volume_path(out) and not method.atomic_dir
     resuming = bool(options.get("resume")) and into_folder and out.is_dir()
     created, created_json = _prepare_outputs(scan, out, json_out, force, into_folder, resuming)
@@ -217,6 +227,11 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
         save_reconstruction(out if folder is None else folder, vol, sc.geometry, hu=hu, kev=kev, meta=sc.meta,
                             folder=folder is not None)
         if folder is not None:
+            report.update(run_figures(folder, vol, sc, method.name, surface_level, result.get("info") or {}))
+            # the folder's files named in the report are where they end up (an atomic folder is renamed)
+            for key in ("slices", "surface"):
+                if report.get(key, {}).get("path"):
+                    report[key]["path"] = str(Path(out) / Path(report[key]["path"]).name)
             atomic.write_json(folder / "report.json", report)
 
     sc = None
@@ -284,4 +299,64 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
             line += f", PSNR {fmt_number(m['psnr3d'])} dB, SSIM {m['ssim3d']:.4f}"
     click.echo(line)
     click.echo(f"wrote {out}")
+    for text in figure_lines(report):
+        click.echo(text)
     exit_if_interrupted(report.get("info"))
+
+
+def _takes_surface_level(method) -> bool:
+    """Whether the method's callable names a ``surface_level`` parameter (it writes its own bone surface)."""
+    import inspect
+
+    try:
+        return "surface_level" in inspect.signature(method.callable()).parameters
+    except (TypeError, ValueError, ImportError, AttributeError):
+        return False
+
+
+def run_figures(folder, volume, scan, method_name: str, surface_level, info: dict) -> dict:
+    """The run folder's slice panel and bone surface (written by the method itself when it names
+    them in ``info``), with the surface's distance to the scan's true surface measured on the file
+    read back: ``{"slices": {...}, "surface": {...}}`` for the report."""
+    from clgs.anatomy.bone_level import choose_level
+    from clgs.anatomy.evaluation import read_bone_surface, write_bone_surface
+    from clgs.figures import SLICES_FILE, volume_slices
+
+    out = {"slices": {"path": volume_slices(Path(folder) / SLICES_FILE, volume, scan.geometry, truth=scan.truth,
+                                            title=f"{method_name}, {scan.n_views} views"),
+                      "what": "central axial, coronal and sagittal slices" + (
+                          "; the truth's and the error's below" if scan.truth is not None else "")}}
+    if "surface_level_source" in info or "surface_note" in info:  # the method wrote (or ruled out) its own
+        surface = {"path": info.get("surface_file"), "reason": info.get("surface_note"),
+                   **{k: info[k] for k in ("surface_level", "surface_level_source") if k in info}}
+    else:
+        level = choose_level(user=surface_level, scan_meta=scan.meta)
+        surface = write_bone_surface(folder, volume, scan.geometry, level)
+    surface = {k: v for k, v in surface.items() if v is not None}
+    written = read_bone_surface(folder) if surface.get("path") else None
+    if written is not None and scan.surface is not None:
+        from clgs.metrics import surface_distance
+
+        sd = surface_distance(written[0], scan.surface)
+        surface.update({f"distance_{k}_mm": v for k, v in sd.items()})
+    out["surface"] = surface
+    return out
+
+
+def figure_lines(report: dict) -> list:
+    """What the run folder's figures and surface are, for the terminal."""
+    lines = []
+    slices = report.get("slices") or {}
+    if slices.get("path"):
+        lines.append(f"slices: {slices['path']}")
+    s = report.get("surface") or {}
+    if s.get("path"):
+        text = (f"bone surface: {s['path']} (level {s['surface_level']:.4g} 1/mm, source: "
+                f"{s['surface_level_source']})")
+        if "distance_mean_mm" in s:
+            text += (f"; to the true surface: mean {s['distance_mean_mm']:.3f} mm, p95 {s['distance_p95_mm']:.3f}, "
+                     f"Hausdorff {s['distance_hausdorff_mm']:.3f}")
+        lines.append(text)
+    elif s.get("reason"):
+        lines.append(f"bone surface: none written ({s['reason']})")
+    return lines

@@ -130,6 +130,9 @@ class GaussianFitConfig(JsonConfig):
     seed: int = setting(0, "--seed", "random seed")
     value_scale: float | None = None  # None -> 1 / p99.9 of the FDK volume
     log_every: int = setting(500, "--log-every", "evaluate and log every N iterations")
+    log_early: bool = setting(True, "--log-early",
+                              "also evaluate at iterations 10, 20, 50, 100, 200, ... below the first --log-every, "
+                              "where the error falls fastest")
     checkpoint_every: int = setting(1000, "--checkpoint-every",
                                     "write a checkpoint every N iterations (0: only at the end / on Ctrl-C)")
     schedule_iterations: int | None = None  # length of the lr decays (default: iterations)

@@ -67,8 +67,9 @@ def gaussians_in_scan_units(trainer: Trainer, value_scale: float) -> dict:
     return out
 
 
-def write_outputs(trainer: Trainer, out_dir, value_scale: float, volume=None) -> dict:
-    """Volume (NIfTI), Gaussians (npz), log (CSV + PNG), summary; each file atomically."""
+def write_outputs(trainer: Trainer, out_dir, value_scale: float, volume=None, method: str = "R2-Gaussian") -> dict:
+    """Volume (NIfTI), Gaussians (npz), log (CSV + PNG titled by ``method``, the run's method),
+    summary; each file atomically."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     volume = voxelize_volume(trainer) / np.float32(value_scale) if volume is None else volume
@@ -80,5 +81,5 @@ def write_outputs(trainer: Trainer, out_dir, value_scale: float, volume=None) ->
         "summary": atomic.write_text(out_dir / "summary.txt", trainer.log.summary() + "\n"),
     }
     if trainer.log.rows:
-        paths["plot"] = trainer.log.plot(out_dir / "log.png", title=f"r2gs: {trainer.iteration} iterations")
+        paths["plot"] = trainer.log.plot(out_dir / "log.png", title=f"{method}: {trainer.iteration} iterations")
     return paths

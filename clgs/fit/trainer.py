@@ -14,7 +14,8 @@ The loop knows nothing about a particular method. It takes
 One iteration: set each parameter's learning rate from its schedule, take the next view of a
 reshuffled stack, evaluate the loss terms on a lazily-built :class:`Context`, backward, Adam
 (eps 1e-15) on the parameters whose learning rate is not 0, count the iteration, run hooks.
-Every ``log_every`` iterations the optional ``evaluate(trainer) -> dict`` adds a row to the log.
+Every ``log_every`` iterations (and, with ``log_early``, at 10, 20, 50, 100, ... before the first)
+the optional ``evaluate(trainer) -> dict`` adds a row to the log.
 Every ``checkpoint_every`` iterations, on Ctrl-C and at the end, a checkpoint is written.
 
 Ctrl-C: the first SIGINT (main thread), or a SIGTERM (what ``timeout``, batch schedulers and
@@ -210,12 +211,21 @@ class Context:
         return self.trainer.backend.voxelize(*(tensors or self.tensors), grid)
 
 
+def early_log_points(below: int) -> set:
+    """1, 2 and 5 times the powers of ten from 10 up to ``below`` (excluded)."""
+    out, decade = set(), 10
+    while decade < below:
+        out.update(m * decade for m in (1, 2, 5) if m * decade < below)
+        decade *= 10
+    return out
+
+
 class Trainer:
     """Adam over named Gaussian sets, one view per iteration; see the module doc."""
 
     def __init__(self, sets, geometry, projections, losses, *, iterations: int, backend="cl",
                  render_scale: float = 1.0, seed: int = 0, hooks=(), evaluate=None, log_every: int = 500,
-                 checkpoint_every: int = 0, checkpoint_path=None, progress: bool = False,
+                 log_early: bool = False, checkpoint_every: int = 0, checkpoint_path=None, progress: bool = False,
                  views=None, config: dict | None = None, torch_threads: int | None = -1):
         self.sets = list(sets)
         names = [s.name for s in self.sets]
@@ -233,6 +243,7 @@ class Trainer:
         self.hooks = list(hooks)
         self.evaluate = evaluate
         self.log_every = int(log_every)
+        self.log_early = bool(log_early)
         self.checkpoint_every = int(checkpoint_every)
         self.checkpoint_path = checkpoint_path
         self.progress_enabled = progress
@@ -355,7 +366,7 @@ class Trainer:
                 self.seconds += time.perf_counter() - t0
                 progress.update(1, {**values, "n_gaussians": self.n_gaussians,
                                     **{k: self.log.last(k) for k in ("proj_psnr", "psnr3d", "ssim3d")}})
-                if self.log_every > 0 and self.iteration % self.log_every == 0:
+                if self.log_due(self.iteration):
                     self._log_row(t_wall, values)
                 if self.checkpoint_every > 0 and self.iteration % self.checkpoint_every == 0:
                     self.save_checkpoint(t_wall)
@@ -377,6 +388,16 @@ class Trainer:
         if self.log_every > 0 and self._count > 0 and not logged:
             self._log_row(t_wall, {})
         return self
+
+    def log_due(self, iteration: int) -> bool:
+        """Whether ``iteration`` gets a log row: every ``log_every``, and with ``log_early`` also at
+        10, 20, 50, 100, 200, 500, ... below the first ``log_every``, where the error falls fastest
+        (so the time to each quality level is told apart; a few evaluations more per run)."""
+        if self.log_every <= 0:
+            return False
+        if iteration % self.log_every == 0:
+            return True
+        return self.log_early and iteration < self.log_every and iteration in early_log_points(self.log_every)
 
     def _on_sigint(self, signum, frame):
         if self._stop:

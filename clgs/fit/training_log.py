@@ -109,14 +109,18 @@ class TrainingLog:
             lines.append(f"{its} iterations in {secs:.1f} s of training: {its / secs:.1f} it/s")
         reached = self.time_to_quality()
         if reached:
-            lines.append("first reached (3D PSNR, at training s / wall s since the start): "
+            lines.append("first reached (3D PSNR, at training s / wall s since the start; linear between the two "
+                         "evaluations logged around each level): "
                          + ", ".join(f"{level:g} dB at {t:.1f} / {w:.1f} s" for level, t, w in reached))
         return "\n".join(lines)
 
     def time_to_quality(self, key: str = "psnr3d", step: float = 1.0) -> list:
         """[(level, training seconds, wall seconds)]: when ``key`` first reached each whole multiple
-        of ``step`` from the first logged value up to the best (the time of the first logged row at
-        or above it: a finer ``log_every`` gives finer times)."""
+        of ``step`` from the first logged value up to the best. The curve is known only at the
+        logged evaluations: the time is interpolated linearly between the last row below the level
+        and the first row at or above it (so two levels passed between the same two rows get
+        different times, in proportion to the values logged there). The trainer logs densely early
+        on (``log_early``), where the curve rises fastest."""
         pts = [(float(r[key]), r.get("seconds"), r.get("wall")) for r in self.rows
                if r.get(key) is not None and r.get("seconds") is not None and math.isfinite(float(r[key]))]
         if len(pts) < 2:
@@ -126,8 +130,12 @@ class TrainingLog:
         out = []
         level = lo
         while level <= hi + 1e-12:
-            first = next(p for p in pts if p[0] >= level)
-            out.append((round(level, 6), float(first[1]), float(first[2] if first[2] is not None else first[1])))
+            i = next(i for i, p in enumerate(pts) if p[0] >= level)  # i >= 1: the first value is below lo
+            (v0, t0, w0), (v1, t1, w1) = pts[i - 1], pts[i]
+            w0 = t0 if w0 is None else w0
+            w1 = t1 if w1 is None else w1
+            f = (level - v0) / (v1 - v0)
+            out.append((round(level, 6), float(t0 + f * (t1 - t0)), float(w0 + f * (w1 - w0))))
             level += step
         return out
 

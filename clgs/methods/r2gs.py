@@ -3,8 +3,6 @@
 From Python::
 
     from clgs.io.scan import Scan
-from clgs.methods import Method
-from clgs.methods.gaussian import RUN_OPTIONS, method_output
     from clgs.methods.r2gs import reconstruct_r2gs
     result = reconstruct_r2gs(Scan.load("scan_dir"), out_dir="run", iterations=10_000)
     result.volume          # (Z, Y, X) float32, the scan's units (1/mm)
@@ -14,7 +12,8 @@ From the shell: ``clgs reconstruct scan_dir --method r2gs --iterations 10000 --o
 
 The run folder holds ``volume.nii.gz``, ``gaussians.npz``, ``log.csv``, ``log.png``,
 ``summary.txt``, ``config.json`` and ``checkpoint.pt`` (``resume=True`` / ``--resume`` continues
-from it bit for bit).
+from it bit for bit). The method knows no anatomy, so it writes no bone surface itself: the
+commands add ``surface.stl`` at a bone level they can name (docs/outputs.md).
 
 Units (normalisation). The papers' learning rates assume volumes of order 1 in a scene scaled
 to [-1, 1]^3 (R2-Gaussian's volumes are in [0, 1]). A scan holds line integrals in mm of an
@@ -59,7 +58,7 @@ class R2GSConfig(GaussianFitConfig):
     init: str = setting("fdk", "--init", "initialise from an FDK volume or uniformly at random")  # "fdk" | "random"
 
     CLI = ("iterations", "n_gaussians", "max_gaussians", "init", "seed", "backend", "projector_mode", "scale_floor",
-           "lambda_tv", "lambda_dssim", "log_every", "checkpoint_every")
+           "lambda_tv", "lambda_dssim", "log_every", "log_early", "checkpoint_every")
     KIND = "r2gs"
     CHOICES = {**GaussianFitConfig.CHOICES, "init": ("fdk", "random")}
     AT_LEAST = {**GaussianFitConfig.AT_LEAST, "n_gaussians": 1}

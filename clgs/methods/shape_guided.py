@@ -54,7 +54,8 @@ import numpy as np
 import torch
 
 from clgs.anatomy import plugins
-from clgs.anatomy.evaluation import bone_surface  # the outer bone surface written with the outputs
+from clgs.anatomy.bone_level import choose_level
+from clgs.anatomy.evaluation import bone_surface, write_bone_surface  # the outer bone surface of the outputs
 from clgs.fit import losses as L
 from clgs.fit.assembly import (
     fdk_volume,
@@ -123,7 +124,7 @@ class ShapeGuidedConfig(GaussianFitConfig):
     lr_scale: float = 0.005
     lr_rotation: float = 0.01
 
-    CLI = ("iterations", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every",
+    CLI = ("iterations", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every", "log_early",
            "checkpoint_every", "max_gaussians", "n_shape", "n_free", "tau", "shape_prior", "density_prior",
            "density_prior_field", "free_init", "alpha_init_iterations", "fit_size")
     KIND = "shape-guided"
@@ -164,6 +165,7 @@ class ShapeGuidedResult:
     out_dir: Path | None
     summary: str
     seconds: float
+    surface: dict | None = None  # the bone surface written (clgs.anatomy.evaluation.write_bone_surface)
 
 
 def _free_init_volume(fdk, geometry, template) -> np.ndarray:
@@ -380,26 +382,29 @@ def deformed_template_surface(template, shape_set) -> tuple:
 
 
 def reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | None = None, *, resume: bool = False,
-                             overwrite: bool = False, progress: bool = True, fdk=None, level: float | None = None,
+                             overwrite: bool = False, progress: bool = True, fdk=None,
+                             surface_level: float | None = None,
                              **settings) -> ShapeGuidedResult:
     """See :func:`_reconstruct_shape_guided`. ``out_dir``: one that holds anything is refused
     unless ``resume=True`` or ``overwrite=True`` (its clgs files go first), and it is locked while
     the run writes it (:func:`clgs.fit.config.run_folder`)."""
     with run_folder(out_dir, resume, overwrite):
         return _reconstruct_shape_guided(scan, anatomy, out_dir, iterations, resume=resume, progress=progress,
-                                         fdk=fdk, level=level, **settings)
+                                         fdk=fdk, surface_level=surface_level, **settings)
 
 
 def _reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | None = None, *, resume: bool = False,
-                              progress: bool = True, fdk=None, level: float | None = None,
+                              progress: bool = True, fdk=None, surface_level: float | None = None,
                               **settings) -> ShapeGuidedResult:
     """Reconstruct ``scan`` with the shape-guided method and the parts of ``anatomy``.
 
     ``anatomy``: a :class:`clgs.anatomy.Anatomy` (its template, shape model and atlas are loaded)
     or a tuple (template, shape_model, atlas). ``settings``: :class:`ShapeGuidedConfig` fields.
     ``out_dir`` receives volume.nii.gz, gaussians.npz, alpha.json, log.csv/png, summary.txt,
-    surface.stl (the reconstruction's bone surface at ``level``, 1/mm) and shape_surface.stl (the
-    template deformed by the fitted alpha); checkpoints allow ``resume``.
+    surface.stl with surface.json (the reconstruction's outer bone surface and the level it was
+    taken at: ``surface_level`` (1/mm) when given, else :func:`clgs.anatomy.bone_level.choose_level`'s
+    for this anatomy and scan) and shape_surface.stl (the template deformed by the fitted alpha);
+    checkpoints allow ``resume``. ``result.surface`` records the bone surface written.
     """
 
     if not isinstance(scan, Scan):
@@ -416,12 +421,15 @@ def _reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | Non
     alpha = shape_set.alpha.detach().numpy().copy() if isinstance(shape_set, ShapeGuidedSet) else np.zeros(0)
     seconds = time.perf_counter() - t0
     warn_if_implausible(alpha, trainer.log.last("proj_psnr"))
+    surface = None
     if out_dir is not None:
-        write_outputs(trainer, out_dir, cfg.value_scale, volume, parts[0], alpha, level)
+        level = choose_level(user=surface_level, anatomy=None if isinstance(anatomy, tuple) else anatomy,
+                             truth=scan.truth, scan_meta=scan.meta, atlas=parts[2], template=parts[0])
+        surface = write_outputs(trainer, out_dir, cfg.value_scale, volume, parts[0], alpha, level).pop("bone_surface")
     return ShapeGuidedResult(volume=volume, gaussians=gaussians_in_scan_units(trainer, cfg.value_scale),
                              alpha=alpha, log=trainer.log, trainer=trainer, value_scale=cfg.value_scale,
                              interrupted=trainer.interrupted, out_dir=None if out_dir is None else Path(out_dir),
-                             summary=trainer.log.summary(), seconds=seconds)
+                             summary=trainer.log.summary(), seconds=seconds, surface=surface)
 
 
 def load_anatomy_parts(anatomy) -> tuple:
@@ -434,20 +442,24 @@ def load_anatomy_parts(anatomy) -> tuple:
     return template, model, atlas
 
 
-def write_outputs(trainer, out_dir, value_scale, volume, template, alpha, level=None) -> dict:
-    """The r2gs outputs plus alpha and the two surfaces; each file atomically."""
+def write_outputs(trainer, out_dir, value_scale, volume, template, alpha, level) -> dict:
+    """The r2gs outputs plus alpha and the two surfaces (the bone surface at ``level``, a
+    :class:`clgs.anatomy.bone_level.BoneLevel` or None for none); each file atomically. The
+    returned ``bone_surface`` is :func:`clgs.anatomy.evaluation.write_bone_surface`'s record."""
 
     out_dir = Path(out_dir)
-    paths = write_common(trainer, out_dir, value_scale, volume)
+    paths = write_common(trainer, out_dir, value_scale, volume, method="shape-guided")
     shape_set = trainer.sets[0]
     size = shape_set.size if isinstance(shape_set, ShapeGuidedSet) and shape_set.fits_size else None
     paths["alpha"] = atomic.write_json(out_dir / "alpha.json", {"alpha": [float(a) for a in alpha], "size": size})
     moved = deformed_template_surface(template, trainer.sets[0])
     if moved is not None:
         paths["shape_surface"] = save_mesh(out_dir / "shape_surface.stl", *moved)
-    surf = bone_surface(volume, trainer.geometry, level)
-    if surf is not None:
-        paths["surface"] = save_mesh(out_dir / "surface.stl", *surf)
+    surface = write_bone_surface(out_dir, volume, trainer.geometry, level)
+    if surface["path"] is not None:
+        paths["surface"] = Path(surface["path"])
+        paths["surface_record"] = out_dir / "surface.json"
+    paths["bone_surface"] = surface
     return paths
 
 
@@ -464,19 +476,26 @@ def _anatomy_for(scan, anatomy):
 
 
 def run_method(scan, out_dir=None, iterations: int | None = None, anatomy=None, resume: bool = False,
-               progress: bool = True, **settings) -> dict:
-    """The ``shape`` entry of :mod:`clgs.methods`."""
+               progress: bool = True, surface_level: float | None = None, **settings) -> dict:
+    """The ``shape`` entry of :mod:`clgs.methods`; its ``info`` names the bone surface written
+    (``surface_file``, ``surface_level``, ``surface_level_source``)."""
     anatomy = _anatomy_for(scan, anatomy)
     result = reconstruct_shape_guided(scan, anatomy, out_dir, iterations, resume=resume, progress=progress,
-                                      **settings)
+                                      surface_level=surface_level, **settings)
     files = {p.name: str(p) for p in sorted(Path(out_dir).iterdir())} if out_dir is not None else {}
     shape_set = result.trainer.sets[0]
     size = shape_set.size if isinstance(shape_set, ShapeGuidedSet) and shape_set.fits_size else None
     if size is not None:
         print(f"bone size: {size:.3f} x the shape model's (fitted with its shape; --fit-size off keeps the model's)",
               file=sys.stderr)
+    surface = {}
+    if result.surface is not None:
+        surface = {k: result.surface[k] for k in ("surface_level", "surface_level_source") if k in result.surface}
+        surface["surface_file"] = result.surface["path"]
+        if result.surface["path"] is None:
+            surface["surface_note"] = result.surface["reason"]
     return method_output(result, out_dir, files, seconds=result.seconds, alpha=[float(a) for a in result.alpha],
-                         size=size, history=result.log.rows)
+                         size=size, history=result.log.rows, **surface)
 
 
 METHOD = Method("shape", run_method, config=ShapeGuidedConfig, atomic_dir=False,
