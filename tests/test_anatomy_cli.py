@@ -100,7 +100,7 @@ def test_volume_npy_is_always_the_run_just_done(bare, stand_ins, tiny_scan, tmp_
     for i, (method, value) in enumerate((("t-zeros", 0.0), ("t-ones", 1.0), ("t-zeros", 0.0))):
         if i:  # a folder that holds a run is replaced only with --force
             assert_clean_error(invoke(bare, "reconstruct", tiny_scan, "--out", out, "--method", method),
-                               "holds volume.nii.gz, volume.npy", "--force")
+                               "holds slices.png, volume.nii.gz, volume.npy", "--force")
         res = invoke(bare, "reconstruct", tiny_scan, "--out", out, "--method", method, *(["--force"] if i else []))
         assert res.exit_code == 0, res.output
         vol = np.load(out / "volume.npy")

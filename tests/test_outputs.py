@@ -83,15 +83,19 @@ def test_a_finished_run_is_replaced_only_with_force_and_then_only_its_files(bare
         assert tree(out) == before
     res = invoke(bare, "reconstruct", scan, "--out", out, "--method", "fdk", "--force")
     assert res.exit_code == 0, res.output
-    assert sorted(os.listdir(out)) == ["volume.nii.gz", "volume.npy"]  # the old run's other files are gone
+    left = sorted(os.listdir(out))  # the old run's other files are gone; the new run's own are there
+    assert "shape_surface.stl" not in left and "log.csv" not in left
+    assert {"volume.nii.gz", "volume.npy", "slices.png"} <= set(left)
     # the same from clgs reconstruct
     res = run("reconstruct", scan, "--method", "sart", "--iterations", 1, "--out", tmp_path / "r", ok=False)
     assert res.exit_code == 0
     res = run("reconstruct", scan, "--method", "fdk", "--out", tmp_path / "r", ok=False)
     clean_error(res, "already exists", "--force")
     (tmp_path / "r" / "log.png").write_bytes(b"an earlier run's figure")
+    (tmp_path / "r" / "slices.png").write_bytes(b"an earlier run's figure")
     run("reconstruct", scan, "--method", "fdk", "--out", tmp_path / "r", "--force")
-    assert sorted(os.listdir(tmp_path / "r")) == ["report.json", "volume.nii.gz", "volume.npy"]
+    assert sorted(os.listdir(tmp_path / "r")) == ["report.json", "slices.png", "volume.nii.gz", "volume.npy"]
+    assert (tmp_path / "r" / "slices.png").read_bytes() != b"an earlier run's figure"
     assert json.loads((tmp_path / "r" / "report.json").read_text())["method"] == "fdk"
 
 
