@@ -25,6 +25,22 @@
             (ptr)[(base) + (idx).s3], (ptr)[(base) + (idx).s4], (ptr)[(base) + (idx).s5], \
             (ptr)[(base) + (idx).s6], (ptr)[(base) + (idx).s7])
 
+/* Bilinear sample of one view's padded filtered projection qv (rows of SV values) at padded
+ * coordinates (uf, vf), eight lanes: the gather both x-lane kernels share. */
+inline real8 bilinear8(__global const real *qv, const int SV, const real8 uf, const real8 vf)
+{
+    int8 ku = convert_int8(uf), kv = convert_int8(vf);
+    real8 fu = uf - convert_real8(ku), fv = vf - convert_real8(kv);
+    int8 idx = ku * SV + kv;
+    real8 a0 = GATHER8(qv, 0, idx);
+    real8 a1 = GATHER8(qv, 1, idx);
+    real8 b0 = GATHER8(qv, SV, idx);
+    real8 b1 = GATHER8(qv, SV + 1, idx);
+    real8 ca = a0 + fv * (a1 - a0);
+    real8 cb = b0 + fv * (b1 - b0);
+    return ca + fu * (cb - ca);
+}
+
 __kernel void fdk_backproject(__global const real *q, __global const real *trig, __global real *out,
                               __global const real *geo, int n_views, int nX, int nY, int nZp,
                               int nU, int nV)
@@ -110,18 +126,7 @@ __kernel void fdk_backproject_x(__global const real *q, __global const real *tri
         uf = uf > (real8)hiU ? (real8)hiU : uf;
         vf = vf < (real8)-1 ? (real8)-1 : vf;
         vf = vf > (real8)hiV ? (real8)hiV : vf;
-        real8 up = uf + (real8)1, vp = vf + (real8)1;
-        int8 ku = convert_int8(up), kv = convert_int8(vp);
-        real8 fu = up - convert_real8(ku), fv = vp - convert_real8(kv);
-        __global const real *qv = q + (size_t)n * SU;
-        int8 idx = ku * SV + kv;
-        real8 a0 = GATHER8(qv, 0, idx);
-        real8 a1 = GATHER8(qv, 1, idx);
-        real8 b0 = GATHER8(qv, SV, idx);
-        real8 b1 = GATHER8(qv, SV + 1, idx);
-        real8 ca = a0 + fv * (a1 - a0);
-        real8 cb = b0 + fv * (b1 - b0);
-        acc += w * (ca + fu * (cb - ca));
+        acc += w * bilinear8(q + (size_t)n * SU, SV, uf + (real8)1, vf + (real8)1);
     }
     vstore8(acc, 0, out + ((size_t)k * nY + j) * nXp + g * 8);
 }
@@ -169,17 +174,7 @@ __kernel void fdk_backproject_vec(__global const real *q, __global const real *m
         uf = uf > (real8)hiU ? (real8)hiU : uf;
         vf = vf < (real8)0 ? (real8)0 : vf;
         vf = vf > (real8)hiV ? (real8)hiV : vf;
-        int8 ku = convert_int8(uf), kv = convert_int8(vf);
-        real8 fu = uf - convert_real8(ku), fv = vf - convert_real8(kv);
-        __global const real *qv = q + (size_t)n * SU;
-        int8 idx = ku * SV + kv;
-        real8 a0 = GATHER8(qv, 0, idx);
-        real8 a1 = GATHER8(qv, 1, idx);
-        real8 b0 = GATHER8(qv, SV, idx);
-        real8 b1 = GATHER8(qv, SV + 1, idx);
-        real8 ca = a0 + fv * (a1 - a0);
-        real8 cb = b0 + fv * (b1 - b0);
-        acc += wt * (ca + fu * (cb - ca));
+        acc += wt * bilinear8(q + (size_t)n * SU, SV, uf, vf);
     }
     vstore8(acc, 0, out + ((size_t)k2 * n1 + k1) * nLp + g * 8);
 }

@@ -19,6 +19,7 @@ import logging
 import os
 
 from clgs.errors import InputError
+from clgs.limits import available_memory, total_memory  # noqa: F401  (read here; tests patch them here)
 
 RESOURCE = "clgs-run"
 # worker deaths (a killed process, lost memory) a task may see before it counts as failed
@@ -60,24 +61,6 @@ WORKER_MIB = 600
 WORKERS_PER_CORE = 2
 
 
-def total_memory() -> int | None:
-    """Bytes of memory this machine has (None where unknown)."""
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):
-        return None
-
-
-def available_memory() -> int | None:
-    """Bytes of memory the system can give now (Linux ``MemAvailable``; None where unknown)."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
 
 
 def suggested_workers() -> int:
