@@ -53,6 +53,14 @@ def test_tooth_sparse_views_reports_every_method_against_the_reference(tmp_path)
     assert r.returncode == 0, r.stderr[-3000:]
     summary = json.loads((out / "summary.json").read_text())
     assert 290 <= summary["centre_column"] <= 300
+    # the import's own axis, with each estimator's column and figure recorded and printed
+    axis = summary["axis"]
+    assert axis["column"] == summary["centre_column"] and axis["method"] == "180-degree pair"
+    assert {"pair", "sinogram", "com"} == set(axis["estimates"])
+    for e, figure in zip(axis["estimates"].values(), ("mismatch_percent", "contrast_percent", "rms_residual_pixels")):
+        assert abs(e["column"] - axis["column"]) < 1.0 and math.isfinite(e[figure]), e
+    assert f"rotation axis at column {axis['column']:.2f}" in r.stdout
+    assert summary["air"]["views_without_air"] == 0 and summary["machine"]["cores"] >= 1
     methods = {row["method"] for row in summary["runs"]}
     assert {"FDK", "SART", "R2-Gaussian"} <= methods
     for row in summary["runs"]:
