@@ -254,6 +254,9 @@ def main():
     from clgs.methods.r2gs import reconstruct_r2gs
 
     out = Path(args.out)
+    held = [str(out / f"r2gs_{nv}") for nv in args.views if (out / f"r2gs_{nv}" / "checkpoint.pt").is_file()]
+    if held:  # R2-Gaussian refuses to start over a run; say so before the other methods run
+        ap.error(f"{', '.join(held)} hold(s) an R2-Gaussian run already: choose another --out or delete them")
     out.mkdir(parents=True, exist_ok=True)
     load_before = os.getloadavg()
     full, report = scan_from_raw(read_raw(args.raw), centre=args.centre)

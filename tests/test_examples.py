@@ -70,6 +70,17 @@ def test_tooth_sparse_views_reports_every_method_against_the_reference(tmp_path)
     assert (out / "curves.png").stat().st_size > 1000 and (out / "slices.png").stat().st_size > 1000
 
 
+def test_tooth_sparse_views_refuses_an_out_holding_a_run_before_running(tmp_path):
+    """R2-Gaussian would refuse to start over its earlier run minutes into the comparison: the
+    script says so at once."""
+    (tmp_path / "r2gs_15").mkdir()
+    (tmp_path / "r2gs_15" / "checkpoint.pt").write_bytes(b"")
+    cmd = [sys.executable, str(EXAMPLES / "tooth_sparse_views.py"), "--views", "15", "--raw", str(tmp_path / "none.h5"),
+           "--out", str(tmp_path)]
+    r = subprocess.run(cmd, capture_output=True, text=True, cwd=EXAMPLES, timeout=300)
+    assert r.returncode == 2 and "hold(s) an R2-Gaussian run already" in r.stderr, r.stderr[-2000:]
+
+
 def test_femur_sizes_writes_subject_22_at_the_lengths_asked(tmp_path):
     """The sizes experiment of docs/results.md starts from these files: the subject's shape at each length."""
     pytest.importorskip("clgs_femur", reason="install with: pip install -e anatomies/femur")
