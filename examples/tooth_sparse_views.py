@@ -6,8 +6,10 @@ RTK's FBP/FDK and SART on the same views where they are installed.
 
 The data: ``shared/data/real/tooth/tooth.h5`` (or ``--raw``), real synchrotron counts with flat
 and dark fields, 2 detector rows x 640 columns, parallel beam over 180 degrees. It is imported as
-``clgs import`` does (flat/dark correction, -log, the rotation axis found by the centre-of-mass
-fit on all 181 views), the reference is FDK (ramp filter) from every view, and each sparse set
+``clgs import`` does with its defaults (flat/dark correction, -log, each view's beam normalised
+from the air around the tooth, the rotation axis from the import's three estimators on all 181
+views: the 180-degree pair, the FBP sharpness and the centre of mass, see docs/calibration.md), the
+reference is FDK (ramp filter) from every view, and each sparse set
 takes evenly spaced views (clgs's FDK with the Hann window, and with ram-lak as the peers run
 theirs). 2D PSNR over both reconstructed slices (normalised by the reference's
 range, as the 3D PSNR of ``clgs.metrics``) and 2D SSIM (scikit-image, mean over the two slices).
@@ -30,11 +32,16 @@ beam: rows are independent) and the middle two slices kept. RTK's frame (rotatio
 to clgs's by a fixed transpose. RTK's SART: the same iterations and 5 subsets as clgs's, values
 kept non-negative.
 
-``--centre`` sets the rotation axis column instead of the import's estimate (``clgs import``'s
-centre-of-mass fit); every method, clgs's and the peers', and the reference use the same axis.
+The axis the run used, how it was chosen and every estimator's column and figure of merit are
+printed and recorded in ``summary.json`` (``axis``), with the air normalisation (``air``), the
+machine and its load before and after the run (``machine``). ``--centre COLUMN`` sets the axis
+instead of the import's estimate; every method, clgs's and the peers', and the reference use the
+same axis.
 """
 import argparse
 import json
+import os
+import platform
 import time
 from pathlib import Path
 
@@ -158,6 +165,52 @@ def _rtk_runs(proj, theta, column, sart_iterations, subsets=5):
     return results
 
 
+def _axis_record(centre: dict) -> dict:
+    """The axis the run used, from the import's report: its column, how it was chosen and, when the
+    import found it, each estimator's column and figure of merit."""
+    figures = {"pair": "mismatch_percent", "sinogram": "contrast_percent", "com": "rms_residual_pixels"}
+    record = {"column": float(centre["column"]), "method": centre["method"]}
+    for key in ("why", "spread_pixels", "agree", "warning"):
+        if key in centre:
+            record[key] = centre[key]
+    estimates = {}
+    for key, e in centre.get("estimates", {}).items():
+        if e.get("available"):
+            estimates[key] = {"name": e["name"], "column": float(e["column"]), "counted": bool(e.get("counted", True)),
+                              figures[key]: float(e[figures[key]])}
+        else:
+            estimates[key] = {"name": e.get("name", key), "available": False, "why": e.get("why")}
+    if estimates:
+        record["estimates"] = estimates
+    return record
+
+
+def _axis_text(axis: dict) -> str:
+    lines = [f"rotation axis at column {axis['column']:.2f} ({axis['method']})"]
+    for e in axis.get("estimates", {}).values():
+        if "column" in e:
+            figure = ", ".join(f"{k} {v:.3g}" for k, v in e.items() if k not in ("name", "column", "counted"))
+            lines.append(f"  {e['name']:16s} {e['column']:7.2f}  {figure}{'' if e['counted'] else ' (not counted)'}")
+        else:
+            lines.append(f"  {e['name']:16s} not available: {e['why']}")
+    if "spread_pixels" in axis:
+        lines.append(f"  spread {axis['spread_pixels']:.2f} px")
+    if "warning" in axis:
+        lines.append(f"  warning: {axis['warning']}")
+    return "\n".join(lines)
+
+
+def _machine(load_before) -> dict:
+    """The processor, its cores and the load: run times on a shared machine mean little without them."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "load_before": [round(x, 2) for x in load_before]}
+
+
 def _orient(vol, turn):
     flip_y, flip_x, transpose = turn
     v = vol[:, ::-1] if flip_y else vol
@@ -180,7 +233,8 @@ def main():
     ap.add_argument("--sart-iterations", type=int, default=30)
     ap.add_argument("--log-every", type=int, default=250)
     ap.add_argument("--centre", default="auto",
-                    help="rotation axis column (after import), or 'auto' for the import's estimate")
+                    help="rotation axis column (after import), or 'auto' (default) for the import's own "
+                         "(the three estimators of clgs import)")
     ap.add_argument("--out", default="tooth_cmp")
     args = ap.parse_args()
     if args.centre != "auto":
@@ -200,13 +254,21 @@ def main():
     from clgs.methods.r2gs import reconstruct_r2gs
 
     out = Path(args.out)
+    held = [str(out / f"r2gs_{nv}") for nv in args.views if (out / f"r2gs_{nv}" / "checkpoint.pt").is_file()]
+    if held:  # R2-Gaussian refuses to start over a run; say so before the other methods run
+        ap.error(f"{', '.join(held)} hold(s) an R2-Gaussian run already: choose another --out or delete them")
     out.mkdir(parents=True, exist_ok=True)
+    load_before = os.getloadavg()
     full, report = scan_from_raw(read_raw(args.raw), centre=args.centre)
     column = report["centre"]["column"]
+    axis = _axis_record(report["centre"])
+    print(_axis_text(axis))
     t0 = time.perf_counter()
     ref = fdk(full.projections, full.geometry, filter="ram-lak")
     ref_seconds = time.perf_counter() - t0
     summary = {"raw": args.raw, "centre_column": column, "centre_method": report["centre"]["method"],
+               "axis": axis, "air": {k: v for k, v in report.get("air", {}).items() if k != "background_per_view"},
+               "machine": _machine(load_before),
                "reference": "FDK, 181 views, ram-lak", "reference_seconds": ref_seconds,
                "r2gs_iterations": args.iterations, "sart_iterations": args.sart_iterations, "runs": []}
     curves = {}
@@ -261,6 +323,7 @@ def main():
             print(f"{nv:3d} views  {name:12s} PSNR {row['psnr2d']:6.2f} dB  SSIM {row['ssim2d']:.3f}  {s:7.1f} s")
             if nv == max(args.views) or nv == min(args.views):
                 np.save(out / f"{name.replace('-', '').lower()}_{nv}.npy", v[0])
+    summary["machine"]["load_after"] = [round(x, 2) for x in os.getloadavg()]
     summary["curves"] = [{"method": name, "views": nv, "seconds_psnr2d": [list(map(float, p)) for p in c]}
                          for (name, nv), c in curves.items()]
     atomic.write_json(out / "summary.json", summary)
@@ -290,11 +353,13 @@ def main():
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
     nv = max(args.views)
-    fig, axs = plt.subplots(1, 4, figsize=(14, 3.8))
+    shown = [name for name in ("FDK", "SART", "R2-Gaussian", "ASTRA SART")
+             if (out / f"{name.replace('-', '').lower()}_{nv}.npy").is_file() and (name, nv) in curves]
+    fig, axs = plt.subplots(1, 1 + len(shown), figsize=(3.5 * (1 + len(shown)), 3.8))
     lo, hi = float(ref[0].min()), float(ref[0].max())
     axs[0].imshow(ref[0], cmap="gray", vmin=lo, vmax=hi)
     axs[0].set_title("FDK, 181 views (reference)")
-    for ax, name in zip(axs[1:], ("FDK", "SART", "R2-Gaussian")):
+    for ax, name in zip(axs[1:], shown):
         ax.imshow(np.load(out / f"{name.replace('-', '').lower()}_{nv}.npy"), cmap="gray", vmin=lo, vmax=hi)
         ax.set_title(f"{name}, {nv} views")
     for ax in axs:

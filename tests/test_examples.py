@@ -53,6 +53,14 @@ def test_tooth_sparse_views_reports_every_method_against_the_reference(tmp_path)
     assert r.returncode == 0, r.stderr[-3000:]
     summary = json.loads((out / "summary.json").read_text())
     assert 290 <= summary["centre_column"] <= 300
+    # the import's own axis, with each estimator's column and figure recorded and printed
+    axis = summary["axis"]
+    assert axis["column"] == summary["centre_column"] and axis["method"] == "180-degree pair"
+    assert {"pair", "sinogram", "com"} == set(axis["estimates"])
+    for e, figure in zip(axis["estimates"].values(), ("mismatch_percent", "contrast_percent", "rms_residual_pixels")):
+        assert abs(e["column"] - axis["column"]) < 1.0 and math.isfinite(e[figure]), e
+    assert f"rotation axis at column {axis['column']:.2f}" in r.stdout
+    assert summary["air"]["views_without_air"] == 0 and summary["machine"]["cores"] >= 1
     methods = {row["method"] for row in summary["runs"]}
     assert {"FDK", "SART", "R2-Gaussian"} <= methods
     for row in summary["runs"]:
@@ -60,6 +68,17 @@ def test_tooth_sparse_views_reports_every_method_against_the_reference(tmp_path)
     if "astra" in summary:  # ASTRA's own 181-view FBP agrees with the reference once turned
         assert summary["astra"]["fbp_181_psnr_vs_reference"] > 30
     assert (out / "curves.png").stat().st_size > 1000 and (out / "slices.png").stat().st_size > 1000
+
+
+def test_tooth_sparse_views_refuses_an_out_holding_a_run_before_running(tmp_path):
+    """R2-Gaussian would refuse to start over its earlier run minutes into the comparison: the
+    script says so at once."""
+    (tmp_path / "r2gs_15").mkdir()
+    (tmp_path / "r2gs_15" / "checkpoint.pt").write_bytes(b"")
+    cmd = [sys.executable, str(EXAMPLES / "tooth_sparse_views.py"), "--views", "15", "--raw", str(tmp_path / "none.h5"),
+           "--out", str(tmp_path)]
+    r = subprocess.run(cmd, capture_output=True, text=True, cwd=EXAMPLES, timeout=300)
+    assert r.returncode == 2 and "hold(s) an R2-Gaussian run already" in r.stderr, r.stderr[-2000:]
 
 
 def test_femur_sizes_writes_subject_22_at_the_lengths_asked(tmp_path):
