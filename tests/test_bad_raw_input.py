@@ -64,7 +64,8 @@ def test_angles_stored_as_text_are_named_as_text(tmp_path):
         f["exchange/data"] = _counts()
         f["exchange/theta"] = text
     _nxtomo(tmp_path / "nx.nxs", np.array([f"{a:g}" for a in np.arange(N) * 15.0], dtype=h5py.string_dtype()))
-    for path, dataset in [(tmp_path / "dx.h5", "exchange/theta"), (tmp_path / "nx.nxs", "/entry/sample/rotation_angle")]:
+    for path, dataset in [(tmp_path / "dx.h5", "exchange/theta"),
+                          (tmp_path / "nx.nxs", "/entry/sample/rotation_angle")]:
         with pytest.raises(RawError, match=f"{dataset}: the angles dataset holds text"):
             read_raw(path)
         res = _import(path, "--out", tmp_path / "scan")

@@ -91,8 +91,6 @@ def read_images(path) -> np.ndarray:
         tiffs = sorted(p for p in path.iterdir() if p.suffix.lower() in (".tif", ".tiff"))
         dicoms = sorted(p for p in path.iterdir() if p.suffix.lower() == ".dcm")
         if tiffs:
-            import tifffile
-
             images = [_read_tiff(p)[0] for p in tiffs]
             return _stack(images, str(path), [p.name for p in tiffs])
         if dicoms:
