@@ -94,6 +94,11 @@ def read_images(path) -> np.ndarray:
             images = [_read_tiff(p)[0] for p in tiffs]
             return _stack(images, str(path), [p.name for p in tiffs])
         if dicoms:
+            from clgs.io.dicom_series import several_series_message, series_in
+
+            series = series_in(path)
+            if len(series) > 1:
+                raise RawError(several_series_message(path, series))
             return _stack([_read_dicom_image(p) for p in dicoms], str(path), [p.name for p in dicoms])
         raise RawError(f"{path}: a folder with neither .tif/.tiff nor .dcm images")
     suffix = path.suffix.lower()
