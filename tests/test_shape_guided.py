@@ -499,12 +499,14 @@ def test_a_rod_that_fills_the_grid_is_warned_and_the_bone_is_not(template, shape
         warnings.simplefilter("always")
         reconstruct_shape_guided(_scan(template), parts, iterations=1, surface_level=0.025, **kw)
     assert not [w for w in caught if "fills the grid" in str(w.message)]
-    # the rule itself: a slab through x is named by its axis; a bone that ends inside the grid is silent
+    # the rule itself, along the template's long axis (z) only: a slab through z is warned, one through
+    # x (across the bone, where truncation rims look alike) and a bone that ends inside the grid are not
     slab = np.zeros((12, 12, 12), np.float32)
-    slab[4:8, 3:9, :] = 0.05
-    with pytest.warns(UserWarning, match="fills the grid along x"):
+    slab[:, 3:9, 4:8] = 0.05
+    with pytest.warns(UserWarning, match="fills the grid along z"):
         warn_if_it_fills_the_grid(slab, 0.025, template)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
+        warn_if_it_fills_the_grid(np.ascontiguousarray(slab.transpose(2, 1, 0)), 0.025, template)
         warn_if_it_fills_the_grid(np.where(template.label, 0.05, 0.0), 0.025, template)
         warn_if_it_fills_the_grid(slab, None, template)  # no level: nothing to measure

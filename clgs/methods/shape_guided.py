@@ -534,24 +534,23 @@ FILLS_END_FRACTION = 0.1
 
 
 def warn_if_it_fills_the_grid(volume, level, template, seen=None) -> None:
-    """Warn before a run whose bone (``volume``, the scan's FDK, above ``level``, 1/mm) reaches both ends of the grid
-    along an axis at which the template's bone ends inside its grid: a rod, cylinder or slab that
-    fills the grid fits the shape model within its range and the projections well, yet is not the
-    anatomy (or the scan cuts the bone, so the shape fitted beyond the cut is a guess). ``seen``:
-    the voxels every view saw (:meth:`clgs.geometry.Geometry.field_of_view`); the grid's ends are
-    then the first and last slices holding any of them."""
+    """Warn before a run whose bone (``volume``, the scan's FDK, above ``level``, 1/mm) reaches both
+    ends of the grid along the template's long axis, where the template's bone ends inside its
+    grid: a rod, cylinder or slab that fills the grid fits the shape model within its range and
+    the projections well, yet is not the anatomy (or the scan cuts the bone, so the shape fitted
+    beyond the cut is a guess). ``seen``: the voxels every view saw
+    (:meth:`clgs.geometry.Geometry.field_of_view`); the grid's ends are then the first and last
+    slices holding any of them."""
     label = getattr(template, "label", None)
     if level is None or label is None:
         return
     seen = np.ones(np.shape(volume), bool) if seen is None else np.asarray(seen, bool)
     bone = (np.asarray(volume) > level) & seen
     label = np.asarray(label, bool)
-    for axis, name in enumerate("zyx"):
-        if label.shape[axis] < 3 or bone.shape[axis] < 3:
-            continue
-        ends = np.take(label, [0, -1], axis=axis).reshape(2, -1).any(1)
-        if ends.any():
-            continue  # the template's bone reaches this end of its own grid: no rule along this axis
+    spacing = np.asarray(getattr(template, "spacing", (1.0, 1.0, 1.0)), float)
+    axis = int(np.argmax(np.asarray(label.shape) * spacing))  # the bone's length: across it, FDK's
+    name = "zyx"[axis]  # truncation rims and a cut field of view would say the same of any bone
+    if label.shape[axis] >= 3 and bone.shape[axis] >= 3 and not np.take(label, [0, -1], axis=axis).any():
         area = np.moveaxis(bone, axis, 0).reshape(bone.shape[axis], -1).sum(1)  # bone voxels per slice
         seen_area = np.moveaxis(seen, axis, 0).reshape(seen.shape[axis], -1).sum(1)
         where = np.nonzero(seen_area)[0]
@@ -566,7 +565,6 @@ def warn_if_it_fills_the_grid(volume, level, template, seen=None) -> None:
                           "where the anatomy's template ends inside its grid: is this a rod, cylinder or "
                           "slab rather than the anatomy, or does the scan cut the bone? check the result before "
                           "using its surface", stacklevel=3)
-            return
 
 
 def warn_if_implausible(alpha, proj_psnr) -> None:
