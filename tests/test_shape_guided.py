@@ -473,3 +473,40 @@ def test_bench_alternation_times_every_step_and_switches_them_back_on(template, 
     assert t.iteration == 2 * 2 * len(rows)
     assert not sorting.USE_ARGSORT and ShapeGuidedSet.FIXED_POINTS and DensityPrior.ONE_ATLAS_PASS
     assert ShapeGuidedSet.LINEAR_TOL == 0.05 and voxelizer._SMALL_PAIRS == 1 << 19
+
+
+def _rod_scan(n_views=8, det=48, radius=10.0):
+    """A cylinder of bone (0.05/mm) along z through the whole grid, in soft tissue: no ellipsoid."""
+    from clgs.io.scan import Scan
+    from clgs.ops.ct_projector import CTProjector
+
+    geo = geometry(n_views, det)
+    r = np.linalg.norm(geo.volume_grid(scene=False).points()[..., :2], axis=-1)
+    truth = np.where(r < radius, 0.05, np.where(r < 28.0, 0.01, 0.0)).astype(np.float32)
+    return Scan(geo, np.asarray(CTProjector(geo).forward(truth), np.float32), truth=truth)
+
+
+def test_a_rod_that_fills_the_grid_is_warned_and_the_bone_is_not(template, shape_model, atlas):
+    import warnings
+
+    from clgs.methods.shape_guided import reconstruct_shape_guided, warn_if_it_fills_the_grid
+
+    parts = (template, shape_model, atlas)
+    kw = _small(alpha_init_iterations=1)  # the warning comes before the run
+    with pytest.warns(UserWarning, match="fills the grid along z.*rod, cylinder"):
+        reconstruct_shape_guided(_rod_scan(), parts, iterations=1, surface_level=0.025, **kw)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        reconstruct_shape_guided(_scan(template), parts, iterations=1, surface_level=0.025, **kw)
+    assert not [w for w in caught if "fills the grid" in str(w.message)]
+    # the rule itself, along the template's long axis (z) only: a slab through z is warned, one through
+    # x (across the bone, where truncation rims look alike) and a bone that ends inside the grid are not
+    slab = np.zeros((12, 12, 12), np.float32)
+    slab[:, 3:9, 4:8] = 0.05
+    with pytest.warns(UserWarning, match="fills the grid along z"):
+        warn_if_it_fills_the_grid(slab, 0.025, template)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn_if_it_fills_the_grid(np.ascontiguousarray(slab.transpose(2, 1, 0)), 0.025, template)
+        warn_if_it_fills_the_grid(np.where(template.label, 0.05, 0.0), 0.025, template)
+        warn_if_it_fills_the_grid(slab, None, template)  # no level: nothing to measure

@@ -171,6 +171,8 @@ def _echo_report(raw, scan, report, geometry_file, out):
                f"(down to {report['most_negative']:.3g})")
     for note in report.get("notes", []):
         click.echo(f"  {note}")
+    if report.get("floored_warning"):
+        click.echo(f"warning: {report['floored_warning']}", err=True)
     air = report.get("air")
     if air is None:
         click.echo("air: not normalised (--air-columns off)")

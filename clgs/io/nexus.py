@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["is_nxtomo", "read_nxtomo"]
+__all__ = ["is_nxtomo", "read_nxtomo", "angle_values"]
 
 
 def _cls(obj) -> str:
@@ -64,10 +64,24 @@ def _find(entry, groups, name):
     return None
 
 
+def angle_values(ds, what) -> np.ndarray:
+    """The angles dataset ``ds`` as float64 (flat); ValueError naming it when it holds text (some
+    writers store each angle as a string) or anything else that is not real numbers."""
+    values = np.asarray(ds[()])
+    if values.dtype.kind in "SUOa":
+        sample = values.reshape(-1)[:1].tolist()
+        raise ValueError(f"{what}: the angles dataset holds text ({values.dtype}, e.g. {sample!r}), not numbers; "
+                         "write the angles as a numeric (float) dataset, or give them with --angles")
+    if values.dtype.kind not in "biuf":
+        raise ValueError(f"{what}: the angles dataset holds {values.dtype}, not real numbers; write the angles as "
+                         "a numeric (float) dataset, or give them with --angles")
+    return values.astype(np.float64).reshape(-1)
+
+
 def _degrees(ds, what) -> np.ndarray:
     units = ds.attrs.get("units", b"degree")
     units = (units.decode() if isinstance(units, bytes) else str(units)).strip().lower()
-    values = np.asarray(ds[()], np.float64).reshape(-1)
+    values = angle_values(ds, what)
     if units in ("degree", "degrees", "deg", "°"):
         return values
     if units in ("rad", "radian", "radians"):

@@ -91,23 +91,19 @@ def read_images(path) -> np.ndarray:
         tiffs = sorted(p for p in path.iterdir() if p.suffix.lower() in (".tif", ".tiff"))
         dicoms = sorted(p for p in path.iterdir() if p.suffix.lower() == ".dcm")
         if tiffs:
-            import tifffile
-
-            images = [_as_views(tifffile.imread(str(p)), p)[0] for p in tiffs]
+            images = [_read_tiff(p)[0] for p in tiffs]
             return _stack(images, str(path), [p.name for p in tiffs])
         if dicoms:
+            from clgs.io.dicom_series import several_series_message, series_in
+
+            series = series_in(path)
+            if len(series) > 1:
+                raise RawError(several_series_message(path, series))
             return _stack([_read_dicom_image(p) for p in dicoms], str(path), [p.name for p in dicoms])
         raise RawError(f"{path}: a folder with neither .tif/.tiff nor .dcm images")
     suffix = path.suffix.lower()
     if suffix in (".tif", ".tiff"):
-        import tifffile
-
-        try:
-            return _as_views(tifffile.imread(str(path)), path)
-        except RawError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - tifffile's own message says what it could not read
-            raise RawError(f"{path}: not a readable TIFF ({exc})") from exc
+        return _read_tiff(path)
     if suffix == ".dcm":
         return _read_dicom_image(path)[None]
     if suffix == ".npy":
@@ -118,6 +114,20 @@ def read_images(path) -> np.ndarray:
         except Exception as exc:  # noqa: BLE001
             raise RawError(f"{path}: not a readable .npy array ({exc})") from exc
     raise RawError(f"{path}: unknown image format; use HDF5 Data Exchange, TIFF, DICOM or .npy")
+
+
+def _read_tiff(path) -> np.ndarray:
+    """One TIFF file (a page or a stack) as views; a damaged or truncated file is named."""
+    import tifffile
+
+    try:
+        return _as_views(tifffile.imread(str(path)), path)
+    except RawError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - tifffile's own message says what it could not read
+        why = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+        raise RawError(f"{path}: not a readable TIFF, perhaps truncated or damaged ({why}); "
+                       "replace or remove this file") from exc
 
 
 def _read_dicom_image(path) -> np.ndarray:
@@ -143,7 +153,7 @@ def _read_hdf5(path: Path) -> RawProjections:
         import h5py
     except ImportError as exc:
         raise RawError("HDF5 files need h5py: pip install 'clgs[formats]' (the set-up installs it)") from exc
-    from clgs.io.nexus import is_nxtomo, read_nxtomo
+    from clgs.io.nexus import angle_values, is_nxtomo, read_nxtomo
 
     try:
         with h5py.File(path, "r") as f:
@@ -166,7 +176,10 @@ def _read_hdf5(path: Path) -> RawProjections:
                 if "exchange/data_white" in f else None
             darks = _as_views(f["exchange/data_dark"][()], f"{path}:exchange/data_dark") \
                 if "exchange/data_dark" in f else None
-            theta = np.asarray(f["exchange/theta"][()], np.float64).reshape(-1) if "exchange/theta" in f else None
+            try:
+                theta = angle_values(f["exchange/theta"], f"{path}:exchange/theta") if "exchange/theta" in f else None
+            except ValueError as exc:
+                raise RawError(str(exc)) from None
     except RawError:
         raise
     except Exception as exc:  # noqa: BLE001
@@ -248,6 +261,7 @@ def line_integrals(raw: RawProjections, air_columns=None, floor: float = DEFAULT
     starved = ~(ratio > floor)  # NaN, zero, negative, or below the floor
     report["floored_pixels"] = int(np.count_nonzero(starved))
     report["floored_fraction"] = float(starved.mean())
+    _check_floored(raw.source, starved, floor, report)
     ratio = np.where(starved, floor, ratio)
     proj = -np.log(ratio)
     if zingers is not None:
@@ -273,6 +287,27 @@ def line_integrals(raw: RawProjections, air_columns=None, floor: float = DEFAULT
     report["most_negative"] = float(proj.min()) if negative.any() else 0.0
     proj = np.where(negative, 0.0, proj)
     return np.asarray(proj, np.float32), report
+
+
+#: above this share of floored pixels the images are probably not raw counts
+FLOORED_WARNING = 0.5
+NOT_COUNTS_HINT = ("line integrals (already -log) or attenuation images are no raw counts: write them as a scan "
+                   "folder (projections.npy and scan.json, docs/formats.md; in Python clgs.io.scan.Scan(geometry, "
+                   "projections).save(folder)) instead of clgs import")
+
+
+def _check_floored(source, starved, floor, report) -> None:
+    """Refuse images whose every pixel is at the floor (black, or not counts); put a warning in
+    ``report["floored_warning"]`` when more than half are: counts have air or the object's
+    transmission in most pixels, line integrals have 0 in the air."""
+    if starved.all():
+        raise RawError(f"{source}: every pixel is at or below the floor ({floor:g} of the beam): the images are "
+                       "black (no counts above the dark field) or hold no raw counts; "
+                       f"check the files (and --flats/--darks); {NOT_COUNTS_HINT}")
+    if starved.mean() > FLOORED_WARNING:
+        report["floored_warning"] = (
+            f"{source}: {starved.mean():.0%} of the pixels are at or below the floor ({floor:g} of the beam): do "
+            f"these images hold raw counts? {NOT_COUNTS_HINT}")
 
 
 def crop_and_bin(proj: np.ndarray, crop=None, binning=(1, 1)) -> np.ndarray:

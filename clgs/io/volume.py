@@ -44,6 +44,7 @@ import numpy as np
 from clgs.errors import ClgsError, InputError
 from clgs.geometry import GeometryError, check_orientation
 from clgs.io import atomic
+from clgs.io.dicom_series import several_series_message, series_in, slice_gap, slice_thickness
 from clgs.io.orientation import WORKING, axis_codes, file_affine, to_file
 
 __all__ = ["VolumeError", "LoadedVolume", "save_volume", "load_volume", "volume_affine",
@@ -302,13 +303,17 @@ def _read_itk(path: Path, kind: str):
             if not series:
                 raise VolumeError(f"{folder}: no DICOM series found")
             if len(series) > 1 and path.is_dir():
-                raise VolumeError(f"{folder}: holds {len(series)} DICOM series; name one of its files instead")
+                named = series_in(folder)
+                raise VolumeError(several_series_message(folder, named) if len(named) > 1 else
+                                  f"{folder}: holds {len(series)} DICOM series; name one of its files instead")
             sid = series[0]
             if not path.is_dir():
                 sid = next((s for s in series if str(path) in reader.GetGDCMSeriesFileNames(str(folder), s)),
                            series[0])
-            reader.SetFileNames(reader.GetGDCMSeriesFileNames(str(folder), sid))
+            files = reader.GetGDCMSeriesFileNames(str(folder), sid)
+            reader.SetFileNames(files)
             img = reader.Execute()
+            _dicom_spacing(folder, files, img)
         else:
             img = sitk.ReadImage(str(path))
     except VolumeError:
@@ -324,6 +329,19 @@ def _read_itk(path: Path, kind: str):
     aff[:3, :3] = direction * np.asarray(img.GetSpacing(), float)[None, :]
     aff[:3, 3] = np.asarray(img.GetOrigin(), float) * LPS
     return np.ascontiguousarray(arr.transpose(2, 1, 0)), aff
+
+
+def _dicom_spacing(folder, files, img) -> None:
+    """Warn where the series' slices are unevenly spaced (ITK spaces them evenly); give a single
+    slice its SliceThickness as the slice spacing (ITK gives it 1 mm)."""
+    if len(files) == 1:
+        thickness = slice_thickness(files[0])
+        if thickness is not None:
+            img.SetSpacing(tuple(img.GetSpacing()[:2]) + (thickness,))
+        return
+    gap = slice_gap(files)
+    if gap:
+        warnings.warn(f"{folder}: {gap}", stacklevel=4)
 
 
 def _from_affine(path, arr, aff, dtype) -> LoadedVolume:

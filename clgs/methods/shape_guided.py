@@ -412,6 +412,11 @@ def _reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | Non
     parts = anatomy if isinstance(anatomy, tuple) else load_anatomy_parts(anatomy)
     cfg, state = run_config(ShapeGuidedConfig, iterations, settings, resume, out_dir)
     warn_if_the_scan_cannot_hold(scan, parts[0])
+    level = choose_level(user=surface_level, anatomy=None if isinstance(anatomy, tuple) else anatomy,
+                         truth=scan.truth, scan_meta=scan.meta, atlas=parts[2], template=parts[0])
+    if level is not None:  # what the scan shows, before the shape model shapes it: its FDK
+        fdk = fdk_volume(scan) if fdk is None else fdk
+        warn_if_it_fills_the_grid(fdk, level.value, parts[0], seen=scan.geometry.field_of_view())
     t0 = time.perf_counter()
     trainer = build_trainer(scan, parts, cfg, out_dir, progress=progress, fdk=fdk, state=state)
     restore(trainer, state, cfg)
@@ -423,8 +428,6 @@ def _reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | Non
     warn_if_implausible(alpha, trainer.log.last("proj_psnr"))
     surface = None
     if out_dir is not None:
-        level = choose_level(user=surface_level, anatomy=None if isinstance(anatomy, tuple) else anatomy,
-                             truth=scan.truth, scan_meta=scan.meta, atlas=parts[2], template=parts[0])
         surface = write_outputs(trainer, out_dir, cfg.value_scale, volume, parts[0], alpha, level).pop("bone_surface")
     return ShapeGuidedResult(volume=volume, gaussians=gaussians_in_scan_units(trainer, cfg.value_scale),
                              alpha=alpha, log=trainer.log, trainer=trainer, value_scale=cfg.value_scale,
@@ -522,6 +525,46 @@ def warn_if_the_scan_cannot_hold(scan, template) -> None:
     if bone > 1.5 * fov:
         warnings.warn(f"the scan's volume is {fov:.0f} mm across, the anatomy's template {bone:.0f} mm: the shape "
                       "cannot fit in it; is this scan of that anatomy, and is its geometry in mm?", stacklevel=3)
+
+
+#: a bone whose end slices hold at least this share of its usual cross-section reaches the grid's end
+#: (a reconstruction blurs a rod's end slices to about a sixth of its cross-section; a bone that ends
+#: inside the grid, even two slices from its end, leaves none there)
+FILLS_END_FRACTION = 0.1
+
+
+def warn_if_it_fills_the_grid(volume, level, template, seen=None) -> None:
+    """Warn before a run whose bone (``volume``, the scan's FDK, above ``level``, 1/mm) reaches both
+    ends of the grid along the template's long axis, where the template's bone ends inside its
+    grid: a rod, cylinder or slab that fills the grid fits the shape model within its range and
+    the projections well, yet is not the anatomy (or the scan cuts the bone, so the shape fitted
+    beyond the cut is a guess). ``seen``: the voxels every view saw
+    (:meth:`clgs.geometry.Geometry.field_of_view`); the grid's ends are then the first and last
+    slices holding any of them."""
+    label = getattr(template, "label", None)
+    if level is None or label is None:
+        return
+    seen = np.ones(np.shape(volume), bool) if seen is None else np.asarray(seen, bool)
+    bone = (np.asarray(volume) > level) & seen
+    label = np.asarray(label, bool)
+    spacing = np.asarray(getattr(template, "spacing", (1.0, 1.0, 1.0)), float)
+    axis = int(np.argmax(np.asarray(label.shape) * spacing))  # the bone's length: across it, FDK's
+    name = "zyx"[axis]  # truncation rims and a cut field of view would say the same of any bone
+    if label.shape[axis] >= 3 and bone.shape[axis] >= 3 and not np.take(label, [0, -1], axis=axis).any():
+        area = np.moveaxis(bone, axis, 0).reshape(bone.shape[axis], -1).sum(1)  # bone voxels per slice
+        seen_area = np.moveaxis(seen, axis, 0).reshape(seen.shape[axis], -1).sum(1)
+        where = np.nonzero(seen_area)[0]
+        if not area.any() or where.size < 3:
+            return
+        share = area / np.maximum(seen_area, 1)  # the bone's share of each slice's seen voxels
+        usual = float(np.median(share[area > 0]))
+        first, last = share[where[0]], share[where[-1]]
+        if first >= FILLS_END_FRACTION * usual and last >= FILLS_END_FRACTION * usual:
+            warnings.warn(f"the bone (above {level:.3g}/mm) fills the grid along {name}: it reaches both ends (its end "
+                          f"slices hold {first / usual:.0%} and {last / usual:.0%} of its usual cross-section), "
+                          "where the anatomy's template ends inside its grid: is this a rod, cylinder or "
+                          "slab rather than the anatomy, or does the scan cut the bone? check the result before "
+                          "using its surface", stacklevel=3)
 
 
 def warn_if_implausible(alpha, proj_psnr) -> None:
