@@ -112,6 +112,19 @@ def cl_device(request):
         runtime.use_device(before)
 
 
+@pytest.fixture(autouse=True)
+def _keep_the_locale():
+    """SimpleITK's DICOM writer (GDCM), which some tests use to make scanner-like series, sets the
+    process's C locale and leaves it: Python's default text encoding then turns ASCII for every
+    later test. Each test gets the locale it started with back."""
+    import locale
+
+    before = locale.setlocale(locale.LC_CTYPE)
+    yield
+    if locale.setlocale(locale.LC_CTYPE) != before:
+        locale.setlocale(locale.LC_CTYPE, before)
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)

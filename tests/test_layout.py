@@ -50,7 +50,7 @@ def modules() -> dict:
 
 def imports(name: str, path: Path, known: dict):
     """(imported module, imported names) for every import statement of a module."""
-    tree = ast.parse(path.read_text(), str(path))
+    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
