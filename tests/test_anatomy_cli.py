@@ -385,3 +385,25 @@ def test_every_method_writes_a_nifti_a_viewer_places(bare, tiny_scan, tmp_path, 
     assert img.shape == tuple(scan.geometry.nVoxel[::-1])
     assert np.allclose(np.diag(img.affine)[:3], scan.geometry.dVoxel[::-1])
     assert np.array_equal(np.asarray(img.dataobj).transpose(2, 1, 0), np.load(tmp_path / "r" / "volume.npy"))
+
+
+@needs_femur
+def test_demo_out_follows_the_output_rule(tmp_path):
+    """`clgs femur demo --out D` claims D/scan and D/recon before any work: a second demo there is
+    refused without --force (nothing touched), --force replaces the first one's clgs files, and a
+    user's own folder D/scan is never replaced."""
+    args = ["femur", "demo", "--method", "fdk", "--views", "2", "--out", str(tmp_path / "d")]
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 0, res.output
+    first = (tmp_path / "d" / "recon" / "volume.npy").read_bytes()
+    res = CliRunner().invoke(main, args)
+    assert_clean_error(res, "already exists", "--force")
+    assert (tmp_path / "d" / "recon" / "volume.npy").read_bytes() == first
+    res = CliRunner().invoke(main, [*args, "--force"])
+    assert res.exit_code == 0, res.output
+    mine = tmp_path / "mine"
+    (mine / "scan").mkdir(parents=True)
+    (mine / "scan" / "notes.txt").write_text("my own notes")
+    res = CliRunner().invoke(main, ["femur", "demo", "--method", "fdk", "--views", "2", "--out", str(mine), "--force"])
+    assert_clean_error(res, "notes.txt")
+    assert (mine / "scan" / "notes.txt").read_text() == "my own notes"

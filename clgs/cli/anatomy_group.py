@@ -14,8 +14,10 @@ Only click is imported at module level; numpy/torch and the CT code load when a 
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import time
+from pathlib import Path
 
 import click
 
@@ -553,8 +555,6 @@ def _evaluate_command(anatomy) -> click.Command:
 
 def _demo_command(anatomy) -> click.Command:
     """``clgs <anatomy> demo``."""
-    name = anatomy.name
-    scene = anatomy.scene or {}
 
     @click.command(cls=AnatomyCommand)
     @click.option("--subject", "subject_id", default=None, help="held-out subject (default: the first)")
@@ -568,11 +568,10 @@ def _demo_command(anatomy) -> click.Command:
     @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="method option (repeatable)")
     @click.option("--surface-level", type=FiniteFloat(min=0, min_open=True), default=None,
                   help="bone level (1/mm) of the surface written and measured [default: the truth's]")
-    def demo(subject_id, views, method, out, iterations, seed, settings, surface_level):
+    @click.option("--force", is_flag=True, help="replace an earlier demo's OUT/scan and OUT/recon (their clgs files "
+                                               "only; anything else there is refused)")
+    def demo(subject_id, views, method, out, iterations, seed, settings, surface_level, force):
         """Simulate a held-out subject, reconstruct it from few views, print error vs time."""
-        import math
-        import tempfile
-
         held = _need(anatomy, "test_subjects", "pick a held-out subject")()
         subject_id = subject_id or (held[0] if held else None)
         if subject_id is None:
@@ -586,35 +585,51 @@ def _demo_command(anatomy) -> click.Command:
         opts = check_settings(method, m, run, opts, raw)  # before the simulation: fail fast
         t0 = time.perf_counter()
         _check_scan_memory(anatomy, views)
-        subject = _load_subject(anatomy, subject_id)
-        scan = _simulate(anatomy, subject, views, math.radians(float(scene.get("arc_deg", 180.0))), True, seed)
-        click.echo(f"{name} demo: subject {subject_id}, {views} views, method {method} "
-                   f"(simulated in {time.perf_counter() - t0:.1f} s)")
-        work = out or tempfile.mkdtemp(prefix=f"clgs-{name}-demo-")
-        scan.save(os.path.join(work, "scan"), overwrite=True)
-        t1 = time.perf_counter()
-        result = run_reconstruct(scan, anatomy, method, out=os.path.join(work, "recon"), surface_level=surface_level,
-                                 **opts)
-        elapsed = time.perf_counter() - t1
-        history = result.get("history") or (result.get("info") or {}).get("history")
-        if history:
-            click.echo("  iteration   time (s)   metrics")
-            for row in history:
-                row = dict(row)
-                it, tt = row.pop("iteration", ""), row.pop("time", row.pop("seconds", float("nan")))
-                click.echo(f"  {it!s:>9} {tt:10.1f}   " + "  ".join(
-                    f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
-        click.echo(f"reconstructed in {elapsed:.1f} s; final error (volume surface: the bone surface written):")
-        _echo_metrics(_evaluate(anatomy, scan, result["volume"], os.path.join(work, "recon")))
-        _echo_outputs(result)
-        _surface_picture(anatomy, scan, result["volume"], os.path.join(work, "recon"))
-        from clgs.bench.train import peak_memory_mib
+        subject = _load_subject(anatomy, subject_id)  # a wrong subject or size is refused before OUT is touched
+        with contextlib.ExitStack() as claims:
+            if out is not None:  # the output rule (docs/output-rule.md), checked and locked before any work
+                from clgs.cli.common import claim_output
 
-        click.echo(f"peak resident memory: {peak_memory_mib():.0f} MiB")
-        click.echo(f"outputs in {work}")
-        exit_if_interrupted(result.get("info"))
+                claims.enter_context(claim_output(Path(out) / "scan", force, kind="scan"))
+                claims.enter_context(claim_output(Path(out) / "recon", force, kind="folder"))
+            _run_demo(anatomy, subject, views, method, out, seed, surface_level, opts, t0)
 
     return demo
+
+
+def _run_demo(anatomy, subject, views, method, out, seed, surface_level, opts, t0) -> None:
+    """The work of ``clgs <anatomy> demo``, in its claimed folders (or a new temporary one)."""
+    import math
+    import tempfile
+
+    name = anatomy.name
+    scene = anatomy.scene or {}
+    scan = _simulate(anatomy, subject, views, math.radians(float(scene.get("arc_deg", 180.0))), True, seed)
+    click.echo(f"{name} demo: subject {subject.id}, {views} views, method {method} "
+               f"(simulated in {time.perf_counter() - t0:.1f} s)")
+    work = out or tempfile.mkdtemp(prefix=f"clgs-{name}-demo-")
+    scan.save(os.path.join(work, "scan"), overwrite=True)  # a new folder, or one claimed (and cleared) above
+    t1 = time.perf_counter()
+    result = run_reconstruct(scan, anatomy, method, out=os.path.join(work, "recon"), surface_level=surface_level,
+                             **opts)
+    elapsed = time.perf_counter() - t1
+    history = result.get("history") or (result.get("info") or {}).get("history")
+    if history:
+        click.echo("  iteration   time (s)   metrics")
+        for row in history:
+            row = dict(row)
+            it, tt = row.pop("iteration", ""), row.pop("time", row.pop("seconds", float("nan")))
+            click.echo(f"  {it!s:>9} {tt:10.1f}   " + "  ".join(
+                f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
+    click.echo(f"reconstructed in {elapsed:.1f} s; final error (volume surface: the bone surface written):")
+    _echo_metrics(_evaluate(anatomy, scan, result["volume"], os.path.join(work, "recon")))
+    _echo_outputs(result)
+    _surface_picture(anatomy, scan, result["volume"], os.path.join(work, "recon"))
+    from clgs.bench.train import peak_memory_mib
+
+    click.echo(f"peak resident memory: {peak_memory_mib():.0f} MiB")
+    click.echo(f"outputs in {work}")
+    exit_if_interrupted(result.get("info"))
 
 
 def _experiment_command(anatomy) -> click.Command:
