@@ -43,6 +43,133 @@ def _cfg(**kw):
     return ShapeGuidedConfig(**base)
 
 
+def test_the_bspline_reproduces_affine_fields_and_its_bending_is_their_second_derivatives():
+    """Coefficients sampled from an affine map give that map on the whole grid (a cubic B-spline
+    reproduces linear functions) with zero bending; random coefficients: the analytic second
+    derivatives against central differences of the field (a known answer: numpy's)."""
+    from clgs.shape.residual import ResidualGrid, control_layout
+
+    shape, spacing = (20, 12, 9), (3.0, 2.0, 2.5)
+    g = ResidualGrid(shape, spacing, points=8, dtype=torch.float64)
+    counts, h, offsets = control_layout(shape, spacing, 8)
+    assert counts == g.n_control and counts[0] == 8 and h == pytest.approx(19 * 3.0 / 5)
+    ctrl = [off + h * np.arange(n) for n, off in zip(counts, offsets)]  # control positions (mm) per axis
+    cz, cy, cx = np.meshgrid(*ctrl, indexing="ij")
+    A = np.array([[0.02, -0.01, 0.03], [0.0, 0.05, -0.02], [0.01, 0.0, -0.04]])
+    b = np.array([1.0, -2.0, 0.5])
+    theta = torch.as_tensor(np.einsum("ij,jzyx->izyx", A, np.stack([cx, cy, cz])) + b[:, None, None, None])
+    pz, py, px = np.meshgrid(*[np.arange(n) * d for n, d in zip(shape, spacing)], indexing="ij")
+    want = np.einsum("ij,jzyx->izyx", A, np.stack([px, py, pz])) + b[:, None, None, None]
+    np.testing.assert_allclose(g.field(theta).numpy(), want, atol=1e-10)
+    assert float(g.bending(theta)) < 1e-20
+
+    fine = ResidualGrid((41, 33, 29), (0.5, 0.6, 0.7), points=6, dtype=torch.float64)
+    theta = torch.randn(fine.coefficient_shape, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    r = fine.field(theta).numpy()
+    steps = (0.5, 0.6, 0.7)
+    for kz, ky, kx in ((2, 0, 0), (0, 2, 0), (0, 0, 2), (1, 1, 0), (1, 0, 1), (0, 1, 1)):
+        got = fine._apply(theta, kz, ky, kx).numpy()
+        want = r
+        for axis, k in enumerate((kz, ky, kx)):
+            if k == 2:  # the three-point stencil: exact for a cubic within a knot interval
+                want = (np.roll(want, -1, axis + 1) - 2 * want + np.roll(want, 1, axis + 1)) / steps[axis] ** 2
+            elif k == 1:
+                want = np.gradient(want, steps[axis], axis=axis + 1)
+        inner = (slice(None), slice(2, -2), slice(2, -2), slice(2, -2))
+        err = np.abs(got[inner] - want[inner]).max() / np.abs(want[inner]).max()
+        assert err < 0.05, (kz, ky, kx, err)
+
+
+def test_the_residuals_gradients_match_finite_differences():
+    """float64: the field at arbitrary points through the model's sampler, and the prior with its
+    bending term, against torch's central differences."""
+    from clgs.shape.model import sample_field
+    from clgs.shape.residual import ResidualGrid
+
+    g = ResidualGrid((9, 7, 6), (4.0, 4.0, 4.0), points=5, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(0)
+    theta = torch.randn(g.coefficient_shape, dtype=torch.float64, generator=gen).requires_grad_(True)
+    pts = torch.rand(40, 3, dtype=torch.float64, generator=gen) * torch.tensor([20.0, 24.0, 32.0])
+    weights = torch.randn(40, 3, dtype=torch.float64, generator=gen)
+
+    def at_points(t):
+        return (sample_field(g.field(t), pts, g.spacing, (0.0, 0.0, 0.0)) * weights).sum()
+
+    assert torch.autograd.gradcheck(at_points, (theta,), eps=1e-6, atol=1e-7)
+    assert torch.autograd.gradcheck(lambda t: g.prior(t, 2.0), (theta,), eps=1e-6, atol=1e-7)
+    assert torch.autograd.gradcheck(lambda t: g.bending(t), (theta,), eps=1e-6, atol=1e-9)
+
+
+def _set(template, shape_model, theta_seed=0, alpha=(0.4, -0.3), size=1.1, points=6):
+    from clgs.fit.gaussians import Schedule
+    from clgs.shape.gaussian_set import ShapeGuidedSet
+    from clgs.shape.initialise import sample_reference_centres
+    from clgs.shape.residual import ResidualGrid
+    from clgs.shape.size import size_centre
+
+    p = sample_reference_centres(template, 200, seed=0)
+    n = len(p)
+    grid = ResidualGrid(shape_model.shape, shape_model.spacing, points)
+    theta = None
+    if theta_seed is not None:
+        theta = 1.5 * torch.randn(grid.coefficient_shape, generator=torch.Generator().manual_seed(theta_seed))
+    sched = {k: Schedule(0.01) for k in ("alpha", "log_size", "residual", "scales", "quats", "densities")}
+    return ShapeGuidedSet(p, np.full((n, 3), 0.02, np.float32), np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                          np.full(n, 0.1, np.float32), shape_model=shape_model, geometry=geometry(),
+                          box=(-1.0, 1.0), scale_bounds=(1e-4, 1.0), schedules=sched, alpha=alpha, size=size,
+                          size_centre_mm=size_centre(template), residual=grid, residual_theta=theta)
+
+
+def test_the_sets_centres_add_the_residual_and_the_inverse_map_undoes_it(template, shape_model):
+    """centres = c + s (p_ref + u(p_ref) + r(p_ref) - c), checked in float64 from the parts; their
+    gradient wrt the coefficients against central differences; the inverse map takes them back."""
+    from clgs.shape.model import sample_field
+
+    s = _set(template, shape_model)
+    assert s.has_residual
+    with torch.no_grad():
+        m64 = shape_model.to(torch.float64)
+        u = m64.displacement(torch.tensor([0.4, -0.3], dtype=torch.float64), n_squarings=None)
+        r = s.residual.to(torch.float64).field(s.params["residual"].double())
+        p = s.p_ref.double()
+        model_only = p + sample_field(u, p, m64.spacing, m64.origin)
+        c, k = s.size_centre.double(), 1.1
+        want = c + k * (model_only + sample_field(r, p, m64.spacing, m64.origin) - c)
+        got = s.centres_mm().double()
+    assert float((want - c - k * (model_only - c)).norm(dim=1).mean()) > 0.5  # the residual moves them
+    np.testing.assert_allclose(got.numpy(), want.numpy(), atol=0.02)  # the set's squarings: 2, not 4
+    g = torch.randn(len(s), 3, generator=torch.Generator().manual_seed(3))
+    (s.centres_mm() * g).sum().backward()
+    grad = s.params["residual"].grad
+    rng = np.random.default_rng(0)
+    for idx in [tuple(int(rng.integers(n)) for n in grad.shape) for _ in range(6)]:
+        h = 0.05
+        with torch.no_grad():
+            s.params["residual"][idx] += h
+            up = float((s.centres_mm().double() * g).sum())
+            s.params["residual"][idx] -= 2 * h
+            down = float((s.centres_mm().double() * g).sum())
+            s.params["residual"][idx] += h
+        assert float(grad[idx]) == pytest.approx((up - down) / (2 * h), rel=2e-3, abs=2e-3)
+    with torch.no_grad():
+        back = s.to_template(s.centres_mm())
+    np.testing.assert_allclose(back.numpy(), s.p_ref.numpy(), atol=0.1)  # two fixed-point steps
+
+
+def test_a_residual_checkpoint_round_trips_and_another_run_is_refused(template, shape_model):
+    a, b = _set(template, shape_model, theta_seed=1), _set(template, shape_model, theta_seed=None)
+    b.load_state_dict(a.state_dict())
+    with torch.no_grad():
+        np.testing.assert_array_equal(a.centres_mm().numpy(), b.centres_mm().numpy())
+    assert "residual_mm" in a.to_numpy()
+    with pytest.raises(ValueError, match="another residual_points"):
+        _set(template, shape_model, theta_seed=None, points=8).load_state_dict(a.state_dict())
+    plain = _set(template, shape_model, theta_seed=None)
+    del plain.params["residual"]
+    with pytest.raises(ValueError, match="with a residual deformation, this run's without"):
+        plain.load_state_dict(a.state_dict())
+
+
 def test_probe(template, shape_model, tissue_atlas):
     import trimesh
     from clgs.methods.shape_guided import build_trainer, surface_displacement_parts
