@@ -70,6 +70,7 @@ class ResidualGrid:
         self.points = int(points)
         self.n_control, self.h, offsets = control_layout(self.shape, self.spacing, self.points)
         self.dtype = dtype
+        self._grams = {}  # (derivative orders, dtype) -> per-axis Gram matrices of the bases
         # per axis (Z, Y, X): basis (grid points x control points) and its 1st and 2nd derivatives (mm^-k)
         self._basis = []
         for n, d, nc, off in zip(self.shape, self.spacing, self.n_control, offsets):
@@ -95,25 +96,40 @@ class ResidualGrid:
     def _apply(self, theta, kz=0, ky=0, kx=0) -> torch.Tensor:
         bz, by, bx = self._basis[0][kz], self._basis[1][ky], self._basis[2][kx]
         bz, by, bx = (b.to(theta.dtype) for b in (bz, by, bx))
-        return torch.einsum("zk,yj,xi,ckji->czyx", bz, by, bx, theta)
+        # one axis at a time (a single four-operand einsum may form the outer product of the bases)
+        out = torch.matmul(theta, bx.T)  # (3, nz, ny, X)
+        out = torch.matmul(by, out)  # (3, nz, Y, X)
+        return torch.matmul(bz, out.reshape(3, bz.shape[1], -1)).reshape(3, bz.shape[0], by.shape[0], bx.shape[0])
 
     def field(self, theta: torch.Tensor) -> torch.Tensor:
         """r (3, Z, Y, X) mm on the model grid; differentiable in ``theta``."""
         return self._apply(self._check(theta))
+
+    def _mean_square(self, theta, kz=0, ky=0, kx=0) -> torch.Tensor:
+        """mean over the grid of |the (kz, ky, kx) derivative of r|^2, from the bases' Gram matrices
+        (``theta^T (Gz x Gy x Gx) theta / N``: the same value as on the grid, at the control grid's cost)."""
+        key = (kz, ky, kx, theta.dtype)
+        grams = self._grams.get(key)
+        if grams is None:
+            grams = [(b[k].T @ b[k]).to(theta.dtype) for b, k in zip(self._basis, (kz, ky, kx))]
+            self._grams[key] = grams
+        gz, gy, gx = grams
+        out = torch.matmul(theta, gx)  # Gram matrices are symmetric
+        out = torch.matmul(gy, out)
+        out = torch.matmul(gz, out.reshape(3, gz.shape[0], -1)).reshape(theta.shape)
+        return (theta * out).sum() / float(np.prod(self.shape))
 
     def bending(self, theta: torch.Tensor) -> torch.Tensor:
         """mean over the grid of the summed squared second derivatives of r (mm^-2), mixed terms twice."""
         self._check(theta)
         out = 0.0
         for kz, ky, kx, w in ((2, 0, 0, 1), (0, 2, 0, 1), (0, 0, 2, 1), (1, 1, 0, 2), (1, 0, 1, 2), (0, 1, 1, 2)):
-            d = self._apply(theta, kz, ky, kx)
-            out = out + w * (d * d).sum(0).mean()
+            out = out + w * self._mean_square(theta, kz, ky, kx)
         return out
 
     def prior(self, theta: torch.Tensor, bending: float) -> torch.Tensor:
         """``mean |r|^2 + bending h^4 mean |D^2 r|^2`` (mm^2) over the model grid."""
-        r = self.field(theta)
-        value = (r * r).sum(0).mean()
+        value = self._mean_square(self._check(theta))
         if bending > 0:
             value = value + float(bending) * self.h ** 4 * self.bending(theta)
         return value
