@@ -581,7 +581,10 @@ def _experiment_command(anatomy) -> click.Command:
                        "reconstruction grid itself (R2-Gaussian's protocol, flatters FDK and SART)")
     @click.option("--progress/--no-progress", default=True, help="progress bar per run")
     @cohort_options
+    @click.option("--set", "shape_settings", multiple=True, metavar="KEY=VALUE",
+                  help="a setting of every shape-guided run, e.g. residual=on (repeatable; recorded with each run)")
     def experiment(views, more_views, view_sets, detector_mm, meshes, units, mesh_space, subjects, iterations,
+                   shape_settings,
                    ablation_views, out, seed, log_every, progress, protocol, workers, scheduler):
         """The seed paper's experiment: R2-Gaussian vs shape-guided on every held-out subject,
         the ablation, error against run time, surfaces; writes table.md, results.csv, curves.png.
@@ -609,9 +612,14 @@ def _experiment_command(anatomy) -> click.Command:
                     f"held-out subjects only: {', '.join(held) if held else '(the plugin has none)'}",
                     param_hint="--subjects")
         per_run = {"log_every": log_every, "checkpoint_every": 0}
+        shape_opts = parse_settings(shape_settings)
+        if shape_opts:  # fail now, not in every run
+            from clgs.methods.shape_guided import ShapeGuidedConfig
+
+            ShapeGuidedConfig.from_json(shape_opts)
         summary = run_experiment(anatomy, out, views=views, subjects=ids, iterations=iterations,
                                  ablation_views=ablation_views or None, seed=seed, progress=progress,
-                                 settings={"r2gs": per_run, "shape": per_run}, echo=click.echo,
+                                 settings={"r2gs": per_run, "shape": {**per_run, **shape_opts}}, echo=click.echo,
                                  workers=workers or None, scheduler=scheduler, simulation=protocol, detector_mm=fov,
                                  meshes=mesh_files)
         click.echo(open(os.path.join(out, "table.md")).read())

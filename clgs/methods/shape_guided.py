@@ -117,13 +117,13 @@ class ShapeGuidedConfig(GaussianFitConfig):
     residual: str = setting("off", "--residual",
                             "a smooth deformation beyond the shape model's span (a cubic B-spline on the template, "
                             "bending-regularised), fitted after the shape coefficients: on, off (the paper)")
-    residual_points: int = setting(12, "--residual-points",
+    residual_points: int = setting(16, "--residual-points",
                                    "the residual's control points along the template's longest side", min=4)
     residual_init_iterations: int = 100  # the residual's registration (alpha fixed) before training
-    lambda_residual: float = 1e-4  # weight of the residual's prior (per mm^2)
+    lambda_residual: float = 1e-5  # weight of the residual's prior (per mm^2)
     residual_bending: float = 1.0  # its bending energy's weight against its magnitude (x h^4)
     residual_bending_start: float = 10.0  # the bending weight starts this many times higher, decays to 1x
-    lr_residual: float = 0.05  # mm per Adam step, decaying to 1 % by the midpoint as alpha's
+    lr_residual: float = 0.2  # mm per Adam step (10 % at the end of its registration; in training to 1 % by the midpoint)
     lambda_shape: float = 1e-4
     lambda_density: float = 0.5
     density_s: float = 0.05
@@ -463,14 +463,23 @@ def displacement_report(template, shape_set) -> dict:
     residual's share of the mean lengths; None for a set not bound to a shape model."""
     if not isinstance(shape_set, ShapeGuidedSet):
         return None
+    import trimesh
+
     parts = surface_displacement_parts(template, shape_set)
     model = np.linalg.norm(parts["model_mm"], axis=1)
     res = np.linalg.norm(parts["residual_mm"], axis=1)
+    # the residual's part along the surface's normal (where the model left it) changes the surface;
+    # the rest slides along it
+    model_surface = parts["vertices"] - parts["residual_mm"]
+    normals = trimesh.Trimesh(model_surface, np.asarray(template.faces), process=False).vertex_normals
+    res_n = np.abs((parts["residual_mm"] * normals).sum(1))
     total = float(model.mean() + res.mean())
+    r4 = lambda x: round(float(x), 4)  # noqa: E731
     return {"residual": "on" if shape_set.has_residual else "off",
-            "model_mean_mm": round(float(model.mean()), 4), "model_max_mm": round(float(model.max()), 4),
-            "residual_mean_mm": round(float(res.mean()), 4), "residual_max_mm": round(float(res.max()), 4),
-            "residual_share": round(float(res.mean()) / total, 4) if total > 0 else 0.0}
+            "model_mean_mm": r4(model.mean()), "model_max_mm": r4(model.max()),
+            "residual_mean_mm": r4(res.mean()), "residual_max_mm": r4(res.max()),
+            "residual_normal_mean_mm": r4(res_n.mean()), "residual_normal_max_mm": r4(res_n.max()),
+            "residual_share": r4(res.mean() / total) if total > 0 else 0.0}
 
 
 def reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | None = None, *, resume: bool = False,
