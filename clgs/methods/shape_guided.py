@@ -123,7 +123,7 @@ class ShapeGuidedConfig(GaussianFitConfig):
     lambda_residual: float = 1e-5  # weight of the residual's prior (per mm^2)
     residual_bending: float = 1.0  # its bending energy's weight against its magnitude (x h^4)
     residual_bending_start: float = 10.0  # the bending weight starts this many times higher, decays to 1x
-    lr_residual: float = 0.2  # mm per Adam step (10 % at the end of its registration; in training to 1 % by the midpoint)
+    lr_residual: float = 0.2  # mm per Adam step (to 10 % over its registration, in training to 1 % by the midpoint)
     lambda_shape: float = 1e-4
     lambda_density: float = 0.5
     density_s: float = 0.05
