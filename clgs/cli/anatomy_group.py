@@ -651,6 +651,7 @@ def _info_command(anatomy) -> click.Command:
             click.echo(f"  template  grid {t.shape} (Z, Y, X) at {t.spacing[0]:g} mm ({ext} mm); "
                        f"surface {len(t.vertices)} vertices, {len(t.faces)} faces; "
                        f"volume {t.label.sum() * float(t.spacing[0] * t.spacing[1] * t.spacing[2]) / 1000:.1f} cm^3")
+        _echo_shape_space(anatomy)
         path = anatomy.model_path
         if not path or not os.path.exists(path):
             click.echo(f"  model     not built ({path or 'no path'}): run `clgs {name} build-model`")
@@ -682,6 +683,32 @@ def _info_command(anatomy) -> click.Command:
             click.echo(f"            {meta['atlas_note']}")
 
     return info
+
+
+def _echo_shape_space(anatomy, max_modes: int = 5) -> None:
+    """Compactness, generalisation and specificity of the population's surfaces
+    (:mod:`clgs.shape.statistics`), for an anatomy whose surfaces are in vertex correspondence."""
+    pop = getattr(anatomy, "population_model", None)
+    if pop is None or anatomy.population is None or len(anatomy.population()) < 3:
+        return
+    import numpy as np
+
+    from clgs.shape.statistics import shape_space_figures
+
+    meshes = [pop.mesh(sid) for sid in anatomy.population()]
+    if any(m[0].shape != meshes[0][0].shape for m in meshes):
+        return  # not in correspondence: no vertex-level figures
+    f = shape_space_figures(np.stack([m[0] for m in meshes]), max_modes=max_modes, n_samples=100)
+
+    def row(values, fmt):
+        return " / ".join(fmt.format(v) for v in values)
+
+    click.echo(f"  surfaces  PCA of the {len(meshes)} population surfaces' vertices, modes {row(f['modes'], '{}')}:")
+    click.echo(f"            compactness {row([100 * c for c in f['compactness']], '{:.1f}')} % of the variance")
+    click.echo(f"            generalisation {row(f['generalisation_mm'], '{:.2f}')} mm "
+               "(leave-one-out, mean vertex error)")
+    click.echo(f"            specificity {row(f['specificity_mm'], '{:.2f}')} mm "
+               "(random shapes to the nearest subject)")
 
 
 # the commands every anatomy gets, each made for one anatomy

@@ -574,7 +574,9 @@ def run_method(scan, out_dir=None, iterations: int | None = None, anatomy=None, 
     if split is not None and split["residual"] == "on":
         print(f"surface displacement from the template: model {split['model_mean_mm']:.2f} mm mean "
               f"({split['model_max_mm']:.2f} max), residual {split['residual_mean_mm']:.2f} mm mean "
-              f"({split['residual_max_mm']:.2f} max): {100 * split['residual_share']:.0f} % residual", file=sys.stderr)
+              f"({split['residual_max_mm']:.2f} max; along the normal {split['residual_normal_mean_mm']:.2f} mean, "
+              f"{split['residual_normal_max_mm']:.2f} max): {100 * split['residual_share']:.0f} % residual",
+              file=sys.stderr)
     return method_output(result, out_dir, files, seconds=result.seconds, alpha=[float(a) for a in result.alpha],
                          size=size, history=result.log.rows, displacement=split)
 
