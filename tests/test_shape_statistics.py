@@ -43,3 +43,24 @@ def test_bad_surfaces_are_refused():
     x[0, 0, 0] = np.nan
     with pytest.raises(InputError, match="NaN"):
         shape_space_figures(x)
+
+
+def test_info_prints_the_figures_for_an_anatomy_with_surfaces_in_correspondence():
+    import click
+    from click.testing import CliRunner
+
+    from clgs.anatomy.record import Anatomy
+    from clgs.cli.anatomy_group import _echo_shape_space
+
+    x = _population(n=8)
+
+    class Population:
+        def mesh(self, sid):
+            return x[int(sid)], np.zeros((1, 3), int)
+
+    anatomy = Anatomy(name="twomodes", summary="x", population=lambda: [str(i) for i in range(8)])
+    anatomy.population_model = Population()
+    out = CliRunner().invoke(click.command()(lambda: _echo_shape_space(anatomy, max_modes=3)), [])
+    assert out.exit_code == 0, out.output
+    assert "PCA of the 8 population surfaces' vertices, modes 1 / 2 / 3" in out.output
+    assert "compactness" in out.output and "generalisation" in out.output and "specificity" in out.output
