@@ -46,7 +46,7 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
     """One reconstruction: volume, seconds, error-against-time history and, for the methods bound
     to the shape model, the template surface carried by the fitted alpha."""
     t0 = time.perf_counter()
-    history, model_surface, jac_min, model_size = [], None, None, None
+    history, model_surface, jac_min, model_size, split = [], None, None, None, None
     if method == "fdk":
         from clgs.ct.fdk import fdk
 
@@ -70,9 +70,11 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
             jac_min = float(np.min(anatomy[1].jacobian_determinant(res.trainer.sets[0].alpha.detach())))
         if getattr(res.trainer.sets[0], "fits_size", False):  # the bone's fitted size (the default)
             model_size = res.trainer.sets[0].size
+        split = res.displacement  # the surface's displacement: the model's part and the residual's
     seconds = time.perf_counter() - t0
     return {"volume": volume, "seconds": seconds, "history": history,
-            "model_surface": model_surface, "jacobian_min": jac_min, "model_size": model_size}
+            "model_surface": model_surface, "jacobian_min": jac_min, "model_size": model_size,
+            "displacement": split}
 
 
 def _made_with(method: str, iterations: int, seed: int, settings: dict, simulation: str = "fine") -> dict:
@@ -80,7 +82,8 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
     experiment reuses a record only when these match (else its table would mix runs). Records
     made before the simulation protocol was a choice used ``"same"`` and do not name it; the
     shape-bound runs name whether a size was fitted (``fit_size``: records made before it was
-    fitted count as ``"off"``)."""
+    fitted count as ``"off"``), and whether a residual deformation was (``residual``: records made
+    before it existed count as ``"off"``)."""
     sim = {} if simulation == "same" else {"simulation": simulation}
     if method == "fdk":
         return {"iterations": 0, **sim}
@@ -90,7 +93,8 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
     if method in ("init+shape", "shape"):
         from clgs.methods.shape_guided import ShapeGuidedConfig
 
-        size = {"fit_size": str(chosen.pop("fit_size", ShapeGuidedConfig.fit_size))}
+        size = {"fit_size": str(chosen.pop("fit_size", ShapeGuidedConfig.fit_size)),
+                "residual": str(chosen.pop("residual", ShapeGuidedConfig.residual))}
     return {"iterations": iterations, "seed": seed,
             "settings": json.loads(json.dumps(chosen, sort_keys=True, default=str)), **sim, **size}
 
@@ -98,7 +102,8 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
 # settings that change how often a run logs or saves, not its result
 _BOOKKEEPING = {"log_every", "log_early", "checkpoint_every", "checkpoint_dir", "progress"}
 _OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings", "detector_fov_mm": "--detector-mm",
-           "simulation": "--simulation", "fit_size": "shape-guided setting fit_size"}
+           "simulation": "--simulation", "fit_size": "shape-guided setting fit_size",
+           "residual": "shape-guided setting residual"}
 
 
 def load_experiment_subject(anatomy, sid, meshes, seed: int):
@@ -120,7 +125,8 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
     """ValueError if the kept record ``row`` was made with other settings than ``made_with``
     (records from before seeds, settings, detectors and simulation protocols were kept count as
     seed 0, no settings, the whole detector and the same-grid protocol)."""
-    defaults = {"seed": 0, "settings": {}, "detector_fov_mm": None, "simulation": "same", "fit_size": "off"}
+    defaults = {"seed": 0, "settings": {}, "detector_fov_mm": None, "simulation": "same", "fit_size": "off",
+                "residual": "off"}
     made_with = {"simulation": "same", **made_with}
     for key, want in made_with.items():
         had = row.get(key, defaults.get(key, want))
@@ -348,6 +354,7 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
     row = {"subject": subject_id, "views": v, "method": method, "seconds": run["seconds"], **made_with,
            "angles_deg": [round(math.degrees(a), 6) for a in scan.geometry.angles],
            "jacobian_min": run["jacobian_min"], "model_size": run.get("model_size"),
+           "displacement": run.get("displacement"),
            **{k: (float(x) if isinstance(x, (int, float, np.floating)) else x) for k, x in metrics.items()},
            "surface_file": None if surf is None else str(surf),
            "history": [{k: r.get(k) for k in ("iteration", "seconds", "psnr3d", "ssim3d")}

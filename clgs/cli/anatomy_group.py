@@ -667,7 +667,10 @@ def _experiment_command(anatomy) -> click.Command:
                        "reconstruction grid itself (R2-Gaussian's protocol, flatters FDK and SART)")
     @click.option("--progress/--no-progress", default=True, help="progress bar per run")
     @cohort_options
+    @click.option("--set", "shape_settings", multiple=True, metavar="KEY=VALUE",
+                  help="a setting of every shape-guided run, e.g. residual=on (repeatable; recorded with each run)")
     def experiment(views, more_views, view_sets, detector_mm, meshes, units, mesh_space, subjects, iterations,
+                   shape_settings,
                    ablation_views, out, seed, log_every, progress, protocol, workers, scheduler):
         """The seed paper's experiment: R2-Gaussian vs shape-guided on every held-out subject,
         the ablation, error against run time, surfaces; writes table.md, results.csv, curves.png.
@@ -695,9 +698,14 @@ def _experiment_command(anatomy) -> click.Command:
                     f"held-out subjects only: {', '.join(held) if held else '(the plugin has none)'}",
                     param_hint="--subjects")
         per_run = {"log_every": log_every, "checkpoint_every": 0}
+        shape_opts = parse_settings(shape_settings)
+        if shape_opts:  # fail now, not in every run
+            from clgs.methods.shape_guided import ShapeGuidedConfig
+
+            ShapeGuidedConfig.from_json(shape_opts)
         summary = run_experiment(anatomy, out, views=views, subjects=ids, iterations=iterations,
                                  ablation_views=ablation_views or None, seed=seed, progress=progress,
-                                 settings={"r2gs": per_run, "shape": per_run}, echo=click.echo,
+                                 settings={"r2gs": per_run, "shape": {**per_run, **shape_opts}}, echo=click.echo,
                                  workers=workers or None, scheduler=scheduler, simulation=protocol, detector_mm=fov,
                                  meshes=mesh_files)
         click.echo(open(os.path.join(out, "table.md")).read())
@@ -729,6 +737,7 @@ def _info_command(anatomy) -> click.Command:
             click.echo(f"  template  grid {t.shape} (Z, Y, X) at {t.spacing[0]:g} mm ({ext} mm); "
                        f"surface {len(t.vertices)} vertices, {len(t.faces)} faces; "
                        f"volume {t.label.sum() * float(t.spacing[0] * t.spacing[1] * t.spacing[2]) / 1000:.1f} cm^3")
+        _echo_shape_space(anatomy)
         path = anatomy.model_path
         if not path or not os.path.exists(path):
             click.echo(f"  model     not built ({path or 'no path'}): run `clgs {name} build-model`")
@@ -760,6 +769,32 @@ def _info_command(anatomy) -> click.Command:
             click.echo(f"            {meta['atlas_note']}")
 
     return info
+
+
+def _echo_shape_space(anatomy, max_modes: int = 5) -> None:
+    """Compactness, generalisation and specificity of the population's surfaces
+    (:mod:`clgs.shape.statistics`), for an anatomy whose surfaces are in vertex correspondence."""
+    pop = getattr(anatomy, "population_model", None)
+    if pop is None or anatomy.population is None or len(anatomy.population()) < 3:
+        return
+    import numpy as np
+
+    from clgs.shape.statistics import shape_space_figures
+
+    meshes = [pop.mesh(sid) for sid in anatomy.population()]
+    if any(m[0].shape != meshes[0][0].shape for m in meshes):
+        return  # not in correspondence: no vertex-level figures
+    f = shape_space_figures(np.stack([m[0] for m in meshes]), max_modes=max_modes, n_samples=100)
+
+    def row(values, fmt):
+        return " / ".join(fmt.format(v) for v in values)
+
+    click.echo(f"  surfaces  PCA of the {len(meshes)} population surfaces' vertices, modes {row(f['modes'], '{}')}:")
+    click.echo(f"            compactness {row([100 * c for c in f['compactness']], '{:.1f}')} % of the variance")
+    click.echo(f"            generalisation {row(f['generalisation_mm'], '{:.2f}')} mm "
+               "(leave-one-out, mean vertex error)")
+    click.echo(f"            specificity {row(f['specificity_mm'], '{:.2f}')} mm "
+               "(random shapes to the nearest subject)")
 
 
 # the commands every anatomy gets, each made for one anatomy

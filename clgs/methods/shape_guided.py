@@ -79,7 +79,7 @@ from clgs.methods.gaussian import RUN_OPTIONS, method_output
 from clgs.ops.field_sampler import default_sampler
 from clgs.shape.gaussian_set import ShapeGuidedSet
 from clgs.shape.initialise import initialise, initialise_surroundings, sample_surrounding_centres
-from clgs.shape.priors import DensityPrior, random_subgrid, shape_prior_term
+from clgs.shape.priors import DensityPrior, random_subgrid, residual_prior_term, shape_prior_term
 from clgs.shape.size import AUTO_TOLERANCE, search_size, size_centre, stretched_surroundings
 from clgs.errors import InputError
 
@@ -113,6 +113,18 @@ class ShapeGuidedConfig(GaussianFitConfig):
     fit_size: str = setting("on", "--fit-size",
                             "fit the bone's size with its shape: on, auto (only when the projections show a bone "
                             "more than 10% larger or smaller than the model's), off (the paper)")
+    # a smooth residual deformation beyond the model's span (clgs.shape.residual): "on" registers it
+    # after alpha and trains it with everything else; "off" (the paper) keeps the bone in the span
+    residual: str = setting("off", "--residual",
+                            "a smooth deformation beyond the shape model's span (a cubic B-spline on the template, "
+                            "bending-regularised), fitted after the shape coefficients: on, off (the paper)")
+    residual_points: int = setting(16, "--residual-points",
+                                   "the residual's control points along the template's longest side", min=4)
+    residual_init_iterations: int = 100  # the residual's registration (alpha fixed) before training
+    lambda_residual: float = 1e-5  # weight of the residual's prior (per mm^2)
+    residual_bending: float = 1.0  # its bending energy's weight against its magnitude (x h^4)
+    residual_bending_start: float = 10.0  # the bending weight starts this many times higher, decays to 1x
+    lr_residual: float = 0.2  # mm per Adam step (to 10 % over its registration, in training to 1 % by the midpoint)
     lambda_shape: float = 1e-4
     lambda_density: float = 0.5
     density_s: float = 0.05
@@ -126,12 +138,12 @@ class ShapeGuidedConfig(GaussianFitConfig):
 
     CLI = ("iterations", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every", "log_early",
            "checkpoint_every", "max_gaussians", "n_shape", "n_free", "tau", "shape_prior", "density_prior",
-           "density_prior_field", "free_init", "alpha_init_iterations", "fit_size")
+           "density_prior_field", "free_init", "alpha_init_iterations", "fit_size", "residual", "residual_points")
     KIND = "shape-guided"
     CHOICES = {**GaussianFitConfig.CHOICES, "free_init": ("atlas", "fdk"), "density_prior_field": ("all", "shape"),
-               "fit_size": ("auto", "on", "off")}
+               "fit_size": ("auto", "on", "off"), "residual": ("on", "off")}
     POSITIVE = GaussianFitConfig.POSITIVE | {"tau", "density_s"}
-    AT_LEAST = {**GaussianFitConfig.AT_LEAST, "density_points": 2}
+    AT_LEAST = {**GaussianFitConfig.AT_LEAST, "density_points": 2, "residual_points": 4}
 
 
 # ---------------------------------------------------------------------- schedules
@@ -143,6 +155,8 @@ def shape_schedules(cfg: ShapeGuidedConfig, iterations: int, *, free_means: bool
     sched = {
         "alpha": Schedule(cfg.lr_alpha, cfg.lr_alpha * 0.01, half, start=cfg.alpha_freeze, frozen_before_start=True),
         "log_size": Schedule(cfg.lr_size, cfg.lr_size * 0.01, half, start=cfg.alpha_freeze, frozen_before_start=True),
+        "residual": Schedule(cfg.lr_residual, cfg.lr_residual * 0.01, half, start=cfg.alpha_freeze,
+                             frozen_before_start=True),
         "densities": Schedule(cfg.lr_density),
         "scales": Schedule(cfg.lr_scale),
         "quats": Schedule(cfg.lr_rotation, cfg.lr_rotation * 0.1, iterations),
@@ -166,6 +180,7 @@ class ShapeGuidedResult:
     summary: str
     seconds: float
     surface: dict | None = None  # the bone surface written (clgs.anatomy.evaluation.write_bone_surface)
+    displacement: dict | None = None  # displacement_report: the surface's model and residual parts
 
 
 def _free_init_volume(fdk, geometry, template) -> np.ndarray:
@@ -201,31 +216,74 @@ def fit_initial_alpha(scan, shape_model, cfg: ShapeGuidedConfig, init, free=None
     The tissue around the bone is left in place: carried by the bone's deformation it made the
     fit follow the limb's outline instead (alpha_1 +0.22, model surface 4.0 mm)."""
 
-    geo = scan.geometry
     k = int(cfg.alpha_init_iterations)
+    sched = {"alpha": Schedule(cfg.lr_alpha, cfg.lr_alpha * 0.1, k),
+             "log_size": Schedule(2.5 * cfg.lr_size, 0.25 * cfg.lr_size, k)}
+    bound = _register(scan, shape_model, cfg, init, free, sched, k, size=size, centre_mm=centre_mm)
+    return bound.alpha.detach().numpy().copy(), (bound.size if bound.fits_size else None)
+
+
+def fit_initial_residual(scan, shape_model, cfg: ShapeGuidedConfig, init, free, alpha, size=None,
+                         centre_mm=None) -> np.ndarray:
+    """The residual's coefficients registered to the projections after alpha (and the size) have
+    been (:func:`fit_initial_alpha`): they stay fixed, and only the residual moves the atlas's bone,
+    for ``residual_init_iterations`` (L1 + D-SSIM + its prior, the bending weight decaying from
+    ``residual_bending_start`` times its final value; lr ``lr_residual`` decaying to 10 %).
+
+    Why a registration of its own: as for alpha, the densities and the free Gaussians of the main
+    run absorb a shape difference within a few dozen iterations, and what they have absorbed the
+    residual cannot take back; with alpha fixed, what the residual explains is what the modes
+    could not."""
+    k = int(cfg.residual_init_iterations)
+    sched = {"residual": Schedule(cfg.lr_residual, cfg.lr_residual * 0.1, k)}
+    bound = _register(scan, shape_model, cfg, init, free, sched, k, size=size, centre_mm=centre_mm, alpha=alpha,
+                      residual=residual_grid(shape_model, cfg))
+    return bound.params["residual"].detach().clone()
+
+
+def residual_grid(shape_model, cfg: ShapeGuidedConfig):
+    """The residual's B-spline grid on the model's grid (None with ``residual="off"``)."""
+    from clgs.shape.residual import ResidualGrid
+
+    if cfg.residual != "on":
+        return None
+    return ResidualGrid(shape_model.shape, shape_model.spacing, cfg.residual_points)
+
+
+def _register(scan, shape_model, cfg, init, free, moving: dict, k: int, *, size, centre_mm, alpha=None,
+              residual=None) -> ShapeGuidedSet:
+    """The shape set on ``init`` with only the parameters of ``moving`` (name -> Schedule) optimised
+    against the projections for ``k`` iterations, the free set's start ``free`` fixed."""
+    geo = scan.geometry
     frozen = Schedule(0.0)
-    sched = {"alpha": Schedule(cfg.lr_alpha, cfg.lr_alpha * 0.1, k), "densities": frozen, "scales": frozen,
-             "quats": frozen, "log_size": Schedule(2.5 * cfg.lr_size, 0.25 * cfg.lr_size, k)}
+    sched = {name: moving.get(name, frozen) for name in ("alpha", "log_size", "residual", "densities", "scales",
+                                                          "quats")}
     bound = ShapeGuidedSet(init.centres, (init.scales * geo.scale).astype(np.float32), init.quats.astype(np.float32),
                            (init.densities * cfg.value_scale).astype(np.float32), shape_model=shape_model,
                            geometry=geo, box=volume_box(geo),
                            scale_bounds=scale_bounds_for(geo, cfg.scale_bounds, cfg.scale_floor), schedules=sched,
                            name="registration", sampler=field_sampler(cfg.backend), size=size,
-                           size_centre_mm=centre_mm)
-    for name in ("densities", "scales", "quats"):  # no gradients wanted: a cheaper backward
-        bound.params[name].requires_grad_(False)
+                           size_centre_mm=centre_mm, alpha=alpha, residual=residual)
+    for name, p in bound.params.items():  # no gradients wanted: a cheaper backward
+        if name not in moving:
+            p.requires_grad_(False)
     sets = [bound]
     if free is not None and len(free) > 0:
         sets.append(_Frozen(free))
     image = L.ImageTerms(dssim=cfg.lambda_dssim > 0)
     losses = [LossTerm("l1", 1.0, image.l1),
-              LossTerm("dssim", cfg.lambda_dssim, image.dssim),
-              LossTerm("shape", cfg.lambda_shape, shape_prior_term("registration"))]
+              LossTerm("dssim", cfg.lambda_dssim, image.dssim)]
+    if "alpha" in moving:
+        losses.append(LossTerm("shape", cfg.lambda_shape, shape_prior_term("registration")))
+    if "residual" in moving:
+        losses.append(LossTerm("residual", cfg.lambda_residual,
+                               residual_prior_term(cfg.residual_bending, cfg.residual_bending_start, k,
+                                                   "registration")))
     projections = np.asarray(scan.projections, np.float32) * np.float32(geo.scale * cfg.value_scale)
     trainer = Trainer(sets, geo, projections, losses, iterations=k, backend=Backend(cfg.backend, cfg.projector_mode),
                       render_scale=geo.scale, seed=cfg.seed, log_every=0)
     trainer.fit()
-    return bound.alpha.detach().numpy().copy(), (bound.size if bound.fits_size else None)
+    return bound
 
 
 class _Frozen:
@@ -286,7 +344,7 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
     fsched = r2gs_schedules(iters)
     bounds = scale_bounds_for(geo, cfg.scale_bounds, cfg.scale_floor)
     free_kw = dict(box=box, scale_bounds=bounds, schedules=fsched, name="free", densify=True)
-    free, alpha0, size, centre = None, None, None, size_centre(template)
+    free, alpha0, theta0, size, centre = None, None, None, None, size_centre(template)
     if state is None:
         init = initialise(template, atlas, geo, cfg.n_shape, tau=cfg.tau, boundary_weight=cfg.boundary_weight,
                           seed=cfg.seed, backend=cfg.backend)
@@ -311,6 +369,8 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
                                     seed=cfg.seed + 1, **free_kw)
         if bound and cfg.alpha_init_iterations > 0:
             alpha0, size = fit_initial_alpha(scan, shape_model, cfg, init, free, size=size, centre_mm=centre)
+        if bound and cfg.residual == "on" and cfg.residual_init_iterations > 0:
+            theta0 = fit_initial_residual(scan, shape_model, cfg, init, free, alpha0, size=size, centre_mm=centre)
     else:
         n = state["sets"]["shape"]["scales"].shape[0]
         size = 1.0 if "log_size" in state["sets"]["shape"] else None  # the checkpoint holds its value
@@ -326,7 +386,8 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
         shape_set = ShapeGuidedSet(centres, scales.astype(np.float32), quats.astype(np.float32),
                                    dens.astype(np.float32), shape_model=shape_model, geometry=geo,
                                    schedules=sched, alpha=alpha0, sampler=field_sampler(cfg.backend), size=size,
-                                   size_centre_mm=centre, **common)
+                                   size_centre_mm=centre, residual=residual_grid(shape_model, cfg),
+                                   residual_theta=theta0, **common)
     else:
         shape_set = GaussianSet(geo.world_to_scene(centres).astype(np.float32), scales.astype(np.float32),
                                 quats.astype(np.float32), dens.astype(np.float32), schedules=sched,
@@ -346,6 +407,10 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
     losses = projection_losses(cfg)
     if bound:
         losses.append(LossTerm("shape", cfg.lambda_shape, shape_prior_term()))
+    if bound and cfg.residual == "on":
+        losses.append(LossTerm("residual", cfg.lambda_residual,
+                               residual_prior_term(cfg.residual_bending, cfg.residual_bending_start,
+                                                   max(iters // 2, 1))))
     if cfg.density_prior and atlas is not None:
         losses.append(LossTerm("density", cfg.lambda_density,
                                DensityPrior(atlas, template, geo, cfg.value_scale, cfg.density_s, cfg.density_points,
@@ -374,11 +439,49 @@ def deformed_template_surface(template, shape_set) -> tuple:
     faces)."""
     if not isinstance(shape_set, ShapeGuidedSet):
         return None
+    parts = surface_displacement_parts(template, shape_set)
+    return parts["vertices"], np.asarray(template.faces)
+
+
+def surface_displacement_parts(template, shape_set) -> dict:
+    """The template surface carried onto the subject, and its displacement split into the shape
+    model's part (alpha and the size: ``model_mm``, (V, 3)) and the residual's (``residual_mm``:
+    the fitted size times r at the vertex), each from the template's vertex; ``vertices`` = the
+    template's + both."""
     with torch.no_grad():
-        u = shape_set.shape_model.displacement(shape_set.alpha.detach())
+        m = shape_set.shape_model
+        u = m.displacement(shape_set.alpha.detach())
         v = torch.as_tensor(template.vertices, dtype=torch.float32)
-        moved = shape_set.scaled(v + shape_set.shape_model.sample(u, v))
-    return moved.numpy().astype(np.float64), np.asarray(template.faces)
+        model = shape_set.scaled(v + m.sample(u, v))
+        moved = shape_set.scaled(v + m.sample(u + shape_set.residual_field(), v))
+    v64 = np.asarray(template.vertices, np.float64)
+    model, moved = model.numpy().astype(np.float64), moved.numpy().astype(np.float64)
+    return {"vertices": moved, "model_mm": model - v64, "residual_mm": moved - model}
+
+
+def displacement_report(template, shape_set) -> dict:
+    """How much of the surface's displacement from the template is the shape model's and how much
+    the residual's: mean and largest length (mm) of each over the template's vertices, and the
+    residual's share of the mean lengths; None for a set not bound to a shape model."""
+    if not isinstance(shape_set, ShapeGuidedSet):
+        return None
+    import trimesh
+
+    parts = surface_displacement_parts(template, shape_set)
+    model = np.linalg.norm(parts["model_mm"], axis=1)
+    res = np.linalg.norm(parts["residual_mm"], axis=1)
+    # the residual's part along the surface's normal (where the model left it) changes the surface;
+    # the rest slides along it
+    model_surface = parts["vertices"] - parts["residual_mm"]
+    normals = trimesh.Trimesh(model_surface, np.asarray(template.faces), process=False).vertex_normals
+    res_n = np.abs((parts["residual_mm"] * normals).sum(1))
+    total = float(model.mean() + res.mean())
+    r4 = lambda x: round(float(x), 4)  # noqa: E731
+    return {"residual": "on" if shape_set.has_residual else "off",
+            "model_mean_mm": r4(model.mean()), "model_max_mm": r4(model.max()),
+            "residual_mean_mm": r4(res.mean()), "residual_max_mm": r4(res.max()),
+            "residual_normal_mean_mm": r4(res_n.mean()), "residual_normal_max_mm": r4(res_n.max()),
+            "residual_share": r4(res.mean() / total) if total > 0 else 0.0}
 
 
 def reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | None = None, *, resume: bool = False,
@@ -432,7 +535,8 @@ def _reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | Non
     return ShapeGuidedResult(volume=volume, gaussians=gaussians_in_scan_units(trainer, cfg.value_scale),
                              alpha=alpha, log=trainer.log, trainer=trainer, value_scale=cfg.value_scale,
                              interrupted=trainer.interrupted, out_dir=None if out_dir is None else Path(out_dir),
-                             summary=trainer.log.summary(), seconds=seconds, surface=surface)
+                             summary=trainer.log.summary(), seconds=seconds, surface=surface,
+                             displacement=displacement_report(parts[0], shape_set))
 
 
 def load_anatomy_parts(anatomy) -> tuple:
@@ -454,7 +558,9 @@ def write_outputs(trainer, out_dir, value_scale, volume, template, alpha, level)
     paths = write_common(trainer, out_dir, value_scale, volume, method="shape-guided")
     shape_set = trainer.sets[0]
     size = shape_set.size if isinstance(shape_set, ShapeGuidedSet) and shape_set.fits_size else None
-    paths["alpha"] = atomic.write_json(out_dir / "alpha.json", {"alpha": [float(a) for a in alpha], "size": size})
+    split = displacement_report(template, shape_set)  # the surface's displacement: model and residual
+    paths["alpha"] = atomic.write_json(out_dir / "alpha.json", {"alpha": [float(a) for a in alpha], "size": size,
+                                                                **({"displacement": split} if split else {})})
     moved = deformed_template_surface(template, trainer.sets[0])
     if moved is not None:
         paths["shape_surface"] = save_mesh(out_dir / "shape_surface.stl", *moved)
@@ -497,8 +603,15 @@ def run_method(scan, out_dir=None, iterations: int | None = None, anatomy=None, 
         surface["surface_file"] = result.surface["path"]
         if result.surface["path"] is None:
             surface["surface_note"] = result.surface["reason"]
+    split = result.displacement
+    if split is not None and split["residual"] == "on":
+        print(f"surface displacement from the template: model {split['model_mean_mm']:.2f} mm mean "
+              f"({split['model_max_mm']:.2f} max), residual {split['residual_mean_mm']:.2f} mm mean "
+              f"({split['residual_max_mm']:.2f} max; along the normal {split['residual_normal_mean_mm']:.2f} mean, "
+              f"{split['residual_normal_max_mm']:.2f} max): {100 * split['residual_share']:.0f} % residual",
+              file=sys.stderr)
     return method_output(result, out_dir, files, seconds=result.seconds, alpha=[float(a) for a in result.alpha],
-                         size=size, history=result.log.rows, **surface)
+                         size=size, history=result.log.rows, displacement=split, **surface)
 
 
 METHOD = Method("shape", run_method, config=ShapeGuidedConfig, atomic_dir=False,

@@ -5,7 +5,11 @@ the bone plausible. Their scale, rotation and density are free, as any :class:`G
 With a fitted size ``s`` the model's bone is also scaled about a fixed centre ``c``:
 ``p_j = c + s (p_ref_j + u(alpha)(p_ref_j) - c)``. The modes of a shape model built from one
 population describe its shapes at that population's sizes; a femur of 355 or 558 mm lies beyond
-what they can stretch to, and ``s`` (one number, no prior) takes that part."""
+what they can stretch to, and ``s`` (one number, no prior) takes that part.
+
+With a residual (:mod:`clgs.shape.residual`) a smooth displacement ``r(theta)`` on the template,
+beyond the modes' span, is added to theirs:
+``p_j = c + s (p_ref_j + u(alpha)(p_ref_j) + r(theta)(p_ref_j) - c)``."""
 from __future__ import annotations
 
 import numpy as np
@@ -39,7 +43,7 @@ class ShapeGuidedSet(GaussianSet):
 
     def __init__(self, p_ref_mm, scales, quats, densities, *, shape_model, geometry, box, scale_bounds,
                  schedules, alpha=None, name: str = "shape", raw: bool = False, sampler=None,
-                 size: float | None = None, size_centre_mm=None):
+                 size: float | None = None, size_centre_mm=None, residual=None, residual_theta=None):
         dt = torch.float32
         self.sampler = sampler  # a FieldSampler (OpenCL) or None (torch's grid_sample)
         self.shape_model = shape_model.to(dt) if shape_model.dtype != dt else shape_model
@@ -59,6 +63,14 @@ class ShapeGuidedSet(GaussianSet):
                 raise ValueError(f"size must be a positive number, got {size}")
             self.size_centre = torch.as_tensor(np.asarray(size_centre_mm, np.float64), dtype=dt)
             self.params["log_size"] = torch.tensor([np.log(size)], dtype=dt, requires_grad=True)
+        # the residual beyond the model's span (a ResidualGrid on the model's grid, None: none)
+        self.residual = residual.to(dt) if residual is not None and residual.dtype != dt else residual
+        if residual is not None:
+            theta = self.residual.zeros() if residual_theta is None else torch.as_tensor(residual_theta, dtype=dt)
+            if tuple(theta.shape) != self.residual.coefficient_shape or tuple(residual.shape) != self.shape_model.shape:
+                raise ValueError(f"residual coefficients {tuple(theta.shape)} on a grid {tuple(residual.shape)} do not "
+                                 f"fit the shape model's grid {self.shape_model.shape}")
+            self.params["residual"] = theta.detach().clone().requires_grad_(True)
         self.last_u = None  # the latest displacement field (detached), for the density prior
         self._at_ref = None  # FixedPointSampler at p_ref, built on first use
         self._linear = None  # (a0, u0 grid, J grid, centre offsets at a0, their J): the linearised map
@@ -99,7 +111,41 @@ class ShapeGuidedSet(GaussianSet):
         return self.size_centre + s * (points_mm - self.size_centre)
 
     def centres_mm(self, u=None) -> torch.Tensor:
-        return self.scaled(self._model_centres_mm(u))
+        centres = self._model_centres_mm(u)
+        if self.has_residual:
+            centres = centres + self._at_ref_points(self.residual_field())
+        return self.scaled(centres)
+
+    @property
+    def has_residual(self) -> bool:
+        return "residual" in self.params
+
+    def residual_field(self) -> torch.Tensor:
+        """r(theta) (3, Z, Y, X) mm on the model grid, differentiable in theta (zeros without one)."""
+        if not self.has_residual:
+            return torch.zeros((3,) + self.shape_model.shape, dtype=self.p_ref.dtype)
+        return self.residual.field(self.params["residual"])
+
+    def residual_prior(self, bending: float) -> torch.Tensor:
+        """The residual's prior (:meth:`clgs.shape.residual.ResidualGrid.prior`; 0 without one)."""
+        if not self.has_residual:
+            return torch.zeros((), dtype=self.p_ref.dtype)
+        return self.residual.prior(self.params["residual"], bending)
+
+    def _at_ref_points(self, field: torch.Tensor) -> torch.Tensor:
+        if not self.FIXED_POINTS or field.dtype != self.p_ref.dtype:
+            return self.shape_model.sample(field, self.p_ref)
+        return self._ref_sampler()(field)
+
+    def total_displacement(self) -> torch.Tensor:
+        """u(alpha) + r(theta) (3, Z, Y, X) on the model grid, detached: the whole map's (before the size)."""
+        if self.last_u is None:
+            with torch.no_grad():
+                self.displacement()
+        if not self.has_residual:
+            return self.last_u
+        with torch.no_grad():
+            return self.last_u + self.residual_field()
 
     def _model_centres_mm(self, u=None) -> torch.Tensor:
         if u is None and self.LINEAR_TOL is not None and self.FIXED_POINTS and self._one_dtype():
@@ -173,18 +219,16 @@ class ShapeGuidedSet(GaussianSet):
 
     def to_template(self, points_mm: torch.Tensor, tissue: bool = False) -> torch.Tensor:
         """Points of the subject carried back to the template: the size undone, then x' = x - u(x'),
-        two fixed-point steps. ``tissue``: the size undone as the tissue around the bone takes it:
-        a larger bone's, not a smaller one's (a limb has a girth of its own; see
-        :meth:`clgs.shape.priors.DensityPrior._sized_atlas`)."""
-        if self.last_u is None:
-            with torch.no_grad():
-                self.displacement()
+        two fixed-point steps (``u`` the model's displacement plus the residual). ``tissue``: the
+        size undone as the tissue around the bone takes it: a larger bone's, not a smaller one's (a
+        limb has a girth of its own; see :meth:`clgs.shape.priors.DensityPrior._sized_atlas`)."""
+        total = self.total_displacement()
         if self.fits_size:
             s = torch.exp(self.params["log_size"].detach())
             points_mm = self.size_centre + (points_mm - self.size_centre) / (torch.clamp(s, min=1.0) if tissue else s)
         x = points_mm
         for _ in range(2):
-            x = points_mm - self.shape_model.sample(self.last_u, x, self.sampler)
+            x = points_mm - self.shape_model.sample(total, x, self.sampler)
         return x
 
     def to_numpy(self) -> dict:
@@ -194,6 +238,9 @@ class ShapeGuidedSet(GaussianSet):
             out["size"] = np.float32(self.size)
             out["size_centre_mm"] = self.size_centre.numpy().astype(np.float32)
         out["p_ref_mm"] = self.p_ref.numpy().astype(np.float32)
+        if self.has_residual:  # the B-spline coefficients (mm) and their control spacing
+            out["residual_mm"] = self.params["residual"].detach().numpy().astype(np.float32)
+            out["residual_spacing_mm"] = np.float32(self.residual.h)
         return out
 
     def state_dict(self) -> dict:
@@ -213,6 +260,12 @@ class ShapeGuidedSet(GaussianSet):
                              + " a fitted size, this run's " + ("with" if self.fits_size else "without"))
         if self.fits_size:
             self.size_centre = state["size_centre"].clone()
+        if ("residual" in state) != self.has_residual:
+            raise ValueError("the checkpoint's shape set was made " + ("with" if "residual" in state else "without")
+                             + " a residual deformation, this run's " + ("with" if self.has_residual else "without"))
+        if self.has_residual and tuple(state["residual"].shape) != tuple(self.params["residual"].shape):
+            raise ValueError(f"the checkpoint's residual has {tuple(state['residual'].shape)} coefficients, this "
+                             f"run's {tuple(self.params['residual'].shape)} (another residual_points)")
         self._at_ref = self._linear = self._prev_alpha = None
         self._step = 0.0
         for k in self.params:

@@ -21,6 +21,20 @@ def shape_prior_term(set_name: str = "shape"):
     return fn
 
 
+def residual_prior_term(bending: float, bending_start: float, steps: int, set_name: str = "shape"):
+    """The residual's prior (:meth:`clgs.shape.residual.ResidualGrid.prior`) with its bending
+    weight scheduled: ``bending_start`` times ``bending`` at the first iteration, decaying
+    log-linearly to ``bending`` over ``steps`` iterations (stiff first, so the residual takes the
+    coarse shape difference before the local one)."""
+    start = max(float(bending_start), 1e-12)
+
+    def fn(ctx):
+        t = min(max(ctx.iteration / max(int(steps), 1), 0.0), 1.0)
+        return _set(ctx.trainer, set_name).residual_prior(float(bending) * start ** (1.0 - t))
+
+    return fn
+
+
 def _set(trainer, name):
     for s in trainer.sets:
         if s.name == name:
