@@ -242,6 +242,36 @@ def test_a_second_run_into_a_locked_folder_is_refused_and_a_dead_ones_lock_taken
     assert not outputs.lock_path(out).exists()
 
 
+def test_import_and_convert_outputs_follow_the_rule(scan, tmp_path):
+    """`clgs import` claims its scan folder (refused without --force, a folder of someone else's
+    files refused even with it, locked while written); `clgs convert` locks what it writes."""
+    counts = np.full((6, 8, 24), 900.0, np.float32)
+    counts[:, :, 8:16] = 500.0
+    np.save(tmp_path / "raw.npy", counts)
+    np.save(tmp_path / "flat.npy", np.full((8, 24), 1000.0, np.float32))
+    args = ["import", tmp_path / "raw.npy", "--flats", tmp_path / "flat.npy", "--centre", "middle", "--arc", 180,
+            "--mode", "parallel", "--out", tmp_path / "imp"]
+    run(*args)
+    clean_error(run(*args, ok=False), "already exists", "--force")
+    run(*args, "--force")
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    res = run(*args[:-1], mine, "--force", ok=False)
+    clean_error(res, "notes.txt")
+    assert (mine / "notes.txt").read_text() == "mine"
+    out = tmp_path / "v.nii.gz"
+    child = _holder(out, tmp_path / "ready")
+    try:
+        res = run("convert", scan / "truth.nii.gz", out, ok=False)
+        clean_error(res, f"process {child.pid}")
+    finally:
+        child.kill()
+        child.wait()
+    run("convert", scan / "truth.nii.gz", out)
+    assert out.is_file()
+
+
 def test_two_commands_at_once_into_one_folder(scan, tmp_path):
     """Two processes (SART, then FDK into the same --out while SART runs): the second is refused
     naming the first's process and command; the first's result is the one written."""

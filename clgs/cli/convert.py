@@ -133,8 +133,7 @@ def convert(volume, out, dicom, hu, to_hu, kev, scan_dir, report_path, series_nu
     """
     import numpy as np
 
-    from clgs.io.units import HU, MU, header_text, hu_to_mu, mu_to_hu
-    from clgs.io.volume import VolumeError, save_volume
+    from clgs.io.units import hu_to_mu
 
     if not dicom and not is_volume_path(out):
         raise click.BadParameter(f"{out}: give a volume file (.nii.gz, .mha, .nrrd, .npy) or --dicom for a "
@@ -160,6 +159,23 @@ def convert(volume, out, dicom, hu, to_hu, kev, scan_dir, report_path, series_nu
     if org is None:  # a bare array: centred on the origin, as everywhere in clgs
         org = tuple(-0.5 * (np.asarray(vol.shape[::-1], float) - 1) * np.asarray(sp[::-1], float))
     mu = hu_to_mu(vol, kev) if hu else vol
+    from clgs.io.outputs import OutputBusy, lock
+
+    try:
+        with lock(out, "OUT"):  # one writer at a time (docs/output-rule.md)
+            _convert_into(volume, out, dicom, mu, sp, org, kev, to_hu, loaded, scan_dir, report_path,
+                          series_number, series_description, force)
+    except OutputBusy as exc:
+        raise click.ClickException(str(exc)) from None
+
+
+def _convert_into(volume, out, dicom, mu, sp, org, kev, to_hu, loaded, scan_dir, report_path, series_number,
+                  series_description, force) -> None:
+    import numpy as np
+
+    from clgs.io.units import HU, MU, header_text, mu_to_hu
+    from clgs.io.volume import VolumeError, save_volume
+
     try:
         if dicom:
             _write_dicom(volume, out, mu, sp, org, kev, scan_dir, report_path, series_number, series_description,

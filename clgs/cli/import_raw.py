@@ -78,7 +78,8 @@ def _angles(path):
 @click.option("--geometry", "geometry_file", type=click.Path(path_type=Path), default=None,
               help="a geometry JSON file (TIGRE names, or per-view 'vectors'; docs/formats.md) of the detector "
                    "after crop and binning: replaces --angles, --arc, --mode, --DSO, --DSD, --pixel and --centre")
-@click.option("--force", is_flag=True, help="overwrite an existing --out")
+@click.option("--force", is_flag=True, help="replace an earlier scan folder in --out (its clgs files only; anything "
+                                           "else there is refused)")
 def import_raw(raw, out, flats, darks, air_columns, angles_file, arc, mode, DSO, DSD, pixel, centre, tilt, rings,
                zingers, crop, binning, floor, views, geometry_file, force):
     """Turn RAW detector images into a scan folder: HDF5 Data Exchange (.h5), a TIFF stack or
@@ -91,8 +92,8 @@ def import_raw(raw, out, flats, darks, air_columns, angles_file, arc, mode, DSO,
     from clgs.io.raw import RawError, read_raw, scan_from_raw
     from clgs.io.scan import ScanError
 
-    if out.exists() and not force:
-        raise click.ClickException(f"{out} already exists; pass --force to overwrite it (or choose another --out)")
+    from clgs.cli.common import claim_output
+
     if out.resolve() == raw.resolve() or raw.resolve() in out.resolve().parents:
         raise click.ClickException(f"--out {out} would write into the raw data {raw}; choose another folder")
     b = _ints(binning, 1, "N", "--bin") if "," not in str(binning) else _ints(binning, 2, "ROWS,COLS", "--bin")
@@ -109,19 +110,22 @@ def import_raw(raw, out, flats, darks, air_columns, angles_file, arc, mode, DSO,
     zinger_value = _zingers(zingers)
     if rings is not None and rings % 2 == 0:
         raise click.BadParameter(f"{rings}: give an odd number of columns", param_hint="--rings")
-    try:
-        data = read_raw(raw, flats=flats, darks=darks)
-        scan, report = scan_from_raw(
-            data, mode=mode, pixel=pixel, DSO=DSO, DSD=DSD,
-            angles_deg=_angles(angles_file) if angles_file else None, arc_deg=arc, centre=centre_value,
-            crop=_ints(crop, 4, "R0,R1,C0,C1", "--crop"), binning=b,
-            air_columns=air_cols, floor=floor, views=views, geometry=geometry_file, air=air, tilt=tilt_value,
-            rings=rings, zingers=zinger_value)
-        scan.save(out, overwrite=force)
-    except (RawError, ScanError) as exc:
-        raise click.ClickException(str(exc)) from None
-    except OSError as exc:
-        raise click.ClickException(f"could not write {out}: {exc}") from None
+    # the output rule (docs/output-rule.md): refused without --force, cleared of an earlier scan's
+    # files with it, locked while this import writes it
+    with claim_output(out, force, kind="scan"):
+        try:
+            data = read_raw(raw, flats=flats, darks=darks)
+            scan, report = scan_from_raw(
+                data, mode=mode, pixel=pixel, DSO=DSO, DSD=DSD,
+                angles_deg=_angles(angles_file) if angles_file else None, arc_deg=arc, centre=centre_value,
+                crop=_ints(crop, 4, "R0,R1,C0,C1", "--crop"), binning=b,
+                air_columns=air_cols, floor=floor, views=views, geometry=geometry_file, air=air, tilt=tilt_value,
+                rings=rings, zingers=zinger_value)
+            scan.save(out, overwrite=True)  # a new folder, or one claimed (and cleared) above
+        except (RawError, ScanError) as exc:
+            raise click.ClickException(str(exc)) from None
+        except OSError as exc:
+            raise click.ClickException(f"could not write {out}: {exc}") from None
     _echo_report(raw, scan, report, geometry_file, out)
 
 
