@@ -156,7 +156,17 @@ def view_plan(views) -> dict:
     return plan
 
 
-def run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: int = 1000,
+def run_experiment(anatomy, out_dir, *args, **kwargs) -> dict:
+    """:func:`_run_experiment` with ``out_dir`` locked while it runs: a second experiment into the
+    same folder is refused naming the first one's process (docs/output-rule.md); finished runs
+    there are kept and reused, as ever."""
+    from clgs.io.outputs import lock
+
+    with lock(out_dir, "--out"):
+        return _run_experiment(anatomy, out_dir, *args, **kwargs)
+
+
+def _run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: int = 1000,
                    ablation_views: int | None = 5, methods=("fdk", "r2gs", "shape"), seed: int = 0,
                    progress: bool = True, settings: dict | None = None, echo=print, workers: int | None = None,
                    scheduler: str | None = None, simulation: str = "fine", detector_mm=None, meshes=None) -> dict:

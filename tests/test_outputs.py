@@ -272,6 +272,18 @@ def test_import_and_convert_outputs_follow_the_rule(scan, tmp_path):
     assert out.is_file()
 
 
+def test_an_experiment_folder_is_locked_while_it_runs(tmp_path):
+    pytest.importorskip("clgs_femur")
+    out = tmp_path / "exp"
+    child = _holder(out, tmp_path / "ready")
+    try:
+        res = run("femur", "experiment", "--views", 2, "--subjects", "20", "--iterations", 5, "--out", out, ok=False)
+        clean_error(res, f"process {child.pid}")
+    finally:
+        child.kill()
+        child.wait()
+
+
 def test_two_commands_at_once_into_one_folder(scan, tmp_path):
     """Two processes (SART, then FDK into the same --out while SART runs): the second is refused
     naming the first's process and command; the first's result is the one written."""
