@@ -7,6 +7,7 @@ from clgs.ct import phantoms as ph
 from clgs.ct.fdk import FILTERS, fdk, ramp_filter, view_weights
 from clgs.ops.fdk import backproject
 from clgs.geometry import Geometry
+from clgs.reference.detector import bilinear_zero_outside
 
 BALL = [ph.ball((2.0, -1.0, 1.0), 12.0, 0.02)]
 
@@ -47,14 +48,7 @@ def numpy_backprojection(q, g):
             mag, w = 1.0, 1.0
         uf = (xu * mag - g.offDetector[1]) / du + 0.5 * (nu - 1)
         vf = (z * mag - g.offDetector[0]) / dv + 0.5 * (nv - 1)
-        u0, v0 = np.floor(uf).astype(int), np.floor(vf).astype(int)
-        fu, fv = uf - u0, vf - v0
-        val = np.zeros_like(x)
-        for du_, wu in ((0, 1 - fu), (1, fu)):
-            for dv_, wv in ((0, 1 - fv), (1, fv)):
-                iu, iv = u0 + du_, v0 + dv_
-                ok = (iu >= 0) & (iu < nu) & (iv >= 0) & (iv < nv)
-                val += np.where(ok, q[n][np.clip(iv, 0, nv - 1), np.clip(iu, 0, nu - 1)], 0.0) * wu * wv
+        val = bilinear_zero_outside(q[n], uf, vf)
         out += w * val
     return out
 

@@ -13,6 +13,7 @@ from clgs.ct.fdk_views import fan_and_cosine, orbit, rotation_axis
 from clgs.geometry import Geometry
 from clgs.metrics import psnr3d
 from clgs.ops.fdk import backproject, view_depths
+from clgs.reference.detector import bilinear_zero_outside
 
 
 def _rot(axis, angle):
@@ -74,14 +75,7 @@ def numpy_vector_backprojection(q, g):
             w = 1.0
         uf = (hit - d) @ eu / (eu @ eu) + 0.5 * (nu - 1)
         vf = (hit - d) @ ev / (ev @ ev) + 0.5 * (nv - 1)
-        u0, v0 = np.floor(uf).astype(int), np.floor(vf).astype(int)
-        fu, fv = uf - u0, vf - v0
-        val = np.zeros(g.nVoxel)
-        for du_, wu in ((0, 1 - fu), (1, fu)):
-            for dv_, wv in ((0, 1 - fv), (1, fv)):
-                iu, iv = u0 + du_, v0 + dv_
-                ok = (iu >= 0) & (iu < nu) & (iv >= 0) & (iv < nv)
-                val += np.where(ok, q[n][np.clip(iv, 0, nv - 1), np.clip(iu, 0, nu - 1)], 0.0) * wu * wv
+        val = bilinear_zero_outside(q[n], uf, vf)
         out += w * val
     return out
 
