@@ -153,8 +153,10 @@ def note(text: str, stream=None, bar=None) -> None:
 
 
 def format_seconds(seconds: float) -> str:
-    """``0.4 s``, ``12 s``, ``3 min 5 s``, ``2 h 41 min``."""
+    """``0.076 s``, ``2.4 s``, ``12 s``, ``3 min 5 s``, ``2 h 41 min``."""
     seconds = float(seconds)
+    if seconds < 1:
+        return f"{seconds:.2g} s"
     if seconds < 10:
         return f"{seconds:.1f} s"
     if seconds < 60:
@@ -182,7 +184,7 @@ def phase(desc: str, stream=None, clock=time.perf_counter):
     terminal = show and on_terminal(out)
     if show:
         _end_open_line()
-        out.write(f"{desc} ..." + (" " if terminal else "\n"))
+        out.write(f"{desc} ..." + ("" if terminal else "\n"))
         out.flush()
         if terminal:
             _OPEN.append(out)
@@ -196,7 +198,7 @@ def phase(desc: str, stream=None, clock=time.perf_counter):
         if show:
             if terminal and _OPEN and _OPEN[-1] is out:
                 _OPEN.pop()
-                out.write(f"{format_seconds(seconds)}\n")
+                out.write(f" {format_seconds(seconds)}\n")
             else:
                 _end_open_line()
                 out.write(f"{desc}: {format_seconds(seconds)}\n")

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 MIN_SECONDS = 60.0  # runs expected to take longer get the estimate printed
 SKIP = 1  # first iterations not timed: the first builds the kernels
 WARMUP = 5  # iterations timed after those
-HINT = "fewer iterations shorten it: --set iterations=N (the demo: --iterations N)"
+HINT = "fewer iterations shorten it: --set iterations=N (Python: iterations=N)"
 
 _RUN_START = contextvars.ContextVar("clgs_run_start", default=None)
 
@@ -119,6 +119,6 @@ class WarmUp:
         return self.estimate
 
 
-def worth_telling(estimate: Estimate | None, min_seconds: float = MIN_SECONDS) -> bool:
-    """Whether ``estimate`` is of a run long enough to print it."""
-    return estimate is not None and estimate.total_s > min_seconds
+def worth_telling(estimate: Estimate | None, min_seconds: float | None = None) -> bool:
+    """Whether ``estimate`` is of a run long enough to print it (default: :data:`MIN_SECONDS`)."""
+    return estimate is not None and estimate.total_s > (MIN_SECONDS if min_seconds is None else min_seconds)
