@@ -71,3 +71,16 @@ def test_the_estimate_changes_nothing_in_the_run(scan, monkeypatch, capsys):
         assert np.array_equal(told.gaussians[k], quiet.gaussians[k]), k
     strip = [{k: v for k, v in r.items() if k not in ("seconds", "wall")} for r in told.log.rows]
     assert strip == [{k: v for k, v in r.items() if k not in ("seconds", "wall")} for r in quiet.log.rows]
+
+
+def test_no_progress_silences_the_bar_and_every_phase_line(scan, tmp_path):
+    from cli_helpers import run
+
+    folder = tmp_path / "scan"
+    scan.save(folder)
+    args = ["reconstruct", folder, "--method", "r2gs", "--iterations", 8, "--gaussians", 200]
+    shown = run(*args, "-o", tmp_path / "a").output
+    assert "FDK of 6 views on a 16x16x16 grid ..." in shown and "drawing the slices" in shown
+    assert "train: 8/8 it (100%)" in shown
+    quiet = run(*args, "--no-progress", "-o", tmp_path / "b").output
+    assert " ..." not in quiet and "train:" not in quiet and "drawing" not in quiet, quiet
