@@ -110,9 +110,10 @@ class WarmUp:
             return None
         per_it = sum(self.steps) / len(self.steps)
         per_eval = (sum(self.evaluations) / len(self.evaluations)) if self.evaluations else 0.0
-        due = sum(1 for it in range(iteration + 1, self.total + 1) if self.log_due(it))
-        if self.evaluations and not self.log_due(self.total):
-            due += 1  # the closing row
+        due = 0
+        if self.evaluations:  # a run that evaluates (a resumed one may not have timed one yet: then 0)
+            due = sum(1 for it in range(iteration + 1, self.total + 1) if self.log_due(it))
+            due += 0 if self.log_due(self.total) else 1  # the closing row
         self.estimate = Estimate(done_s=max(self.clock() - self.run_start, 0.0), iterations=self.total - iteration,
                                  per_iteration_s=per_it, evaluations=due, per_evaluation_s=per_eval,
                                  after_s=per_eval)

@@ -17,6 +17,10 @@ reshuffled stack, evaluate the loss terms on a lazily-built :class:`Context`, ba
 Every ``log_every`` iterations (and, with ``log_early``, at 10, 20, 50, 100, ... before the first)
 the optional ``evaluate(trainer) -> dict`` adds a row to the log.
 Every ``checkpoint_every`` iterations, on Ctrl-C and at the end, a checkpoint is written.
+With ``progress``, a bar (named ``desc``) shows the log's figures and its training-time it/s
+(:class:`clgs.fit.training_log.Progress`), and once the first iterations are timed the expected
+run time is printed for a run longer than a minute (:mod:`clgs.fit.estimate`; ``estimate``
+overrides; the clock is only read, so results do not change).
 
 Ctrl-C: the first SIGINT (main thread), or a SIGTERM (what ``timeout``, batch schedulers and
 container stops send), asks the loop to stop at the end of the current iteration; the loop then
