@@ -153,10 +153,12 @@ def note(text: str, stream=None, bar=None) -> None:
 
 
 def format_seconds(seconds: float) -> str:
-    """``0.076 s``, ``2.4 s``, ``12 s``, ``3 min 5 s``, ``2 h 41 min``."""
+    """``0.076 s``, ``0.38 s``, ``2.4 s``, ``12 s``, ``3 min 5 s``, ``2 h 41 min``."""
     seconds = float(seconds)
+    if seconds < 0.1:
+        return f"{seconds:.3f} s"
     if seconds < 1:
-        return f"{seconds:.2g} s"
+        return f"{seconds:.2f} s"
     if seconds < 10:
         return f"{seconds:.1f} s"
     if seconds < 60:

@@ -30,7 +30,7 @@ def test_the_warm_up_extrapolates_iterations_evaluations_and_the_setup_done():
     assert e.total_s == pytest.approx(30 + 497 + 20 + 2)
     assert w.step(7, 0.5) is None and w.estimate is e  # made once
     text = e.message()
-    assert text.startswith("expected run time: about 9 min 9 s (30 s so far; 994 iterations more at 0.5 s; "
+    assert text.startswith("expected run time: about 9 min 9 s (30 s so far; 994 iterations more at 0.50 s; "
                            "10 evaluations at 2.0 s)")
     assert "--set iterations=N" in text and "each 1000 iterations take about 8 min 20 s" in text
 

@@ -47,7 +47,8 @@ def test_a_line_written_during_a_phase_ends_its_open_line_first():
     term = _Terminal()
     with phase("searching the size", stream=term, clock=_Clock()):
         note("something else", stream=term)
-    assert term.getvalue().splitlines() == ["searching the size ...", "something else", "searching the size: 0 s"]
+    assert term.getvalue().splitlines() == ["searching the size ...", "something else",
+                                                "searching the size: 0.000 s"]
 
 
 def test_inner_phases_and_phases_under_a_bar_stay_off_the_screen_but_reach_listeners():
@@ -101,7 +102,8 @@ def test_phased_keeps_the_function_and_its_doc():
     assert draw.__doc__ == "Doc." and events[0]["desc"] == "drawing"
 
 
-@pytest.mark.parametrize("seconds, text", [(0.0764, "0.076 s"), (2.44, "2.4 s"), (42, "42 s"), (185, "3 min 5 s"),
+@pytest.mark.parametrize("seconds, text", [(0.0764, "0.076 s"), (1.6e-5, "0.000 s"), (0.384, "0.38 s"),
+                                           (2.44, "2.4 s"), (42, "42 s"), (185, "3 min 5 s"),
                                            (9660, "2 h 41 min"), (7200, "2 h")])
 def test_format_seconds(seconds, text):
     assert format_seconds(seconds) == text
