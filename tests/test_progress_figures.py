@@ -1,5 +1,6 @@
 """The bar's figures are the final table's: same quantities, same names, same last values; and the
 expected run time changes nothing in the run."""
+import json
 import re
 
 import numpy as np
@@ -79,8 +80,16 @@ def test_no_progress_silences_the_bar_and_every_phase_line(scan, tmp_path):
     folder = tmp_path / "scan"
     scan.save(folder)
     args = ["reconstruct", folder, "--method", "r2gs", "--iterations", 8, "--gaussians", 200]
-    shown = run(*args, "-o", tmp_path / "a").output
+    with progress.listen() as events:
+        shown = run(*args, "-o", tmp_path / "a").output
     assert "FDK of 6 views on a 16x16x16 grid ..." in shown and "drawing the slices" in shown
     assert "train: 8/8 it (100%)" in shown
+    # the bar's last figures are the report's (and the line printed at the end)
+    final = [e["figures"] for e in events if e["event"] == "figures" and e["final"]][-1]
+    report = json.loads((tmp_path / "a" / "report.json").read_text())
+    assert final["psnr3d"] == pytest.approx(report["metrics"]["psnr3d"], rel=1e-6)
+    assert final["ssim3d"] == pytest.approx(report["metrics"]["ssim3d"], rel=1e-6)
+    assert final[RATE] == pytest.approx(8 / round(report["info"]["training_seconds"], 4))  # the log keeps 4 decimals
+    assert f"PSNR {report['metrics']['psnr3d']:.4f} dB" in shown
     quiet = run(*args, "--no-progress", "-o", tmp_path / "b").output
     assert " ..." not in quiet and "train:" not in quiet and "drawing" not in quiet, quiet
