@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from clgs.progress import phased
+
 __all__ = ["slice_panel", "volume_slices", "SLICES_FILE"]
 
 #: the slice panel of a run folder
@@ -95,6 +97,7 @@ def slice_panel(path, volume, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), t
     return str(path)
 
 
+@phased("drawing the slices")
 def volume_slices(path, volume, geometry, truth=None, title: str = "", label: str = "reconstruction") -> str:
     """:func:`slice_panel` of a volume on ``geometry``'s grid (a :class:`clgs.geometry.Geometry`
     or grid), with 3D PSNR / SSIM in the title when ``truth`` defines them."""

@@ -510,3 +510,33 @@ def test_a_rod_that_fills_the_grid_is_warned_and_the_bone_is_not(template, shape
         warn_if_it_fills_the_grid(np.ascontiguousarray(slab.transpose(2, 1, 0)), 0.025, template)
         warn_if_it_fills_the_grid(np.where(template.label, 0.05, 0.0), 0.025, template)
         warn_if_it_fills_the_grid(slab, None, template)  # no level: nothing to measure
+
+
+def test_every_step_before_and_after_the_iterations_reports_progress(template, shape_model, tissue_atlas, capsys):
+    """The preparation (FDK, placing the Gaussians, the size search, the registration) and the
+    outputs each report a phase or a bar; with progress=False listeners hear them, the screen not."""
+    from types import SimpleNamespace
+
+    from clgs import progress
+    from clgs.methods.shape_guided import load_anatomy_parts, reconstruct_shape_guided
+
+    scan = _scan(template, alpha=(0.5, 0.0), shape_model=shape_model)
+    anatomy = SimpleNamespace(name="ellipsoid", load_template=lambda: template,
+                              load_shape_model=lambda: shape_model, load_atlas=lambda: tissue_atlas)
+    for shown in (True, False):
+        with progress.listen() as events, progress.enabled(shown):
+            parts = load_anatomy_parts(anatomy)
+            reconstruct_shape_guided(scan, parts, iterations=2, **_small(progress=shown, fit_size="on"))
+        phases = [e["desc"] for e in events if e["event"] == "phase" and e["state"] == "end"]
+        bars = {e["desc"] for e in events if e["event"] == "figures"}
+        assert phases[:3] == [f"loading the ellipsoid {p}" for p in ("template", "shape model", "density atlas")]
+        for want in ("FDK of 8 views on a 32x32x32 grid", "placing 1500 Gaussians on the template",
+                     "placing 500 Gaussians on the atlas's tissue", "searching the bone's size",
+                     "preparing the registration of the shape model and size", "the volume"):
+            assert want in phases, (want, phases)
+        assert bars == {"registering the shape model and size to the projections", "train"}
+        err = capsys.readouterr().err
+        if shown:
+            assert "searching the bone's size ..." in err and "registering the shape model and size" in err
+        else:
+            assert " ..." not in err and "train" not in err, err

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from clgs.anatomy.bone_level import BoneLevel, choose_level
 from clgs.errors import InputError
+from clgs.progress import phased
 
 __all__ = ["surface_level", "bone_mask", "bone_surface", "write_bone_surface", "read_bone_surface",
            "evaluate_volume", "truncated_field_of_view", "SURFACE_FILE", "SURFACE_RECORD"]
@@ -66,6 +67,7 @@ def bone_surface(volume, geometry, level: float):
     return surface_from_volume(mask, geometry=geometry)
 
 
+@phased("the bone surface")
 def write_bone_surface(out_dir, volume, geometry, level: BoneLevel | None) -> dict:
     """Write ``out_dir/surface.stl`` (the bone surface of ``volume`` at ``level``) and
     ``out_dir/surface.json`` (the level, its source, the file); returns that record plus ``path``
@@ -114,6 +116,7 @@ def truncated_field_of_view(scan):
     return scan.geometry.field_of_view()
 
 
+@phased("measuring the volume against the truth")
 def evaluate_volume(anatomy, scan, volume, surface=None, level: BoneLevel | None = None) -> dict:
     """PSNR/SSIM against the scan's truth and, when the scan has the true surface, the surface
     distance (mm) from the reconstruction's outer bone surface to it, with the level

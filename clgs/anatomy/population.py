@@ -159,8 +159,11 @@ class SurfacePopulation:
         """Subject with its surface (mm) and simulated CT volume (1/mm) on the CT grid."""
         from clgs.shape.template import Subject
 
+        from clgs.progress import phase
+
         sid = str(sid)
-        ph = self.phantom(sid, grid)
+        with phase(f"the CT phantom of {self.name} subject {sid}"):
+            ph = self.phantom(sid, grid)
         v, f = self.mesh(sid)
         g = ph.grid
         return Subject(sid, v, f, volume=ph.volume, spacing=tuple(g.spacing[::-1]), origin=tuple(g.origin[::-1]),

@@ -155,6 +155,7 @@ def simulate_subject(anatomy, subject, n_views: int = 50, arc: float = 3.1415926
 
     from clgs.ct.simulate import project_with_noise
     from clgs.io.scan import Scan
+    from clgs.progress import phase
 
     if subject.volume is None:
         raise InputError(f"subject {subject.id} has no CT volume to simulate")
@@ -165,8 +166,9 @@ def simulate_subject(anatomy, subject, n_views: int = 50, arc: float = 3.1415926
     if unknown:
         raise InputError(f"noise options {sorted(unknown)} are not I0, sigma or scatter")
     # the anatomy protocol keeps negative line integrals (counts above the flat field) as drawn
-    proj, acquisition = project_with_noise(subject.volume, geo, protocol=protocol, noise=noise, seed=seed,
-                                           clamp_negative=False, progress=False, **opts)
+    with phase(f"simulating {geo.n_views} views of subject {subject.id}"):
+        proj, acquisition = project_with_noise(subject.volume, geo, protocol=protocol, noise=noise, seed=seed,
+                                               clamp_negative=False, progress=False, **opts)
     if detector_mm is not None:
         acquisition["detector_fov_mm"] = [float(x) for x in np.broadcast_to(np.asarray(detector_mm, float), (2,))]
     meta = {"anatomy": anatomy.name, "subject": subject.id, "acquisition": acquisition,

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from clgs.progress import phased
+
 __all__ = ["surface_distance_figure", "reconstruction_figure", "vertex_distances"]
 
 #: colour scale of the picture: 0 to this many mm (beyond: the top colour)
@@ -71,6 +73,7 @@ def surface_distance_figure(path, surfaces: dict, truth, max_mm: float = DEFAULT
     return str(path)
 
 
+@phased("drawing the surface-distance picture")
 def reconstruction_figure(path, anatomy, scan, volume, model_surface=None, mesh=None, title: str = "", level=None):
     """:func:`surface_distance_figure` of a reconstruction of ``scan``: its outer bone surface
     (``mesh``, the surface a run wrote, taken at ``level``; or extracted from ``volume`` at

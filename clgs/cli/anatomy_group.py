@@ -440,7 +440,9 @@ def _reconstruct_command(anatomy) -> click.Command:
             opts["resume"] = True
         # no iterations unless given: a resumed run then goes on to its checkpoint's planned count
         opts = check_settings(method, m, run, opts, raw)
-        with _check_run_out(scan_dir, out, bool(opts.get("resume")), force):
+        from clgs.progress import enabled
+
+        with _check_run_out(scan_dir, out, bool(opts.get("resume")), force), enabled(opts.get("progress", True)):
             result, scan = _reconstruct_into(anatomy, scan_dir, out, method, views, opts, surface_level)
         exit_if_interrupted(result.get("info"))
 
@@ -587,6 +589,9 @@ def _demo_command(anatomy) -> click.Command:
         _check_scan_memory(anatomy, views)
         subject = _load_subject(anatomy, subject_id)  # a wrong subject or size is refused before OUT is touched
         with contextlib.ExitStack() as claims:
+            from clgs.progress import enabled
+
+            claims.enter_context(enabled(opts.get("progress", True)))  # --set progress=false: no phase lines
             if out is not None:  # the output rule (docs/output-rule.md), checked and locked before any work
                 from clgs.cli.common import claim_output
 

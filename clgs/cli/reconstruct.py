@@ -239,6 +239,9 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
     claimed = contextlib.ExitStack()  # the lock on --out, held until the report is written
     try:
         claimed.enter_context(claim_output(out, force, resume=resuming))
+        from clgs.progress import enabled
+
+        claimed.enter_context(enabled(kwargs.get("progress", True)))  # --no-progress: no phase lines either
         try:
             sc = load_scan(scan, split)
             report["n_views"] = sc.n_views

@@ -282,9 +282,14 @@ def fdk(projections, geometry: Geometry, filter: str = "ram-lak", short_scan="au
     :func:`filter_projections` (``"auto"``: rows of an object wider than the detector are extended
     smoothly before filtering; untruncated scans are filtered exactly as before).
     """
+    from clgs.progress import phase
+
     p = check_projections(projections, geometry, neg_tolerance=None, source="fdk")
     name = str(filter).lower()
     if name not in FILTERS:
         raise InputError(f"unknown filter {filter!r}; choose one of {', '.join(FILTERS)}")
-    q = filter_projections(p, geometry, name, short_scan, truncation)
-    return backproject(q.astype(np.float64 if dtype == np.float64 else np.float32), geometry).astype(dtype, copy=False)
+    # a phase line: the first call also builds the backprojector's OpenCL program (seconds)
+    with phase(f"FDK of {p.shape[0]} views on a {'x'.join(map(str, geometry.nVoxel))} grid"):
+        q = filter_projections(p, geometry, name, short_scan, truncation)
+        vol = backproject(q.astype(np.float64 if dtype == np.float64 else np.float32), geometry)
+    return vol.astype(dtype, copy=False)

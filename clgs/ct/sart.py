@@ -16,6 +16,8 @@ iteration, ``"ordered"`` in sequence. One iteration is one pass over all subsets
 """
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 
 from clgs.io.validate import check_projections
@@ -75,27 +77,32 @@ def sart(projections, geometry: Geometry, n_iter: int = 10, subsets: int = 1, re
     groups = subsets_of(geometry, subsets)
     nz, ny, nx = shape
     nv, nu = geometry.nDetector
+    from clgs.progress import phase
+
+    # the weights cost a forward and a backprojection (and the first call builds the kernels);
     # everything stays in the kernels' layouts (see CTProjector.pad_volume): no transposes per update
-    x_pad = P.pad_volume(x)
-    x_int = x_pad[1:nx + 1, 1:ny + 1, 1:nz + 1]          # (X, Y, Z) view of the interior
-    b_t = np.zeros((b.shape[0], nu, (nv + 7) // 8 * 8), np.float32)
-    b_t[:, :, :nv] = b.transpose(0, 2, 1)
-    rows = P.forward_padded(P.pad_volume(np.ones(shape, np.float32)))
-    inv_rows = np.zeros_like(rows)
-    ok = rows > 1e-6 * float(rows.max())
-    inv_rows[ok] = 1.0 / rows[ok]                          # padded rows stay 0
+    with phase(f"SART's ray and voxel weights ({len(groups)} subset{'s' if len(groups) > 1 else ''})") if verbose \
+            else contextlib.nullcontext():
+        x_pad = P.pad_volume(x)
+        x_int = x_pad[1:nx + 1, 1:ny + 1, 1:nz + 1]          # (X, Y, Z) view of the interior
+        b_t = np.zeros((b.shape[0], nu, (nv + 7) // 8 * 8), np.float32)
+        b_t[:, :, :nv] = b.transpose(0, 2, 1)
+        rows = P.forward_padded(P.pad_volume(np.ones(shape, np.float32)))
+        inv_rows = np.zeros_like(rows)
+        ok = rows > 1e-6 * float(rows.max())
+        inv_rows[ok] = 1.0 / rows[ok]                          # padded rows stay 0
 
-    def inv_columns(views):
-        ones = np.zeros((len(views), nu, b_t.shape[2]), np.float32)
-        ones[:, :, :nv] = 1.0
-        col = P.backward_internal(ones, views=views)[:, :, :nz]
-        inv = np.zeros_like(col)
-        good = col > 1e-6 * float(col.max()) if col.max() > 0 else col > 0
-        inv[good] = 1.0 / col[good]
-        return inv
+        def inv_columns(views):
+            ones = np.zeros((len(views), nu, b_t.shape[2]), np.float32)
+            ones[:, :, :nv] = 1.0
+            col = P.backward_internal(ones, views=views)[:, :, :nz]
+            inv = np.zeros_like(col)
+            good = col > 1e-6 * float(col.max()) if col.max() > 0 else col > 0
+            inv[good] = 1.0 / col[good]
+            return inv
 
-    keep = len(groups) * x.nbytes <= _COLUMN_SUM_BUDGET
-    cols = [inv_columns(v) for v in groups] if keep else None
+        keep = len(groups) * x.nbytes <= _COLUMN_SUM_BUDGET
+        cols = [inv_columns(v) for v in groups] if keep else None
     rng = np.random.default_rng(seed)
     lam = np.float32(relaxation)
 

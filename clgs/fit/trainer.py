@@ -17,6 +17,10 @@ reshuffled stack, evaluate the loss terms on a lazily-built :class:`Context`, ba
 Every ``log_every`` iterations (and, with ``log_early``, at 10, 20, 50, 100, ... before the first)
 the optional ``evaluate(trainer) -> dict`` adds a row to the log.
 Every ``checkpoint_every`` iterations, on Ctrl-C and at the end, a checkpoint is written.
+With ``progress``, a bar (named ``desc``) shows the log's figures and its training-time it/s
+(:class:`clgs.fit.training_log.Progress`), and once the first iterations are timed the expected
+run time is printed for a run longer than a minute (:mod:`clgs.fit.estimate`; ``estimate``
+overrides; the clock is only read, so results do not change).
 
 Ctrl-C: the first SIGINT (main thread), or a SIGTERM (what ``timeout``, batch schedulers and
 container stops send), asks the loop to stop at the end of the current iteration; the loop then
@@ -42,7 +46,8 @@ import numpy as np
 import torch
 
 from clgs.fit import checkpoint as ckpt
-from clgs.fit.training_log import Progress, TrainingLog
+from clgs.fit.estimate import WarmUp
+from clgs.fit.training_log import RATE, Progress, TrainingLog
 from clgs.geometry import Grid
 from clgs.ops import gaussian_math
 from clgs.ops.projector import project_packed
@@ -226,7 +231,8 @@ class Trainer:
     def __init__(self, sets, geometry, projections, losses, *, iterations: int, backend="cl",
                  render_scale: float = 1.0, seed: int = 0, hooks=(), evaluate=None, log_every: int = 500,
                  log_early: bool = False, checkpoint_every: int = 0, checkpoint_path=None, progress: bool = False,
-                 views=None, config: dict | None = None, torch_threads: int | None = -1):
+                 views=None, config: dict | None = None, torch_threads: int | None = -1, desc: str = "train",
+                 estimate: bool | None = None):
         self.sets = list(sets)
         names = [s.name for s in self.sets]
         if len(set(names)) != len(names):
@@ -247,6 +253,10 @@ class Trainer:
         self.checkpoint_every = int(checkpoint_every)
         self.checkpoint_path = checkpoint_path
         self.progress_enabled = progress
+        self.desc = desc  # the progress bar's name
+        # print the expected run time after a timed warm-up (clgs.fit.estimate); None: with the bar
+        self.estimate_enabled = progress if estimate is None else bool(estimate)
+        self.expected = None  # the Estimate made, if any
         self.views = list(range(geometry.n_views)) if views is None else [int(v) for v in views]
         self.config = dict(config or {})
         self.seed = int(seed)
@@ -355,39 +365,67 @@ class Trainer:
         threads = torch.get_num_threads()
         if self.torch_threads:
             torch.set_num_threads(self.torch_threads)
-        progress = Progress(self.iterations, self.iteration, self.progress_enabled)
+        progress = Progress(self.iterations, self.iteration, self.progress_enabled, desc=self.desc)
         self._progress = progress
+        warm = None
+        if self.estimate_enabled:
+            warm = WarmUp(self.iteration, self.iterations, self.log_due)
+        start = (self.iteration, self.seconds)
         try:
-            if self.iteration == 0 and self.log_every > 0 and not self.log.rows:
+            try:
+                if self.iteration == 0 and self.log_every > 0 and not self.log.rows:
+                    self._log_row(t_wall, {}, warm)
+                    progress.set_figures(self.log.headline())
+                while self.iteration < self.iterations and not self._stop:
+                    t0 = time.perf_counter()
+                    self.step()
+                    took = time.perf_counter() - t0
+                    self.seconds += took
+                    if warm is not None and warm.step(self.iteration, took) is not None:
+                        self._tell_estimate(warm.estimate)
+                    progress.update(1, {**progress.figures, RATE: self._rate(start)})
+                    if self.log_due(self.iteration):
+                        self._log_row(t_wall, {}, warm)
+                        progress.set_figures(self.log.headline())
+                    if self.checkpoint_every > 0 and self.iteration % self.checkpoint_every == 0:
+                        self.save_checkpoint(t_wall)
+            except KeyboardInterrupt:
+                self._stop = True
+                self.stop_signal = self.stop_signal or signal.SIGINT
+            finally:
+                for sig, handler in old_handlers.items():
+                    signal.signal(sig, handler)
+                torch.set_num_threads(threads)
+            if self._stop:
+                self.interrupted = True
+            self.check_finite()
+            # checkpoint first: the closing row below is off the logging schedule, and a resumed run
+            # must log exactly what an uninterrupted one does
+            self.save_checkpoint(t_wall)
+            logged = bool(self.log.rows) and self.log.rows[-1]["iteration"] == self.iteration
+            if self.log_every > 0 and self._count > 0 and not logged:
                 self._log_row(t_wall, {})
-            while self.iteration < self.iterations and not self._stop:
-                t0 = time.perf_counter()
-                values = self.step()
-                self.seconds += time.perf_counter() - t0
-                progress.update(1, {**values, "n_gaussians": self.n_gaussians,
-                                    **{k: self.log.last(k) for k in ("proj_psnr", "psnr3d", "ssim3d")}})
-                if self.log_due(self.iteration):
-                    self._log_row(t_wall, values)
-                if self.checkpoint_every > 0 and self.iteration % self.checkpoint_every == 0:
-                    self.save_checkpoint(t_wall)
-        except KeyboardInterrupt:
-            self._stop = True
-            self.stop_signal = self.stop_signal or signal.SIGINT
+            # the bar ends on the summary's figures: the last row's and its it/s
+            progress.finish(self.log.headline() if self.log.rows else {RATE: self._rate(start)})
         finally:
-            for sig, handler in old_handlers.items():
-                signal.signal(sig, handler)
-            torch.set_num_threads(threads)
             progress.close()
-        if self._stop:
-            self.interrupted = True
-        self.check_finite()
-        # checkpoint first: the closing row below is off the logging schedule, and a resumed run
-        # must log exactly what an uninterrupted one does
-        self.save_checkpoint(t_wall)
-        logged = bool(self.log.rows) and self.log.rows[-1]["iteration"] == self.iteration
-        if self.log_every > 0 and self._count > 0 and not logged:
-            self._log_row(t_wall, {})
         return self
+
+    def _rate(self, start) -> float | None:
+        """Iterations per second of training: the log's (from its first row), or since ``start``
+        (iteration, seconds) for a run that logs nothing."""
+        if self.log.rows:
+            return self.log.rate(self.iteration, self.seconds)
+        its, secs = self.iteration - start[0], self.seconds - start[1]
+        return its / secs if its > 0 and secs > 0 else None
+
+    def _tell_estimate(self, estimate) -> None:
+        from clgs.fit.estimate import worth_telling
+        from clgs.progress import note
+
+        self.expected = estimate
+        if worth_telling(estimate):
+            note(estimate.message(), bar=getattr(self._progress, "bar", None))
 
     def log_due(self, iteration: int) -> bool:
         """Whether ``iteration`` gets a log row: every ``log_every``, and with ``log_early`` also at
@@ -409,7 +447,8 @@ class Trainer:
         if getattr(self, "_progress", None) is not None and self._progress.bar is not None:
             self._progress.write(msg)
 
-    def _log_row(self, t_wall: float, values: dict) -> None:
+    def _log_row(self, t_wall: float, values: dict, warm=None) -> None:
+        t0 = time.perf_counter()
         row = {"iteration": self.iteration, "seconds": round(self.seconds, 4),
                "wall": round(time.perf_counter() - t_wall, 4), "n_gaussians": self.n_gaussians}
         if self._count:
@@ -417,6 +456,8 @@ class Trainer:
         if self.evaluate is not None:
             with torch.no_grad():
                 row.update(self.evaluate(self))
+            if warm is not None:
+                warm.evaluation(time.perf_counter() - t0)
         self.log.add(row)
         self._sums, self._count = {}, 0
         if self.checkpoint_path is not None:  # the run folder's log.csv follows a long run live

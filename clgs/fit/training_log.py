@@ -16,6 +16,7 @@ from clgs.io import atomic
 
 # the figures the progress bar and the summary show, in order, when present
 HEADLINE = ("loss", "n_gaussians", "proj_psnr", "psnr3d", "ssim3d")
+RATE = "it/s"  # iterations per second of training time (evaluations and file writes left out)
 
 
 class TrainingLog:
@@ -100,19 +101,44 @@ class TrainingLog:
                 best[k] = max(vals)
         its = last.get("iteration", 0) - first.get("iteration", 0)
         secs = (last.get("seconds") or 0) - (first.get("seconds") or 0)
+        rate = self.rate()
         lines = [f"{'':12s}" + "".join(f"{k:>13s}" for k in keys)]
         for label, r in (("first", first), ("last", last)):
             lines.append(f"{label:12s}" + "".join(f"{_fmt(r.get(k)):>13s}" for k in keys))
         if best:
             lines.append(f"{'best':12s}" + "".join(f"{_fmt(best.get(k)) if k in best else '':>13s}" for k in keys))
-        if secs > 0 and its > 0:
-            lines.append(f"{its} iterations in {secs:.1f} s of training: {its / secs:.1f} it/s")
+        if rate is not None:
+            lines.append(f"{its} iterations in {secs:.1f} s of training: {fmt_rate(rate)} {RATE}")
         reached = self.time_to_quality()
         if reached:
             lines.append("first reached (3D PSNR, at training s / wall s since the start; linear between the two "
                          "evaluations logged around each level): "
                          + ", ".join(f"{level:g} dB at {t:.1f} / {w:.1f} s" for level, t, w in reached))
         return "\n".join(lines)
+
+    def rate(self, iteration=None, seconds=None):
+        """Iterations per second of training time from the first row to (``iteration``, ``seconds``)
+        (default: the last row); None before there is any. What the summary and the bar show."""
+        if not self.rows:
+            return None
+        first, last = self.rows[0], self.rows[-1]
+        iteration = last.get("iteration", 0) if iteration is None else iteration
+        seconds = (last.get("seconds") or 0) if seconds is None else seconds
+        its = iteration - first.get("iteration", 0)
+        secs = seconds - (first.get("seconds") or 0)
+        return its / secs if secs > 0 and its > 0 else None
+
+    def headline(self) -> dict:
+        """The last row's figures the summary's ``last`` line shows (HEADLINE) and its it/s: what
+        the progress bar shows at the end."""
+        if not self.rows:
+            return {}
+        last = self.rows[-1]
+        out = {k: last[k] for k in HEADLINE if last.get(k) is not None}
+        rate = self.rate()
+        if rate is not None:
+            out[RATE] = rate
+        return out
 
     def time_to_quality(self, key: str = "psnr3d", step: float = 1.0) -> list:
         """[(level, training seconds, wall seconds)]: when ``key`` first reached each whole multiple
@@ -141,22 +167,49 @@ class TrainingLog:
 
 
 class Progress:
-    """Progress over iterations with ETA and the latest figures (a live bar on a terminal, a line
-    every few seconds in a log); silent when ``enabled`` is False."""
+    """Progress over iterations with ETA and the figures of the training log (a live bar on a
+    terminal, a line every few seconds in a log); silent when ``enabled`` is False or progress is
+    off (:func:`clgs.progress.progress_enabled`).
+
+    The bar shows the log's figures under the log's names: those of the last evaluation row
+    (:data:`HEADLINE`, as the summary's ``last`` line) and ``it/s``, iterations per second of
+    training time as the summary computes it, not tqdm's wall-clock rate (which counts the
+    evaluations too). At the end (:meth:`finish`) it shows the summary's own figures; each set of
+    figures also goes to :func:`clgs.progress.listen`'s listeners."""
 
     def __init__(self, total: int, initial: int = 0, enabled: bool = True, desc: str = "train"):
-        self.bar = None
-        if enabled:
-            from clgs.progress import progress_bar
+        from clgs.progress import progress_bar, progress_enabled
 
-            self.bar = progress_bar(total=total, initial=initial, desc=desc, unit="it", dynamic_ncols=True, leave=True)
+        self.bar = None
+        self.desc = desc
+        self.figures: dict = {}
+        if enabled and progress_enabled():
+            self.bar = progress_bar(total=total, initial=initial, desc=desc, unit="it", dynamic_ncols=True,
+                                    leave=True, rate=False)
 
     def update(self, n: int = 1, figures: dict | None = None) -> None:
-        if self.bar is None:
-            return
-        self.bar.update(n)
+        """``n`` more iterations; ``figures`` (optional) replace those shown (None values are dropped)."""
         if figures:
-            self.bar.set_postfix({k: _fmt(figures[k]) for k in HEADLINE if figures.get(k) is not None}, refresh=False)
+            self.set_figures(figures, emit=False)
+        if self.bar is not None:
+            self.bar.update(n)
+
+    def set_figures(self, figures: dict, final: bool = False, emit: bool = True) -> None:
+        """Show ``figures`` (name -> value; HEADLINE and it/s, in that order); listeners get them
+        with ``final`` when ``emit``."""
+        from clgs import progress
+
+        self.figures = {k: figures[k] for k in (*HEADLINE, RATE) if figures.get(k) is not None}
+        if emit:
+            progress.emit({"event": "figures", "desc": self.desc, "figures": dict(self.figures), "final": final})
+        if self.bar is not None:
+            self.bar.set_postfix({k: (fmt_rate(v) if k == RATE else _fmt(v)) for k, v in self.figures.items()},
+                                 refresh=False)
+
+    def finish(self, figures: dict) -> None:
+        """The final figures (the summary's), shown on the bar's last line, then close."""
+        self.set_figures(figures, final=True)
+        self.close()
 
     def write(self, text: str) -> None:
         if self.bar is not None:
@@ -166,6 +219,11 @@ class Progress:
         if self.bar is not None:
             self.bar.close()
             self.bar = None
+
+
+def fmt_rate(rate) -> str:
+    """it/s as the summary and the bar print it."""
+    return f"{float(rate):.1f}"
 
 
 def _fmt(v) -> str:

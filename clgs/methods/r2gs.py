@@ -38,6 +38,7 @@ import numpy as np
 from clgs.fit.assembly import (fdk_volume, make_trainer, projection_losses, restore, scale_bounds_for,
                                value_scale_from, volume_box)
 from clgs.fit.config import CHECKPOINT, GaussianFitConfig, run_config, run_folder, setting
+from clgs.fit.estimate import run_clock
 from clgs.fit.gaussians import GaussianSet, init_from_volume, init_random, r2gs_schedules
 from clgs.fit.outputs import gaussians_in_scan_units, voxelize_volume, write_outputs
 from clgs.fit.trainer import Trainer
@@ -46,6 +47,7 @@ from clgs.io.scan import Scan
 from clgs.methods import Method
 from clgs.methods.gaussian import RUN_OPTIONS, method_output
 from clgs.errors import InputError
+from clgs.progress import enabled, phase
 
 
 @dataclass
@@ -103,8 +105,10 @@ def build_trainer(scan, cfg: R2GSConfig, out_dir=None, *, progress=False, fdk=No
         gset = GaussianSet(empty, empty, np.zeros((0, 4), np.float32), np.zeros(0, np.float32), raw=True, **kw)
     elif cfg.init == "fdk":
         fdk = fdk_volume(scan) if fdk is None else fdk
-        gset = init_from_volume(fdk * cfg.value_scale, geo.volume_grid(scene=True), n_gaussians=cfg.n_gaussians,
-                                threshold=cfg.init_threshold, density_factor=cfg.density_factor, seed=cfg.seed, **kw)
+        with phase(f"placing {cfg.n_gaussians} Gaussians on the FDK"):
+            gset = init_from_volume(fdk * cfg.value_scale, geo.volume_grid(scene=True), n_gaussians=cfg.n_gaussians,
+                                    threshold=cfg.init_threshold, density_factor=cfg.density_factor, seed=cfg.seed,
+                                    **kw)
     elif cfg.init == "random":
         gset = init_random(cfg.n_gaussians, seed=cfg.seed, **kw)
     else:
@@ -124,7 +128,7 @@ def reconstruct_r2gs(scan, out_dir=None, iterations: int | None = None, *, resum
     ``iterations=None`` on a new run: 30 000, R2-Gaussian's. ``fdk``: a ready FDK volume (else
     computed). Ctrl-C stops cleanly: outputs so far are written and ``result.interrupted`` is True.
     """
-    with run_folder(out_dir, resume, overwrite):
+    with run_folder(out_dir, resume, overwrite), enabled(progress), run_clock():
         return _reconstruct_r2gs(scan, out_dir, iterations, resume=resume, progress=progress, fdk=fdk, **settings)
 
 
@@ -137,11 +141,12 @@ def _reconstruct_r2gs(scan, out_dir=None, iterations: int | None = None, *, resu
     trainer = build_trainer(scan, cfg, out_dir, progress=progress, fdk=fdk, state=state)
     restore(trainer, state, cfg)
     trainer.fit()
-    volume = voxelize_volume(trainer) / np.float32(cfg.value_scale)
-    files = {}
-    if out_dir is not None:
-        files = {k: Path(v) for k, v in write_outputs(trainer, out_dir, cfg.value_scale, volume).items()}
-        files["checkpoint"] = Path(out_dir) / CHECKPOINT
+    with phase("the volume" + (" and the run's files" if out_dir is not None else "")):
+        volume = voxelize_volume(trainer) / np.float32(cfg.value_scale)
+        files = {}
+        if out_dir is not None:
+            files = {k: Path(v) for k, v in write_outputs(trainer, out_dir, cfg.value_scale, volume).items()}
+            files["checkpoint"] = Path(out_dir) / CHECKPOINT
     return R2GSResult(volume=volume, gaussians=gaussians_in_scan_units(trainer, cfg.value_scale), log=trainer.log,
                       trainer=trainer, value_scale=cfg.value_scale, interrupted=trainer.interrupted,
                       out_dir=None if out_dir is None else Path(out_dir), summary=trainer.log.summary(),

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from clgs.ct.sart import sart
+from clgs.progress import enabled
 
 
 def run(scan, out_dir=None, iterations=None, subsets=None, relaxation=None, progress: bool = True) -> dict:
@@ -9,4 +10,5 @@ def run(scan, out_dir=None, iterations=None, subsets=None, relaxation=None, prog
     :func:`clgs.ct.sart.sart`'s defaults."""
     kwargs = {k: v for k, v in (("n_iter", iterations), ("subsets", subsets), ("relaxation", relaxation))
               if v is not None}
-    return {"volume": sart(scan.projections, scan.geometry, verbose=progress, **kwargs)}
+    with enabled(progress):
+        return {"volume": sart(scan.projections, scan.geometry, verbose=progress, **kwargs)}

@@ -67,6 +67,7 @@ from clgs.fit.assembly import (
     volume_box,
 )
 from clgs.fit.config import GaussianFitConfig, run_config, run_folder, setting
+from clgs.fit.estimate import run_clock
 from clgs.fit.gaussians import GaussianSet, Schedule, init_from_volume, r2gs_schedules
 from clgs.fit.outputs import gaussians_in_scan_units, voxelize_volume
 from clgs.fit.outputs import write_outputs as write_common
@@ -77,6 +78,7 @@ from clgs.io.scan import Scan
 from clgs.methods import Method, Option
 from clgs.methods.gaussian import RUN_OPTIONS, method_output
 from clgs.ops.field_sampler import default_sampler
+from clgs.progress import enabled, phase
 from clgs.shape.gaussian_set import ShapeGuidedSet
 from clgs.shape.initialise import initialise, initialise_surroundings, sample_surrounding_centres
 from clgs.shape.priors import DensityPrior, random_subgrid, residual_prior_term, shape_prior_term
@@ -254,6 +256,20 @@ def _register(scan, shape_model, cfg, init, free, moving: dict, k: int, *, size,
               residual=None) -> ShapeGuidedSet:
     """The shape set on ``init`` with only the parameters of ``moving`` (name -> Schedule) optimised
     against the projections for ``k`` iterations, the free set's start ``free`` fixed."""
+    what = "the residual" if "residual" in moving else "the shape model"
+    if "log_size" in moving and size is not None:
+        what += " and size"
+    with phase(f"preparing the registration of {what}"):  # the first one also sets up torch's optimiser
+        bound, trainer = _registration(scan, shape_model, cfg, init, free, moving, k, size=size,
+                                       centre_mm=centre_mm, alpha=alpha, residual=residual,
+                                       desc=f"registering {what} to the projections")
+    trainer.fit()
+    return bound
+
+
+def _registration(scan, shape_model, cfg, init, free, moving: dict, k: int, *, size, centre_mm, alpha, residual,
+                  desc) -> tuple:
+    """(the shape set, its trainer) of :func:`_register`."""
     geo = scan.geometry
     frozen = Schedule(0.0)
     sched = {name: moving.get(name, frozen) for name in ("alpha", "log_size", "residual", "densities", "scales",
@@ -281,9 +297,9 @@ def _register(scan, shape_model, cfg, init, free, moving: dict, k: int, *, size,
                                                    "registration")))
     projections = np.asarray(scan.projections, np.float32) * np.float32(geo.scale * cfg.value_scale)
     trainer = Trainer(sets, geo, projections, losses, iterations=k, backend=Backend(cfg.backend, cfg.projector_mode),
-                      render_scale=geo.scale, seed=cfg.seed, log_every=0)
-    trainer.fit()
-    return bound
+                      render_scale=geo.scale, seed=cfg.seed, log_every=0, progress=True, estimate=False,
+                      desc=desc)
+    return bound, trainer
 
 
 class _Frozen:
@@ -346,12 +362,15 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
     free_kw = dict(box=box, scale_bounds=bounds, schedules=fsched, name="free", densify=True)
     free, alpha0, theta0, size, centre = None, None, None, None, size_centre(template)
     if state is None:
-        init = initialise(template, atlas, geo, cfg.n_shape, tau=cfg.tau, boundary_weight=cfg.boundary_weight,
-                          seed=cfg.seed, backend=cfg.backend)
+        with phase(f"placing {cfg.n_shape} Gaussians on the template"):
+            init = initialise(template, atlas, geo, cfg.n_shape, tau=cfg.tau, boundary_weight=cfg.boundary_weight,
+                              seed=cfg.seed, backend=cfg.backend)
         outside = None
         if new_free and cfg.free_init == "atlas" and atlas is not None:
-            outside = initialise_surroundings(init, template, atlas, geo, cfg.n_free, threshold=cfg.init_threshold,
-                                              seed=cfg.seed + 1, backend=cfg.backend)
+            with phase(f"placing {cfg.n_free} Gaussians on the atlas's tissue"):
+                outside = initialise_surroundings(init, template, atlas, geo, cfg.n_free,
+                                                  threshold=cfg.init_threshold, seed=cfg.seed + 1,
+                                                  backend=cfg.backend)
         if bound:
             size = choose_size(scan, cfg, init, outside, centre)
         if size is not None:  # the bone's Gaussians at its size, the tissue along its length
@@ -364,9 +383,10 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
                                (outside.densities * cfg.value_scale).astype(np.float32), **free_kw)
         elif new_free:  # "fdk", or an atlas of the bone alone
             vol = _free_init_volume(need_fdk(), geo, template) * cfg.value_scale
-            free = init_from_volume(vol, geo.volume_grid(scene=True), n_gaussians=cfg.n_free,
-                                    threshold=cfg.init_threshold, density_factor=cfg.density_factor,
-                                    seed=cfg.seed + 1, **free_kw)
+            with phase(f"placing {cfg.n_free} Gaussians on the FDK"):
+                free = init_from_volume(vol, geo.volume_grid(scene=True), n_gaussians=cfg.n_free,
+                                        threshold=cfg.init_threshold, density_factor=cfg.density_factor,
+                                        seed=cfg.seed + 1, **free_kw)
         if bound and cfg.alpha_init_iterations > 0:
             alpha0, size = fit_initial_alpha(scan, shape_model, cfg, init, free, size=size, centre_mm=centre)
         if bound and cfg.residual == "on" and cfg.residual_init_iterations > 0:
@@ -412,9 +432,10 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
                                residual_prior_term(cfg.residual_bending, cfg.residual_bending_start,
                                                    max(iters // 2, 1))))
     if cfg.density_prior and atlas is not None:
-        losses.append(LossTerm("density", cfg.lambda_density,
-                               DensityPrior(atlas, template, geo, cfg.value_scale, cfg.density_s, cfg.density_points,
-                                            field=prior_field)))
+        with phase("the density prior's atlas on the scan's grid"):
+            prior = DensityPrior(atlas, template, geo, cfg.value_scale, cfg.density_s, cfg.density_points,
+                                 field=prior_field)
+        losses.append(LossTerm("density", cfg.lambda_density, prior))
     return make_trainer(scan, cfg, sets, losses, out_dir, progress)
 
 
@@ -428,7 +449,9 @@ def choose_size(scan, cfg: ShapeGuidedConfig, init, tissue, centre_mm) -> float 
         return None
     if tissue is None:
         return 1.0
-    best, _ = search_size(scan, Backend(cfg.backend, cfg.projector_mode), cfg.value_scale, init, tissue, centre_mm)
+    with phase("searching the bone's size"):
+        best, _ = search_size(scan, Backend(cfg.backend, cfg.projector_mode), cfg.value_scale, init, tissue,
+                              centre_mm)
     if cfg.fit_size == "auto" and abs(best - 1.0) <= AUTO_TOLERANCE:
         return None
     return best
@@ -491,7 +514,7 @@ def reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | None
     """See :func:`_reconstruct_shape_guided`. ``out_dir``: one that holds anything is refused
     unless ``resume=True`` or ``overwrite=True`` (its clgs files go first), and it is locked while
     the run writes it (:func:`clgs.fit.config.run_folder`)."""
-    with run_folder(out_dir, resume, overwrite):
+    with run_folder(out_dir, resume, overwrite), enabled(progress), run_clock():
         return _reconstruct_shape_guided(scan, anatomy, out_dir, iterations, resume=resume, progress=progress,
                                          fdk=fdk, surface_level=surface_level, **settings)
 
@@ -524,28 +547,37 @@ def _reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | Non
     trainer = build_trainer(scan, parts, cfg, out_dir, progress=progress, fdk=fdk, state=state)
     restore(trainer, state, cfg)
     trainer.fit()
-    volume = voxelize_volume(trainer) / np.float32(cfg.value_scale)
-    shape_set = trainer.sets[0]
-    alpha = shape_set.alpha.detach().numpy().copy() if isinstance(shape_set, ShapeGuidedSet) else np.zeros(0)
-    seconds = time.perf_counter() - t0
-    warn_if_implausible(alpha, trainer.log.last("proj_psnr"))
-    surface = None
-    if out_dir is not None:
-        surface = write_outputs(trainer, out_dir, cfg.value_scale, volume, parts[0], alpha, level).pop("bone_surface")
+    with phase("the volume" + (", its bone surface and the run's files" if out_dir is not None else "")):
+        volume = voxelize_volume(trainer) / np.float32(cfg.value_scale)
+        shape_set = trainer.sets[0]
+        alpha = shape_set.alpha.detach().numpy().copy() if isinstance(shape_set, ShapeGuidedSet) else np.zeros(0)
+        seconds = time.perf_counter() - t0
+        warn_if_implausible(alpha, trainer.log.last("proj_psnr"))
+        surface = None
+        if out_dir is not None:
+            surface = write_outputs(trainer, out_dir, cfg.value_scale, volume, parts[0], alpha,
+                                    level).pop("bone_surface")
+        displacement = displacement_report(parts[0], shape_set)
     return ShapeGuidedResult(volume=volume, gaussians=gaussians_in_scan_units(trainer, cfg.value_scale),
                              alpha=alpha, log=trainer.log, trainer=trainer, value_scale=cfg.value_scale,
                              interrupted=trainer.interrupted, out_dir=None if out_dir is None else Path(out_dir),
                              summary=trainer.log.summary(), seconds=seconds, surface=surface,
-                             displacement=displacement_report(parts[0], shape_set))
+                             displacement=displacement)
 
 
 def load_anatomy_parts(anatomy) -> tuple:
     """(template, shape model or None, atlas or None) from an Anatomy's lazy loaders."""
     if anatomy.load_template is None:
         raise InputError(f"anatomy {anatomy.name!r} provides no template; the shape-guided method needs one")
-    template = anatomy.load_template()
-    model = anatomy.load_shape_model() if anatomy.load_shape_model else None
-    atlas = anatomy.load_atlas() if anatomy.load_atlas else None
+    with phase(f"loading the {anatomy.name} template"):
+        template = anatomy.load_template()
+    model = atlas = None
+    if anatomy.load_shape_model:
+        with phase(f"loading the {anatomy.name} shape model"):
+            model = anatomy.load_shape_model()
+    if anatomy.load_atlas:
+        with phase(f"loading the {anatomy.name} density atlas"):
+            atlas = anatomy.load_atlas()
     return template, model, atlas
 
 

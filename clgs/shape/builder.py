@@ -166,6 +166,9 @@ def build_model(template, subjects, out_path, *args, **kwargs) -> str:
             held.enter_context(lock(out_path, "the model file", wait=True))
         except OSError:  # a folder that takes no lock file (read-only): an up-to-date model is still read
             pass
+        from clgs.progress import enabled
+
+        held.enter_context(enabled(kwargs.get("progress", True)))  # progress=False: no phase lines either
         return _build_model(template, subjects, out_path, *args, **kwargs)
 
 
