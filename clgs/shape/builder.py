@@ -202,8 +202,7 @@ def model_figures(V, template, mshape, msp, morg, variance, tolerance_mm, n_mode
         figures = field_space_figures(V, measure, max_modes=max_modes, n_samples=100)
         n_points = min(len(template.vertices), FIGURE_POINTS)
         figures.update(compactness_all=compact_all,
-                       measured_at=f"the velocity at {n_points} of the template's {len(template.vertices)} "
-                                   "surface vertices (mean distance, mm)")
+                       measured_at=f"{n_points} of the template's {len(template.vertices)} surface vertices")
     choice = choose_modes(figures or {"compactness_all": compact_all}, len(all_var), variance, tolerance_mm,
                           n_modes)
     return figures, choice, all_var

@@ -23,7 +23,7 @@ def model_lines(meta: dict) -> list:
     lines = []
     figures = meta.get("statistics")
     if figures:
-        lines += figure_lines(figures, f"figures of the velocity PCA, measured at {figures.get('measured_at', '?')}")
+        lines += figure_lines(figures, f"velocity PCA at {figures.get('measured_at', '?')}")
     choice = meta.get("mode_choice")
     if choice:
         lines.append(f"modes kept: {choice['n_modes']} ({choice['reason']}; "

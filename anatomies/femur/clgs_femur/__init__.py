@@ -54,6 +54,8 @@ def femur_side(vertices) -> tuple:
     z = v[:, 2]
     lo, length = float(z.min()), float(np.ptp(z))
     mid = v[(z > lo + 0.3 * length) & (z < lo + 0.7 * length)]
+    if len(mid) < 3:  # a coarse surface with no vertices along its middle: the whole one's axis
+        mid = v
     centre = mid.mean(0)
     axis = np.linalg.svd(mid - centre, full_matrices=False)[2][0]
     rel = v[z > lo + 0.8 * length] - centre
