@@ -97,7 +97,7 @@ def test_build_model_decides_its_modes_stores_the_figures_and_info_reads_them(tm
     assert all(np.isfinite(fig[k]).all() for k in ("compactness", "generalisation_mm", "specificity_mm"))
     assert fig["generalisation_mm"][0] >= fig["generalisation_mm"][-1] - 1e-9
     # the model keeps what the rule decides from the stored figures, and says why
-    assert choice == choose_modes(fig, 4, 0.95, 0.1)
+    assert choice == choose_modes(fig, 4, 0.95, 0.05)
     assert load_model(tmp_path / "blob.npz")[0].n_modes == choice["n_modes"] == meta["n_modes"]
     assert "compactness" in r.output and "generalisation" in r.output and "specificity" in r.output
     assert f"modes kept: {choice['n_modes']} (" in r.output

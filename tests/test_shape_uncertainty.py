@@ -79,7 +79,6 @@ def test_the_files_open_in_trimesh_and_meshio_with_the_values(tmp_path):
     import meshio
     import trimesh
 
-    from clgs.io.mesh import load_mesh
     from clgs.shape.uncertainty import FIELD, read_uncertainty_ply, write_uncertainty_files
 
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=6.0)
@@ -155,3 +154,8 @@ def test_a_shape_guided_run_writes_the_field_and_reports_it(tmp_path):
 
     assert cKDTree(surface.vertices).query(v)[0].max() < 1e-3
     json.dumps(u)
+    # one view (along x) cannot see the shift along x: that mode keeps most of the prior's spread,
+    # where two views pin it down
+    one = reconstruct_shape_guided(_scan(t, n_views=1, shape_model=sm), (t, sm, at), iterations=20,
+                                   out_dir=tmp_path / "one", **_small(alpha_freeze=3)).uncertainty
+    assert one["alpha_sd"][1] > 0.5 > 5 * u["alpha_sd"][1] and one["mean_mm"] > 5 * u["mean_mm"]

@@ -489,7 +489,7 @@ def _build_model_command(anatomy) -> click.Command:
                   help="keep the fewest modes holding this fraction of the variance [0.95] ...")
     @click.option("--generalisation-tol", "generalisation_tol_mm", type=float, default=None,
                   help="... or past which one more mode improves leave-one-out generalisation by less than "
-                       "this (mm; 0: the variance rule alone) [0.1]")
+                       "this (mm; 0: the variance rule alone) [0.05]")
     @click.option("--n-modes", type=int, default=None, help="keep exactly this many modes (overrides the rule)")
     @click.option("--max-cells", type=int, default=None, help="velocity grid cells along the longest side")
     @click.option("--force", is_flag=True, help="rebuild even if an up-to-date model exists")

@@ -225,7 +225,7 @@ def build_model(template, subjects, out_path, *args, **kwargs) -> str:
 
 def _build_model(template: Template, subjects: Union[Iterable[Subject], Mapping], out_path,
                 variance: float = 0.95, n_modes: Optional[int] = None, max_cells: int = 64,
-                generalisation_tol_mm: Optional[float] = 0.1,
+                generalisation_tol_mm: Optional[float] = 0.05,
                 registration: Optional[dict] = None, atlas: bool = True, force: bool = False,
                 keep_cache: bool = False, progress: bool = True, extra_meta: Optional[dict] = None,
                 on_subject: Optional[Callable] = None, threads: Optional[int] = 1,

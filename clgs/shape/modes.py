@@ -13,9 +13,9 @@ from typing import Optional
 
 from clgs.errors import InputError
 
-#: defaults of the rule: 95 % of the variance, or a next mode that gains under 0.1 mm
+#: defaults of the rule: 95 % of the variance, or a next mode that gains under 0.05 mm
 VARIANCE = 0.95
-TOLERANCE_MM = 0.1
+TOLERANCE_MM = 0.05
 
 
 def choose_modes(figures: Optional[dict], n_available: int, variance: Optional[float] = VARIANCE,

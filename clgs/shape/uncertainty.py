@@ -164,6 +164,7 @@ def read_uncertainty_ply(path) -> tuple:
 def summary(values, extra: Optional[dict] = None) -> dict:
     """Mean and largest value (mm), for the run's report."""
     v = np.asarray(values, np.float64)
-    out = {"file": FILE_NAME, "vtk_file": VTK_NAME, "mean_mm": round(float(v.mean()), 4), "max_mm": round(float(v.max()), 4)}
+    out = {"file": FILE_NAME, "vtk_file": VTK_NAME, "mean_mm": round(float(v.mean()), 4),
+           "max_mm": round(float(v.max()), 4)}
     out.update(extra or {})
     return out
