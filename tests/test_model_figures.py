@@ -98,7 +98,10 @@ def test_build_model_decides_its_modes_stores_the_figures_and_info_reads_them(tm
     assert fig["generalisation_mm"][0] >= fig["generalisation_mm"][-1] - 1e-9
     # the model keeps what the rule decides from the stored figures, and says why
     assert choice == choose_modes(fig, 4, 0.95, 0.05)
-    assert load_model(tmp_path / "blob.npz")[0].n_modes == choice["n_modes"] == meta["n_modes"]
+    model = load_model(tmp_path / "blob.npz")[0]
+    assert model.n_modes == choice["n_modes"] == meta["n_modes"]
+    # what lies beyond the kept modes for a left-out subject, kept for the surface's uncertainty
+    assert model.beyond_cov.shape == (6,) + model.shape and model.beyond_cov[:3].max() > 0
     assert "compactness" in r.output and "generalisation" in r.output and "specificity" in r.output
     assert f"modes kept: {choice['n_modes']} (" in r.output
     # an override: exactly 4 modes, and the variance rule alone keeps what 95 % needs

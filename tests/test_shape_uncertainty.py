@@ -54,6 +54,43 @@ def test_the_field_is_sqrt_of_n_gcg_n_for_a_model_of_known_covariance():
     assert prior.max() == pytest.approx(3.0, rel=1e-3) and prior.min() < 0.05
 
 
+def test_beyond_the_span_covariance_is_the_leave_one_out_residuals_and_gives_sqrt_n_s_n(tmp_path):
+    import trimesh
+
+    from clgs.shape.builder import beyond_span_covariance
+    from clgs.shape.model import load_model, save_model
+    from clgs.shape.uncertainty import beyond_sd
+
+    rng = np.random.default_rng(2)
+    shape = (4, 5, 6)
+    n, d = 7, 3 * 4 * 5 * 6
+    V = rng.normal(size=(n, 2)) @ rng.normal(size=(2, d)) * 3 + rng.normal(size=(n, d)) * 0.5
+    cov = beyond_span_covariance(V, 1, shape)
+    # one grid point (z=1, y=2, x=3) by hand: the left-out residuals of a 1-mode PCA
+    idx = [np.ravel_multi_index((c, 1, 2, 3), (3,) + shape) for c in range(3)]
+    r = []
+    for i in range(n):
+        rest = np.delete(V, i, 0)
+        m = rest.mean(0)
+        u = np.linalg.svd(rest - m)[2][0]
+        r.append(((V[i] - m) - ((V[i] - m) @ u) * u)[idx])
+    r = np.array(r)
+    want = r.T @ r / n
+    got = cov[:, 1, 2, 3]
+    np.testing.assert_allclose(got[[0, 1, 2, 3, 4, 5]], want[[0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]], rtol=1e-5)
+    # a model carrying a known constant covariance: the field is sqrt(n^T S n) anywhere
+    model = _translation_model()
+    S = np.array([[4.0, 1.0, 0.5], [1.0, 1.0, 0.0], [0.5, 0.0, 9.0]])
+    const = np.stack([np.full(model.shape, x, np.float32) for x in S[[0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]])
+    model.beyond_cov = const
+    save_model(tmp_path / "m.npz", model)
+    model = load_model(tmp_path / "m.npz")[0]  # kept in the file
+    sphere = trimesh.creation.icosphere(subdivisions=1, radius=5.0)
+    nrm = sphere.vertex_normals
+    np.testing.assert_allclose(beyond_sd(model, sphere.vertices, nrm, size=1.5),
+                               1.5 * np.sqrt(np.einsum("vi,ij,vj->v", nrm, S, nrm)), rtol=1e-5)
+
+
 def test_laplace_covariance_of_a_linear_gaussian_problem():
     from clgs.errors import InputError
     from clgs.shape.uncertainty import laplace_covariance
@@ -141,6 +178,9 @@ def test_a_shape_guided_run_writes_the_field_and_reports_it(tmp_path):
                                    **_small(alpha_freeze=3))
     u = res.uncertainty
     assert u is not None and u["file"] == "shape_uncertainty.ply" and 0 < u["mean_mm"] <= u["max_mm"]
+    assert u["beyond_model_max_mm"] == 0.0  # a model without a beyond-span covariance: the posterior alone
+    assert u["mean_mm"] == pytest.approx(u["posterior_mean_mm"], abs=1e-4)
+    assert json.loads((tmp_path / "run" / "alpha.json").read_text())["uncertainty"] == u
     assert len(u["alpha_sd"]) == 2 and all(0 < s <= 1.0 + 1e-9 for s in u["alpha_sd"])  # narrower than the prior
     v, f, values = read_uncertainty_ply(tmp_path / "run" / "shape_uncertainty.ply")
     from clgs.io.mesh import load_mesh

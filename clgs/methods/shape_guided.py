@@ -447,10 +447,10 @@ def write_uncertainty(trainer, shape_set, template, moved, out_dir) -> dict:
     from clgs.shape import uncertainty as U
 
     field = U.shape_uncertainty(trainer, shape_set, template.vertices, template.faces, surface=moved[0])
-    U.write_uncertainty_files(out_dir, moved[0], moved[1], field["values"])
-    return U.summary(field["values"], {"alpha_sd": [round(x, 4) for x in field["alpha_sd"]],
-                                       "noise_sd": round(field["noise_sd"], 6),
-                                       "model": "Laplace: prior N(0, I), independent pixel noise"})
+    U.write_uncertainty_files(out_dir, moved[0], moved[1], field["values"],
+                              parts={"posterior_mm": field["posterior"], "beyond_model_mm": field["beyond"]})
+    return U.summary(field, {"model": "sqrt(posterior^2 + beyond^2): Laplace posterior of alpha (prior N(0, I), "
+                                      "independent pixel noise) and the leave-one-out field beyond the modes"})
 
 
 def deformed_template_surface(template, shape_set) -> tuple:
@@ -582,13 +582,15 @@ def write_outputs(trainer, out_dir, value_scale, volume, template, alpha, level,
     shape_set = trainer.sets[0]
     size = shape_set.size if isinstance(shape_set, ShapeGuidedSet) and shape_set.fits_size else None
     split = displacement_report(template, shape_set)  # the surface's displacement: model and residual
-    paths["alpha"] = atomic.write_json(out_dir / "alpha.json", {"alpha": [float(a) for a in alpha], "size": size,
-                                                                **({"displacement": split} if split else {})})
     moved = deformed_template_surface(template, trainer.sets[0])
     if moved is not None:
         paths["shape_surface"] = save_mesh(out_dir / "shape_surface.stl", *moved)
         if uncertainty and len(alpha):
             paths["uncertainty"] = write_uncertainty(trainer, shape_set, template, moved, out_dir)
+    record = {"alpha": [float(a) for a in alpha], "size": size, **({"displacement": split} if split else {})}
+    if paths.get("uncertainty"):
+        record["uncertainty"] = paths["uncertainty"]
+    paths["alpha"] = atomic.write_json(out_dir / "alpha.json", record)
     surface = write_bone_surface(out_dir, volume, trainer.geometry, level)
     if surface["path"] is not None:
         paths["surface"] = Path(surface["path"])
@@ -638,7 +640,8 @@ def run_method(scan, out_dir=None, iterations: int | None = None, anatomy=None, 
     if result.uncertainty is not None:
         u = result.uncertainty
         print(f"shape surface uncertainty: {u['mean_mm']:.3f} mm mean, {u['max_mm']:.3f} mm max along the normal "
-              f"({u['file']}, {u['vtk_file']})", file=sys.stderr)
+              f"(the views' posterior {u['posterior_mean_mm']:.3f} mm mean, beyond the model's modes "
+              f"{u['beyond_model_mean_mm']:.3f}; {u['file']}, {u['vtk_file']})", file=sys.stderr)
     extra = {"uncertainty": result.uncertainty} if result.uncertainty is not None else {}
     return method_output(result, out_dir, files, seconds=result.seconds, alpha=[float(a) for a in result.alpha],
                          size=size, history=result.log.rows, displacement=split, **surface, **extra)

@@ -12,7 +12,8 @@
    variance over subjects, on the template grid.
 4. One versioned npz (see :mod:`clgs.shape.model`) with the population ids, settings and
    their hash, variance kept, residuals, the figures (``statistics``) and the mode decision
-   (``mode_choice``), all JSON in its metadata record.
+   (``mode_choice``), all JSON in its metadata record, and the covariance of what lies beyond the
+   kept modes for a left-out subject (``beyond_cov``, :func:`beyond_span_covariance`).
 
 Caching: if ``out_path`` exists with the same settings hash the build is skipped. Resuming:
 each subject's registration (and warped CT) is saved atomically in ``<out_path>.cache/``
@@ -208,6 +209,27 @@ def model_figures(V, template, mshape, msp, morg, variance, tolerance_mm, n_mode
     return figures, choice, all_var
 
 
+def beyond_span_covariance(V, n_modes: int, mshape) -> Optional[np.ndarray]:
+    """(6, Z, Y, X) float32 mm^2: per grid point, the covariance (xx, yy, zz, xy, xz, yz) of the
+    part of a left-out subject's velocity field that the ``n_modes``-mode PCA of the others does
+    not reach (leave-one-out over the rows of V (N, 3 * Z * Y * X)): what lies beyond the model's
+    span for a new member of the population. None with fewer than 3 subjects."""
+    X = np.asarray(V, np.float64)
+    n = len(X)
+    if n < 3:
+        return None
+    acc = np.zeros((6,) + tuple(mshape))
+    for i in range(n):
+        rest = np.delete(X, i, 0)
+        m = rest.mean(0)
+        vt = np.linalg.svd(rest - m, full_matrices=False)[2][:n_modes]
+        r = (X[i] - m) - ((X[i] - m) @ vt.T) @ vt
+        r = r.reshape((3,) + tuple(mshape))
+        for k, (a, b) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
+            acc[k] += r[a] * r[b] / n
+    return acc.astype(np.float32)
+
+
 def build_model(template, subjects, out_path, *args, **kwargs) -> str:
     """:func:`_build_model` holding the model file's lock (:mod:`clgs.io.outputs`): a second build
     of the same file started meanwhile waits for the first, then finds its model up to date."""
@@ -323,7 +345,8 @@ def _build_model(template: Template, subjects: Union[Iterable[Subject], Mapping]
     pca_rms = np.sqrt(((C - recon) ** 2).reshape(len(V), -1, ).mean(1))
     for sid, r in zip(ids, pca_rms):
         residuals[sid]["pca_rms_mm"] = float(r)
-    model = ShapeModel(mean.reshape(3, *mshape), modes.reshape(-1, 3, *mshape), sigma, msp, morg)
+    model = ShapeModel(mean.reshape(3, *mshape), modes.reshape(-1, 3, *mshape), sigma, msp, morg,
+                       beyond_cov=beyond_span_covariance(V, len(modes), mshape))
     density = None
     if atlas and n_ct:
         m = warped_sum / n_ct

@@ -1,4 +1,5 @@
-"""How sure a reconstruction is of its shape surface, vertex by vertex: a Laplace approximation.
+"""How sure a reconstruction is of its shape surface, vertex by vertex: the shape coefficients'
+posterior (a Laplace approximation) and what lies beyond the model's span.
 
 The shape coefficients' posterior is approximated by a Gaussian about the fitted alpha: with the
 model's prior alpha ~ N(0, I) and the projections' pixels taken as independent Gaussian noise of
@@ -9,11 +10,16 @@ differences of renders of every view with everything else as fitted), and the co
 central differences of the map); across the surface only its normal part changes the surface,
 so its standard deviation there is ``sqrt(n^T G C G^T n)`` (mm): :func:`normal_sd`.
 
-What it is and is not: the spread of the model's part of the surface given these views and the
-fitted densities, size, residual and free Gaussians (a conditional posterior); where the views
-say little about a mode, its spread stays the prior's. It does not hold what lies beyond the
-model's span (the leave-one-out generalisation error of ``clgs <anatomy> info`` is that part), and
-independent pixels make it a lower bound when the residual has structure.
+That part (``posterior_mm``) is the spread of the model's part of the surface given these views
+and the fitted densities, size, residual and free Gaussians (a conditional posterior); where the
+views say little about a mode, its spread stays the prior's; independent pixels make it a lower
+bound when the residual has structure. The second part (``beyond_model_mm``) is what the views
+cannot correct through the modes at all: a new member of the population differs from its best
+M-mode approximation by a field whose covariance the model builder measured by leave-one-out
+(:func:`clgs.shape.builder.beyond_span_covariance`, ``ShapeModel.beyond_cov``), sampled at the
+template's vertex, ``sqrt(n^T S n)`` (times the fitted size). The two are independent, so the
+field written is ``uncertainty_mm = sqrt(posterior^2 + beyond^2)``; a model built without the
+covariance gives the posterior alone.
 
 The files: ``shape_uncertainty.ply``, the shape surface (as shape_surface.stl) with a per-vertex
 float property ``uncertainty_mm`` (binary PLY written by trimesh; trimesh reads it back as
@@ -98,11 +104,27 @@ def projection_jacobian(trainer, shape_set, step: float = STEP) -> tuple:
     return J, residual
 
 
+def beyond_sd(shape_model, vertices, normals, size: float = 1.0) -> np.ndarray:
+    """sqrt(n^T S n) (V,) mm: S the model's beyond-span covariance (``beyond_cov``, 6 components)
+    at the template ``vertices``, ``normals`` (V, 3) unit; zeros for a model without one."""
+    import torch
+
+    if shape_model.beyond_cov is None:
+        return np.zeros(len(vertices))
+    cov = torch.as_tensor(shape_model.beyond_cov, dtype=torch.float64)
+    c = shape_model.sample(cov, torch.as_tensor(np.asarray(vertices, np.float64))).numpy()  # (V, 6)
+    n = np.asarray(normals, np.float64)
+    xx, yy, zz, xy, xz, yz = c.T
+    q = (xx * n[:, 0] ** 2 + yy * n[:, 1] ** 2 + zz * n[:, 2] ** 2
+         + 2 * (xy * n[:, 0] * n[:, 1] + xz * n[:, 0] * n[:, 2] + yz * n[:, 1] * n[:, 2]))
+    return float(size) * np.sqrt(np.clip(q, 0.0, None))
+
+
 def shape_uncertainty(trainer, shape_set, vertices, faces, step: float = STEP, surface=None) -> dict:
-    """{"values" (V,) mm, "vertices", "covariance" (M, M), "noise_sd", "alpha_sd"} for the shape
-    surface of the template ``vertices``/``faces`` (mm) under the fitted ``shape_set`` (see the
-    module doc); ``surface``: the shape surface's vertices as written (its normals are used;
-    None: the template's vertices carried by the map)."""
+    """{"values" (V,) mm, "posterior" (V,), "beyond" (V,), "vertices", "covariance" (M, M),
+    "noise_sd", "alpha_sd"} for the shape surface of the template ``vertices``/``faces`` (mm)
+    under the fitted ``shape_set`` (see the module doc); ``surface``: the shape surface's vertices
+    as written (its normals are used; None: the template's vertices carried by the map)."""
     import trimesh
 
     if shape_set.alpha.numel() == 0:
@@ -115,15 +137,19 @@ def shape_uncertainty(trainer, shape_set, vertices, faces, step: float = STEP, s
     moved = (shape_set.map_points(vertices, None, n).numpy().astype(np.float64) if surface is None
              else np.asarray(surface, np.float64))
     normals = trimesh.Trimesh(moved, np.asarray(faces), process=False).vertex_normals
-    return {"values": normal_sd(G, normals, cov), "vertices": moved, "covariance": cov,
-            "noise_sd": float(np.sqrt(s2)), "alpha_sd": [float(x) for x in np.sqrt(np.diag(cov))]}
+    post = normal_sd(G, normals, cov)
+    beyond = beyond_sd(shape_set.shape_model, vertices, normals, shape_set.size)
+    return {"values": np.sqrt(post ** 2 + beyond ** 2), "posterior": post, "beyond": beyond, "vertices": moved,
+            "covariance": cov, "noise_sd": float(np.sqrt(s2)),
+            "alpha_sd": [float(x) for x in np.sqrt(np.diag(cov))]}
 
 
-def write_uncertainty_files(out_dir, vertices, faces, values) -> dict:
+def write_uncertainty_files(out_dir, vertices, faces, values, parts: Optional[dict] = None) -> dict:
     """``shape_uncertainty.ply`` (binary PLY, vertex property ``uncertainty_mm``) and
     ``shape_uncertainty.vtk`` (legacy VTK polydata, point scalar ``uncertainty_mm``: what 3D
     Slicer shows as a model's scalars) in ``out_dir``, both in LPS with ``SPACE=LPS`` in the header
-    as every clgs surface (:mod:`clgs.io.mesh`), atomically; {"ply": path, "vtk": path}."""
+    as every clgs surface (:mod:`clgs.io.mesh`), atomically; {"ply": path, "vtk": path}.
+    ``parts``: more per-vertex values (name -> (V,)) written beside it in both files."""
     from pathlib import Path
 
     from clgs.io import atomic
@@ -131,7 +157,8 @@ def write_uncertainty_files(out_dir, vertices, faces, values) -> dict:
 
     out_dir = Path(out_dir)
     values = np.asarray(values, np.float64)
-    ply = save_mesh(out_dir / FILE_NAME, vertices, faces, scalars={FIELD: values})
+    scalars = {FIELD: values, **{k: np.asarray(v, np.float64) for k, v in (parts or {}).items()}}
+    ply = save_mesh(out_dir / FILE_NAME, vertices, faces, scalars=scalars)
     mesh = check_mesh(vertices, faces)
     lps = mesh.vertices * RAS_TO_LPS
     lines = ["# vtk DataFile Version 3.0", "clgs shape surface uncertainty (mm) SPACE=LPS", "ASCII",
@@ -139,8 +166,10 @@ def write_uncertainty_files(out_dir, vertices, faces, values) -> dict:
     lines += [f"{x:.6f} {y:.6f} {z:.6f}" for x, y, z in lps]
     lines.append(f"POLYGONS {len(mesh.faces)} {4 * len(mesh.faces)}")
     lines += [f"3 {a} {b} {c}" for a, b, c in mesh.faces]
-    lines += [f"POINT_DATA {len(lps)}", f"SCALARS {FIELD} float 1", "LOOKUP_TABLE default"]
-    lines += [f"{v:.6f}" for v in values]
+    lines.append(f"POINT_DATA {len(lps)}")
+    for name, vals in scalars.items():  # the first is the active scalar a viewer colours by
+        lines += [f"SCALARS {name} float 1", "LOOKUP_TABLE default"]
+        lines += [f"{v:.6f}" for v in vals]
     vtk = atomic.write_bytes(out_dir / VTK_NAME, ("\n".join(lines) + "\n").encode("ascii"))
     return {"ply": Path(ply), "vtk": Path(vtk)}
 
@@ -161,10 +190,15 @@ def read_uncertainty_ply(path) -> tuple:
     return mesh.vertices, mesh.faces, values.reshape(-1)
 
 
-def summary(values, extra: Optional[dict] = None) -> dict:
-    """Mean and largest value (mm), for the run's report."""
-    v = np.asarray(values, np.float64)
-    out = {"file": FILE_NAME, "vtk_file": VTK_NAME, "mean_mm": round(float(v.mean()), 4),
-           "max_mm": round(float(v.max()), 4)}
+def summary(field: dict, extra: Optional[dict] = None) -> dict:
+    """Mean and largest value (mm) of the field and of its two parts, for the run's report."""
+    def r4(x):
+        return round(float(x), 4)
+
+    v, p, b = (np.asarray(field[k], np.float64) for k in ("values", "posterior", "beyond"))
+    out = {"file": FILE_NAME, "vtk_file": VTK_NAME, "mean_mm": r4(v.mean()), "max_mm": r4(v.max()),
+           "posterior_mean_mm": r4(p.mean()), "posterior_max_mm": r4(p.max()),
+           "beyond_model_mean_mm": r4(b.mean()), "beyond_model_max_mm": r4(b.max()),
+           "alpha_sd": [r4(x) for x in field["alpha_sd"]], "noise_sd": round(float(field["noise_sd"]), 6)}
     out.update(extra or {})
     return out
