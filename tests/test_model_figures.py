@@ -113,6 +113,13 @@ def test_build_model_decides_its_modes_stores_the_figures_and_info_reads_them(tm
     need = next(i + 1 for i, c in enumerate(meta["statistics"]["compactness_all"]) if c >= 0.95 - 1e-12)
     assert r.exit_code == 0 and meta["n_modes"] == need
 
+    # a bad rule is refused before any registration
+    calls = []
+    anatomy.load_subject = lambda sid: calls.append(sid)
+    r = CliRunner().invoke(make_group(anatomy), ["build-model", "--max-cells", "6", "--force",
+                                                 "--generalisation-tol", "-1"])
+    assert r.exit_code != 0 and "tolerance must be >= 0" in r.output and not calls
+
     # info reads the figures from the file: the surfaces are never asked for
     class NoSurfaces:
         def mesh(self, sid):

@@ -286,6 +286,9 @@ def _build_model(template: Template, subjects: Union[Iterable[Subject], Mapping]
     if len(items) < 2:
         raise InputError(f"a shape model needs at least 2 subjects, got {len(items)}")
     reg = RegistrationSettings.from_dict(registration)
+    from clgs.shape.modes import choose_modes
+
+    choose_modes(None, 1, variance, generalisation_tol_mm, n_modes)  # a bad rule fails now, not after the work
     mshape, msp, morg = template.model_grid(max_cells)
     reg_key = {"builder": BUILDER_VERSION, "template": template.content_hash(), "max_cells": int(max_cells),
                "registration": reg.to_dict(), "atlas": bool(atlas)}
