@@ -102,7 +102,7 @@ class SurfacePopulation:
 
     def __init__(self, name: str, summary: str, version: str, data_dir, file_pattern: str, ids, test_ids,
                  grid, params: DensityParams, frame_offset, scene: dict, builder_settings: dict | None = None,
-                 notice: str = ""):
+                 notice: str = "", side_of=None):
         self.name = name
         self.summary = summary
         self.version = version
@@ -119,6 +119,10 @@ class SurfacePopulation:
         self.scene = dict(scene)
         self.builder_settings = dict(builder_settings or {})
         self.notice = notice
+        # side_of(vertices) -> (side, measure mm): subjects of the other side than most are mirrored
+        # into it (clgs.anatomy.sides); None: every subject as its file has it
+        self.side_of = side_of
+        self._sides = None
         self._template = None
         self._faces = None
 
@@ -138,12 +142,33 @@ class SurfacePopulation:
             raise KeyError(f"{self.name}: unknown subject {sid!r}; subjects are {', '.join(self.ids)}")
         return os.path.join(self.data_dir, self.file_pattern.format(id=sid))
 
-    def mesh(self, sid):
-        """(vertices (V, 3) mm in the anatomy frame, faces (F, 3))."""
+    def _file_mesh(self, sid):
         with np.load(self._file(sid), allow_pickle=False) as z:
             v = np.asarray(z["vertices"], np.float64) - self.frame_offset
             f = np.asarray(z["faces"], np.int64)
         return v, f
+
+    def mesh(self, sid):
+        """(vertices (V, 3) mm in the anatomy frame, faces (F, 3)), mirrored into the template's
+        side when :meth:`sides` says so."""
+        v, f = self._file_mesh(sid)
+        if self.side_of is not None and self.sides()["subjects"][str(sid)]["mirrored"]:
+            from clgs.anatomy.sides import mirror_x
+
+            v, f = mirror_x(v, f)
+        return v, f
+
+    def sides(self) -> dict | None:
+        """Each subject's side, the template's and who is mirrored
+        (:func:`clgs.anatomy.sides.decide_sides`); None without a side test."""
+        if self.side_of is None:
+            return None
+        if self._sides is None:
+            from clgs.anatomy.sides import decide_sides
+
+            self._sides = decide_sides({sid: self._file_mesh(sid)[0] for sid in self.ids}, self.side_of,
+                                       self.population())
+        return self._sides
 
     def seed(self, sid) -> int:
         """The subject's fixed seed (density variation and texture)."""
@@ -215,6 +240,8 @@ class SurfacePopulation:
                                                      list(self.grid.spacing)],
                   "offset": list(self.frame_offset), "params": repr(self.params),
                   "builder": self.builder_settings, "phantom": PHANTOM_VERSION}
+        if self.side_of is not None:
+            record["mirrored"] = sorted(s for s, r in self.sides()["subjects"].items() if r["mirrored"])
         try:
             from clgs.shape.builder import BUILDER_VERSION
 
@@ -255,6 +282,9 @@ class SurfacePopulation:
         extra = dict(kwargs.pop("extra_meta", None) or {})
         extra.update(anatomy=self.name, held_out=self.test_ids, template="vertex-wise mean of the population",
                      density_params=repr(self.params))
+        if self.side_of is not None:
+            sides = self.sides()
+            extra["mirroring"] = dict(sides, subjects={sid: sides["subjects"][sid] for sid in ids})
         model_builder.build_model(template, subjects, out_path, extra_meta=extra, **kwargs)
         if os.path.getmtime(out_path) < t0_wall:
             return out_path  # it was up to date

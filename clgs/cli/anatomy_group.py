@@ -487,15 +487,21 @@ def _build_model_command(anatomy) -> click.Command:
 
     @click.command("build-model", cls=AnatomyCommand)
     @click.option("--out", "out_path", type=click.Path(dir_okay=False), help="model file (default: the plugin's)")
-    @click.option("--variance", type=float, default=None, help="fraction of variance to keep [0.95]")
-    @click.option("--n-modes", type=int, default=None, help="keep exactly this many modes")
+    @click.option("--variance", type=float, default=None,
+                  help="keep the fewest modes holding this fraction of the variance [0.95] ...")
+    @click.option("--generalisation-tol", "generalisation_tol_mm", type=float, default=None,
+                  help="... or past which one more mode improves leave-one-out generalisation by less than "
+                       "this (mm; 0: the variance rule alone) [0.05]")
+    @click.option("--n-modes", type=int, default=None, help="keep exactly this many modes (overrides the rule)")
     @click.option("--max-cells", type=int, default=None, help="velocity grid cells along the longest side")
     @click.option("--force", is_flag=True, help="rebuild even if an up-to-date model exists")
     @cohort_options
-    def build_model_cmd(out_path, variance, n_modes, max_cells, force, workers, scheduler):
-        """Register the population to the template, PCA of the velocities, density atlas."""
+    def build_model_cmd(out_path, variance, generalisation_tol_mm, n_modes, max_cells, force, workers, scheduler):
+        """Register the population to the template, PCA of the velocities, density atlas; prints the
+        model's figures, the modes kept and the subjects mirrored."""
         check_cohort_options(workers, scheduler)
-        settings = {k: v for k, v in dict(variance=variance, n_modes=n_modes, max_cells=max_cells).items()
+        settings = {k: v for k, v in dict(variance=variance, n_modes=n_modes, max_cells=max_cells,
+                                          generalisation_tol_mm=generalisation_tol_mm).items()
                     if v is not None}
         if workers or scheduler:
             from clgs.cohort.registration import registration_runner
@@ -525,6 +531,11 @@ def _build_model_command(anatomy) -> click.Command:
             template = _need(anatomy, "load_template", "load the template")()
             path = build_model(template, {sid: partial(loader, sid) for sid in ids}, target, force=force, **settings)
         click.echo(f"{name}: model {path} ready ({time.perf_counter() - t0:.1f} s)")
+        from clgs.shape.model import read_metadata
+        from clgs.shape.report import model_lines
+
+        for line in model_lines(read_metadata(path)):
+            click.echo(f"  {line}")
 
     return build_model_cmd
 
@@ -742,18 +753,26 @@ def _info_command(anatomy) -> click.Command:
             click.echo(f"  template  grid {t.shape} (Z, Y, X) at {t.spacing[0]:g} mm ({ext} mm); "
                        f"surface {len(t.vertices)} vertices, {len(t.faces)} faces; "
                        f"volume {t.label.sum() * float(t.spacing[0] * t.spacing[1] * t.spacing[2]) / 1000:.1f} cm^3")
-        _echo_shape_space(anatomy)
         path = anatomy.model_path
-        if not path or not os.path.exists(path):
+        built = bool(path) and os.path.exists(path)
+        meta = {}
+        if built:
+            from clgs.shape.model import read_metadata
+
+            meta = read_metadata(path)
+        if not meta.get("statistics"):  # a model that records its figures is read, not recomputed
+            _echo_shape_space(anatomy)
+        if not built:
             click.echo(f"  model     not built ({path or 'no path'}): run `clgs {name} build-model`")
             return
-        from clgs.shape.model import read_metadata
+        from clgs.shape.report import model_lines
 
-        meta = read_metadata(path)
         click.echo(f"  model     {path}")
         click.echo(f"            {meta.get('n_modes')} modes on grid {tuple(meta.get('grid_shape', ()))}, "
                    f"variance kept {100 * meta.get('variance_kept', float('nan')):.1f} %, "
                    f"{len(meta.get('population', []))} subjects")
+        for line in model_lines(meta):
+            click.echo(f"            {line}")
         res = meta.get("residuals") or {}
         if res:
             import numpy as np
@@ -789,17 +808,13 @@ def _echo_shape_space(anatomy, max_modes: int = 5) -> None:
     meshes = [pop.mesh(sid) for sid in anatomy.population()]
     if any(m[0].shape != meshes[0][0].shape for m in meshes):
         return  # not in correspondence: no vertex-level figures
+    from clgs.shape.report import figure_lines
+
     f = shape_space_figures(np.stack([m[0] for m in meshes]), max_modes=max_modes, n_samples=100)
-
-    def row(values, fmt):
-        return " / ".join(fmt.format(v) for v in values)
-
-    click.echo(f"  surfaces  PCA of the {len(meshes)} population surfaces' vertices, modes {row(f['modes'], '{}')}:")
-    click.echo(f"            compactness {row([100 * c for c in f['compactness']], '{:.1f}')} % of the variance")
-    click.echo(f"            generalisation {row(f['generalisation_mm'], '{:.2f}')} mm "
-               "(leave-one-out, mean vertex error)")
-    click.echo(f"            specificity {row(f['specificity_mm'], '{:.2f}')} mm "
-               "(random shapes to the nearest subject)")
+    first, *rest = figure_lines(f, f"PCA of the {len(meshes)} population surfaces' vertices")
+    click.echo(f"  surfaces  {first}")
+    for line in rest:
+        click.echo(f"          {line}")
 
 
 # the commands every anatomy gets, each made for one anatomy

@@ -82,8 +82,10 @@ def _suffix(path: Path) -> str:
     return suf
 
 
-def save_mesh(path, vertices, faces=None, overwrite: bool = True) -> Path:
-    """Write a triangle mesh atomically; ``save_mesh(path, mesh)`` also accepts a :class:`Mesh`."""
+def save_mesh(path, vertices, faces=None, overwrite: bool = True, scalars: dict | None = None) -> Path:
+    """Write a triangle mesh atomically; ``save_mesh(path, mesh)`` also accepts a :class:`Mesh`.
+    ``scalars``: name -> one finite value per vertex, written as float vertex properties of a
+    binary PLY (the only format here that holds them)."""
     if faces is None:
         vertices, faces = vertices
     path = Path(path)
@@ -91,12 +93,22 @@ def save_mesh(path, vertices, faces=None, overwrite: bool = True) -> Path:
     mesh = check_mesh(vertices, faces)
     if len(mesh.faces) == 0:
         raise MeshError("the mesh has no faces; nothing to write")
+    if scalars and suf != ".ply":
+        raise MeshError(f"per-vertex values ({', '.join(scalars)}) are written to PLY only, not {suf}")
     if suf == ".npz":
         return atomic.save_npz(path, overwrite=overwrite, vertices=mesh.vertices, faces=mesh.faces)
     import trimesh
 
     tm = trimesh.Trimesh(vertices=mesh.vertices * RAS_TO_LPS, faces=mesh.faces, process=False)
-    data = tm.export(file_type=suf[1:])
+    if scalars:
+        for name, values in scalars.items():
+            values = np.asarray(values, np.float64)
+            if values.shape != (len(mesh.vertices),) or not np.isfinite(values).all():
+                raise MeshError(f"{name}: need one finite value per vertex ({len(mesh.vertices)}), got {values.shape}")
+            tm.vertex_attributes[name] = values.astype(np.float32)
+        data = trimesh.exchange.ply.export_ply(tm, encoding="binary", include_attributes=True)
+    else:
+        data = tm.export(file_type=suf[1:])
     if isinstance(data, str):
         data = data.encode("utf-8")
     return atomic.write_bytes(path, _tagged(data, suf, "LPS"), overwrite=overwrite)

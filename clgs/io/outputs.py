@@ -48,7 +48,8 @@ CHECKPOINT = "checkpoint.pt"
 # every name a clgs command writes into a run, batch or scan folder: replacing a folder removes these only
 RUN_FILES = {"volume.nii.gz", "volume.npy", "report.json", "run.json", CHECKPOINT, "config.json", "gaussians.npz",
              "log.csv", "log.png", "summary.txt", "alpha.json", "surface.stl", "shape_surface.stl",
-             "surface_distance.png", "surface.json", "slices.png", "evaluation.png"}
+             "shape_uncertainty.ply", "shape_uncertainty.vtk", "surface_distance.png", "surface.json", "slices.png",
+             "evaluation.png"}
 SCAN_FILES = {"scan.json", "projections.npy", "truth.npy", "truth.nii.gz", "truth_surface.stl"}
 CLGS_FILES = frozenset(RUN_FILES | SCAN_FILES)
 SCAN_MARKERS = ("scan.json", "meta_data.json")

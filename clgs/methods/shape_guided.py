@@ -120,6 +120,11 @@ class ShapeGuidedConfig(GaussianFitConfig):
     residual: str = setting("off", "--residual",
                             "a smooth deformation beyond the shape model's span (a cubic B-spline on the template, "
                             "bending-regularised), fitted after the shape coefficients: on, off (the paper)")
+    # the shape surface's per-vertex standard deviation (clgs.shape.uncertainty): written beside it
+    uncertainty: str = setting("on", "--uncertainty",
+                               "write shape_uncertainty.ply/.vtk: the shape surface's per-vertex standard deviation "
+                               "along its normal (mm, a Laplace approximation of the shape coefficients' posterior): "
+                               "on, off")
     residual_points: int = setting(16, "--residual-points",
                                    "the residual's control points along the template's longest side", min=4)
     residual_init_iterations: int = 100  # the residual's registration (alpha fixed) before training
@@ -140,10 +145,11 @@ class ShapeGuidedConfig(GaussianFitConfig):
 
     CLI = ("iterations", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every", "log_early",
            "checkpoint_every", "max_gaussians", "n_shape", "n_free", "tau", "shape_prior", "density_prior",
-           "density_prior_field", "free_init", "alpha_init_iterations", "fit_size", "residual", "residual_points")
+           "density_prior_field", "free_init", "alpha_init_iterations", "fit_size", "residual", "residual_points",
+           "uncertainty")
     KIND = "shape-guided"
     CHOICES = {**GaussianFitConfig.CHOICES, "free_init": ("atlas", "fdk"), "density_prior_field": ("all", "shape"),
-               "fit_size": ("auto", "on", "off"), "residual": ("on", "off")}
+               "fit_size": ("auto", "on", "off"), "residual": ("on", "off"), "uncertainty": ("on", "off")}
     POSITIVE = GaussianFitConfig.POSITIVE | {"tau", "density_s"}
     AT_LEAST = {**GaussianFitConfig.AT_LEAST, "density_points": 2, "residual_points": 4}
 
@@ -183,6 +189,7 @@ class ShapeGuidedResult:
     seconds: float
     surface: dict | None = None  # the bone surface written (clgs.anatomy.evaluation.write_bone_surface)
     displacement: dict | None = None  # displacement_report: the surface's model and residual parts
+    uncertainty: dict | None = None  # the shape surface's uncertainty summary (clgs.shape.uncertainty.summary)
 
 
 def _free_init_volume(fdk, geometry, template) -> np.ndarray:
@@ -457,6 +464,18 @@ def choose_size(scan, cfg: ShapeGuidedConfig, init, tissue, centre_mm) -> float 
     return best
 
 
+def write_uncertainty(trainer, shape_set, template, moved, out_dir) -> dict:
+    """shape_uncertainty.ply and .vtk beside shape_surface.stl (``moved``: its (vertices, faces)),
+    from :func:`clgs.shape.uncertainty.shape_uncertainty`; their summary for the report."""
+    from clgs.shape import uncertainty as U
+
+    field = U.shape_uncertainty(trainer, shape_set, template.vertices, template.faces, surface=moved[0])
+    U.write_uncertainty_files(out_dir, moved[0], moved[1], field["values"],
+                              parts={"posterior_mm": field["posterior"], "beyond_model_mm": field["beyond"]})
+    return U.summary(field, {"model": "sqrt(posterior^2 + beyond^2): Laplace posterior of alpha (prior N(0, I), "
+                                      "independent pixel noise) and the leave-one-out field beyond the modes"})
+
+
 def deformed_template_surface(template, shape_set) -> tuple:
     """The template surface carried onto the subject by the fitted alpha (and size): (vertices mm,
     faces)."""
@@ -553,16 +572,17 @@ def _reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | Non
         alpha = shape_set.alpha.detach().numpy().copy() if isinstance(shape_set, ShapeGuidedSet) else np.zeros(0)
         seconds = time.perf_counter() - t0
         warn_if_implausible(alpha, trainer.log.last("proj_psnr"))
-        surface = None
+        surface = uncertainty = None
         if out_dir is not None:
-            surface = write_outputs(trainer, out_dir, cfg.value_scale, volume, parts[0], alpha,
-                                    level).pop("bone_surface")
+            written = write_outputs(trainer, out_dir, cfg.value_scale, volume, parts[0], alpha, level,
+                                    uncertainty=cfg.uncertainty == "on")
+            surface, uncertainty = written.pop("bone_surface"), written.pop("uncertainty", None)
         displacement = displacement_report(parts[0], shape_set)
     return ShapeGuidedResult(volume=volume, gaussians=gaussians_in_scan_units(trainer, cfg.value_scale),
                              alpha=alpha, log=trainer.log, trainer=trainer, value_scale=cfg.value_scale,
                              interrupted=trainer.interrupted, out_dir=None if out_dir is None else Path(out_dir),
                              summary=trainer.log.summary(), seconds=seconds, surface=surface,
-                             displacement=displacement)
+                             displacement=displacement, uncertainty=uncertainty)
 
 
 def load_anatomy_parts(anatomy) -> tuple:
@@ -581,21 +601,27 @@ def load_anatomy_parts(anatomy) -> tuple:
     return template, model, atlas
 
 
-def write_outputs(trainer, out_dir, value_scale, volume, template, alpha, level) -> dict:
+def write_outputs(trainer, out_dir, value_scale, volume, template, alpha, level, uncertainty: bool = False) -> dict:
     """The r2gs outputs plus alpha and the two surfaces (the bone surface at ``level``, a
     :class:`clgs.anatomy.bone_level.BoneLevel` or None for none); each file atomically. The
-    returned ``bone_surface`` is :func:`clgs.anatomy.evaluation.write_bone_surface`'s record."""
+    returned ``bone_surface`` is :func:`clgs.anatomy.evaluation.write_bone_surface`'s record.
+    ``uncertainty``: also the shape surface's uncertainty files (:func:`write_uncertainty`), their
+    summary returned as ``uncertainty``."""
 
     out_dir = Path(out_dir)
     paths = write_common(trainer, out_dir, value_scale, volume, method="shape-guided")
     shape_set = trainer.sets[0]
     size = shape_set.size if isinstance(shape_set, ShapeGuidedSet) and shape_set.fits_size else None
     split = displacement_report(template, shape_set)  # the surface's displacement: model and residual
-    paths["alpha"] = atomic.write_json(out_dir / "alpha.json", {"alpha": [float(a) for a in alpha], "size": size,
-                                                                **({"displacement": split} if split else {})})
     moved = deformed_template_surface(template, trainer.sets[0])
     if moved is not None:
         paths["shape_surface"] = save_mesh(out_dir / "shape_surface.stl", *moved)
+        if uncertainty and len(alpha):
+            paths["uncertainty"] = write_uncertainty(trainer, shape_set, template, moved, out_dir)
+    record = {"alpha": [float(a) for a in alpha], "size": size, **({"displacement": split} if split else {})}
+    if paths.get("uncertainty"):
+        record["uncertainty"] = paths["uncertainty"]
+    paths["alpha"] = atomic.write_json(out_dir / "alpha.json", record)
     surface = write_bone_surface(out_dir, volume, trainer.geometry, level)
     if surface["path"] is not None:
         paths["surface"] = Path(surface["path"])
@@ -642,8 +668,14 @@ def run_method(scan, out_dir=None, iterations: int | None = None, anatomy=None, 
               f"({split['residual_max_mm']:.2f} max; along the normal {split['residual_normal_mean_mm']:.2f} mean, "
               f"{split['residual_normal_max_mm']:.2f} max): {100 * split['residual_share']:.0f} % residual",
               file=sys.stderr)
+    if result.uncertainty is not None:
+        u = result.uncertainty
+        print(f"shape surface uncertainty: {u['mean_mm']:.3f} mm mean, {u['max_mm']:.3f} mm max along the normal "
+              f"(the views' posterior {u['posterior_mean_mm']:.3f} mm mean, beyond the model's modes "
+              f"{u['beyond_model_mean_mm']:.3f}; {u['file']}, {u['vtk_file']})", file=sys.stderr)
+    extra = {"uncertainty": result.uncertainty} if result.uncertainty is not None else {}
     return method_output(result, out_dir, files, seconds=result.seconds, alpha=[float(a) for a in result.alpha],
-                         size=size, history=result.log.rows, displacement=split, **surface)
+                         size=size, history=result.log.rows, displacement=split, **surface, **extra)
 
 
 METHOD = Method("shape", run_method, config=ShapeGuidedConfig, atomic_dir=False,

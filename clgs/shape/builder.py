@@ -2,13 +2,18 @@
 
 1. Each subject's surface is turned into a signed distance and registered to the template
    (:func:`clgs.shape.registration.register`), giving a velocity field v_i on the model grid.
-2. PCA (SVD) of the velocity fields, keeping the fewest modes that explain ``variance`` of the
-   total (or exactly ``n_modes``).
+2. PCA (SVD) of the velocity fields; their compactness, leave-one-out generalisation and
+   specificity, measured at the template's surface (:func:`clgs.shape.statistics.field_space_figures`);
+   the mode count from them (:func:`clgs.shape.modes.choose_modes`: the fewest modes holding
+   ``variance`` of the total or past which generalisation improves by less than
+   ``generalisation_tol_mm``; exactly ``n_modes`` when given).
 3. Density atlas: each subject's CT pulled back into template space, ``CT_i(exp(v_i)(x))`` (the
    CT pushed forward by the inverse map exp(-v_i)), then the per-voxel mean and (population)
    variance over subjects, on the template grid.
 4. One versioned npz (see :mod:`clgs.shape.model`) with the population ids, settings and
-   their hash, variance kept and residuals.
+   their hash, variance kept, residuals, the figures (``statistics``) and the mode decision
+   (``mode_choice``), all JSON in its metadata record, and the covariance of what lies beyond the
+   kept modes for a left-out subject (``beyond_cov``, :func:`beyond_span_covariance`).
 
 Caching: if ``out_path`` exists with the same settings hash the build is skipped. Resuming:
 each subject's registration (and warped CT) is saved atomically in ``<out_path>.cache/``
@@ -31,7 +36,9 @@ from clgs.shape.template import (Subject, Template, save_npz_atomic, json_array,
                            mesh_to_sdf)
 from clgs.errors import InputError
 
-BUILDER_VERSION = 2  # 2: the atlas samples a CT with its border value past its grid (was air)
+# 2: the atlas samples a CT with its border value past its grid (was air)
+# 3: the mode count from the population's figures (clgs.shape.modes), the figures stored
+BUILDER_VERSION = 3
 
 
 def _hash(obj) -> str:
@@ -154,6 +161,75 @@ def population_pca(velocities: np.ndarray, variance: Optional[float] = 0.95, n_m
     return mean, vt[:m], np.sqrt(var[:m]), kept, var
 
 
+#: the figures are measured at up to this many of the template's surface vertices (evenly spread)
+FIGURE_POINTS = 4000
+
+
+def surface_measure(template: Template, mshape, msp, morg, max_points: int = FIGURE_POINTS):
+    """A linear map from flattened velocity fields (k, 3 * Z * Y * X) on the model grid to their
+    values (k, P * 3) mm at the template's surface vertices (at most ``max_points``, evenly
+    spread; trilinear): what moves the surface, where the model's figures are measured."""
+    import torch
+
+    from clgs.ops.fixed_points import FixedPointSampler
+
+    pts = np.asarray(template.vertices, np.float64)
+    pts = pts[np.linspace(0, len(pts) - 1, min(len(pts), max_points)).astype(int)]
+    vox = (pts - np.asarray(morg, float)[::-1]) / np.asarray(msp, float)[::-1]
+    sampler = FixedPointSampler(vox, tuple(mshape), torch.float64)
+
+    def measure(rows):
+        rows = np.asarray(rows, np.float64)
+        fields = torch.as_tensor(rows.reshape(len(rows), 3, *mshape))
+        return np.stack([sampler(f).numpy().reshape(-1) for f in fields])
+
+    return measure
+
+
+def model_figures(V, template, mshape, msp, morg, variance, tolerance_mm, n_modes, max_modes: int = 10):
+    """(figures, mode choice, variance spectrum) of velocity fields V (N, D): the figures of
+    :func:`clgs.shape.statistics.field_space_figures` measured at the template's surface (None
+    with fewer than 3 subjects) plus ``compactness_all`` (every mode's cumulative share) and
+    where they were measured; the choice of :func:`clgs.shape.modes.choose_modes`."""
+    from clgs.shape.modes import choose_modes
+    from clgs.shape.statistics import field_space_figures
+
+    _, _, _, _, all_var = population_pca(V, variance=1.0)
+    total = float(all_var.sum())
+    compact_all = [float(c) for c in np.cumsum(all_var) / total] if total > 0 else []
+    figures = None
+    if len(V) >= 3 and len(all_var):
+        measure = surface_measure(template, mshape, msp, morg)
+        figures = field_space_figures(V, measure, max_modes=max_modes, n_samples=100)
+        n_points = min(len(template.vertices), FIGURE_POINTS)
+        figures.update(compactness_all=compact_all,
+                       measured_at=f"{n_points} of the template's {len(template.vertices)} surface vertices")
+    choice = choose_modes(figures or {"compactness_all": compact_all}, len(all_var), variance, tolerance_mm,
+                          n_modes)
+    return figures, choice, all_var
+
+
+def beyond_span_covariance(V, n_modes: int, mshape) -> Optional[np.ndarray]:
+    """(6, Z, Y, X) float32 mm^2: per grid point, the covariance (xx, yy, zz, xy, xz, yz) of the
+    part of a left-out subject's velocity field that the ``n_modes``-mode PCA of the others does
+    not reach (leave-one-out over the rows of V (N, 3 * Z * Y * X)): what lies beyond the model's
+    span for a new member of the population. None with fewer than 3 subjects."""
+    X = np.asarray(V, np.float64)
+    n = len(X)
+    if n < 3:
+        return None
+    acc = np.zeros((6,) + tuple(mshape))
+    for i in range(n):
+        rest = np.delete(X, i, 0)
+        m = rest.mean(0)
+        vt = np.linalg.svd(rest - m, full_matrices=False)[2][:n_modes]
+        r = (X[i] - m) - ((X[i] - m) @ vt.T) @ vt
+        r = r.reshape((3,) + tuple(mshape))
+        for k, (a, b) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
+            acc[k] += r[a] * r[b] / n
+    return acc.astype(np.float32)
+
+
 def build_model(template, subjects, out_path, *args, **kwargs) -> str:
     """:func:`_build_model` holding the model file's lock (:mod:`clgs.io.outputs`): a second build
     of the same file started meanwhile waits for the first, then finds its model up to date."""
@@ -174,6 +250,7 @@ def build_model(template, subjects, out_path, *args, **kwargs) -> str:
 
 def _build_model(template: Template, subjects: Union[Iterable[Subject], Mapping], out_path,
                 variance: float = 0.95, n_modes: Optional[int] = None, max_cells: int = 64,
+                generalisation_tol_mm: Optional[float] = 0.05,
                 registration: Optional[dict] = None, atlas: bool = True, force: bool = False,
                 keep_cache: bool = False, progress: bool = True, extra_meta: Optional[dict] = None,
                 on_subject: Optional[Callable] = None, threads: Optional[int] = 1,
@@ -182,7 +259,9 @@ def _build_model(template: Template, subjects: Union[Iterable[Subject], Mapping]
 
     template: the reference :class:`Template`. subjects: Subjects, or a mapping id -> Subject or
     zero-argument loader (loaded one at a time; only loaded when not cached).
-    out_path: the model file (.npz). variance / n_modes: modes to keep (n_modes wins).
+    out_path: the model file (.npz). variance, generalisation_tol_mm, n_modes: the mode rule
+    (:func:`clgs.shape.modes.choose_modes`; n_modes wins, a tolerance of None or 0 leaves the
+    variance rule alone).
     max_cells: model grid cells along the template box's longest side. registration: keyword
     settings of :class:`clgs.shape.registration.RegistrationSettings`. atlas: build the density atlas
     from subjects' CT volumes (skipped with a note when no subject has one). force: rebuild even
@@ -210,11 +289,16 @@ def _build_model(template: Template, subjects: Union[Iterable[Subject], Mapping]
     if len(items) < 2:
         raise InputError(f"a shape model needs at least 2 subjects, got {len(items)}")
     reg = RegistrationSettings.from_dict(registration)
+    from clgs.shape.modes import choose_modes
+
+    choose_modes(None, 1, variance, generalisation_tol_mm, n_modes)  # a bad rule fails now, not after the work
     mshape, msp, morg = template.model_grid(max_cells)
     reg_key = {"builder": BUILDER_VERSION, "template": template.content_hash(), "max_cells": int(max_cells),
                "registration": reg.to_dict(), "atlas": bool(atlas)}
     settings = dict(reg_key, population=ids, variance=None if n_modes is not None else float(variance),
-                    n_modes=None if n_modes is None else int(n_modes))
+                    n_modes=None if n_modes is None else int(n_modes),
+                    generalisation_tol_mm=None if n_modes is not None or not generalisation_tol_mm
+                    else float(generalisation_tol_mm))
     settings_hash = _hash(settings)
 
     if not force and os.path.exists(out_path):  # up to date: nothing to do
@@ -257,14 +341,18 @@ def _build_model(template: Template, subjects: Union[Iterable[Subject], Mapping]
             on_subject(i, sid)
 
     V = np.stack(velocities)
-    mean, modes, sigma, kept, all_var = population_pca(V, variance, n_modes)
+    figures, choice, all_var = model_figures(V, template, mshape, msp, morg, variance, generalisation_tol_mm,
+                                             n_modes)
+    mean, modes, sigma, kept, all_var = population_pca(V, n_modes=choice["n_modes"]) if choice["n_modes"] else \
+        population_pca(V, variance=1.0)
     # how well the kept modes reproduce each training field (mm, RMS over the grid)
     C = V.astype(np.float64) - mean
     recon = C @ modes.T @ modes if len(modes) else np.zeros_like(C)
     pca_rms = np.sqrt(((C - recon) ** 2).reshape(len(V), -1, ).mean(1))
     for sid, r in zip(ids, pca_rms):
         residuals[sid]["pca_rms_mm"] = float(r)
-    model = ShapeModel(mean.reshape(3, *mshape), modes.reshape(-1, 3, *mshape), sigma, msp, morg)
+    model = ShapeModel(mean.reshape(3, *mshape), modes.reshape(-1, 3, *mshape), sigma, msp, morg,
+                       beyond_cov=beyond_span_covariance(V, len(modes), mshape))
     density = None
     if atlas and n_ct:
         m = warped_sum / n_ct
@@ -274,6 +362,7 @@ def _build_model(template: Template, subjects: Union[Iterable[Subject], Mapping]
     meta = dict(extra_meta or {})
     meta.update(population=ids, settings=settings, settings_hash=settings_hash, variance_kept=kept,
                 variance_spectrum=[float(x) for x in all_var], residuals=residuals, template_name=template.name,
+                statistics=figures, mode_choice=choice,
                 template_hash=template.content_hash(), atlas_subjects=n_ct,
                 atlas_note="" if (density is not None or not atlas) else "no subject had a CT volume: no atlas")
     save_model(out_path, model, density, meta)

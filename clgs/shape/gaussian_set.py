@@ -212,6 +212,34 @@ class ShapeGuidedSet(GaussianSet):
             self._at_ref = FixedPointSampler(vox, tuple(m.mean.shape[1:]), self.p_ref.dtype)
         return self._at_ref
 
+    def map_points(self, points_mm, alpha=None, n_squarings: int | None = None) -> torch.Tensor:
+        """Template points (N, 3) mm carried onto the subject by the whole map at ``alpha`` (the
+        fitted alpha when None): the model's deformation, the residual and the size; the exact
+        map (no linearisation), no gradients. ``n_squarings``: fixed (a finite difference keeps
+        one count on both sides); None: the half-cell rule's."""
+        m = self.shape_model
+        with torch.no_grad():
+            a = self.alpha.detach() if alpha is None else torch.as_tensor(alpha, dtype=self.alpha.dtype)
+            v = m.velocity(a)
+            n = squarings_for(v, m.spacing, self.MIN_SQUARINGS) if n_squarings is None else int(n_squarings)
+            u = exp_velocity(v, m.spacing, n_squarings=n, sampler=self.sampler)
+            p = torch.as_tensor(np.asarray(points_mm, np.float64), dtype=self.p_ref.dtype)
+            return self.scaled(p + m.sample(u + self.residual_field(), p))
+
+    def squarings(self) -> int:
+        """The squaring count of the fitted alpha (the half-cell rule's)."""
+        with torch.no_grad():
+            return squarings_for(self.shape_model.velocity(self.alpha.detach()), self.shape_model.spacing,
+                                 self.MIN_SQUARINGS)
+
+    def tensors_at(self, alpha, n_squarings: int | None = None):
+        """:meth:`tensors` with the centres moved by the map at ``alpha`` (:meth:`map_points`),
+        everything else as fitted; no gradients (for finite differences in alpha)."""
+        with torch.no_grad():
+            p = self.params
+            means = (self.map_points(self.p_ref, alpha, n_squarings) - self._origin) * self._scale
+            return means, self.scale_activation(p["scales"]), p["quats"], F.softplus(p["densities"])
+
     def tensors(self):
         p = self.params
         means = (self.centres_mm() - self._origin) * self._scale

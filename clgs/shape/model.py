@@ -160,10 +160,13 @@ class ShapeModel:
 
     mean (3, Z, Y, X) mm; modes (M, 3, Z, Y, X), orthonormal as flat vectors; sigma (M,) the
     standard deviation of each mode's score; spacing/origin (Z, Y, X) mm. ``meta`` carries the
-    file's metadata (population, settings, variance kept, residuals)."""
+    file's metadata (population, settings, variance kept, residuals). ``beyond_cov`` (6, Z, Y, X)
+    mm^2 or None: the covariance (xx, yy, zz, xy, xz, yz) of what a left-out subject's field keeps
+    beyond the kept modes (:func:`clgs.shape.builder.beyond_span_covariance`), for the shape
+    surface's uncertainty."""
 
     def __init__(self, mean, modes, sigma, spacing, origin, meta: Optional[dict] = None,
-                 dtype=torch.float32):
+                 dtype=torch.float32, beyond_cov=None):
         mean = torch.as_tensor(np.asarray(mean) if not isinstance(mean, torch.Tensor) else mean, dtype=dtype)
         modes = torch.as_tensor(np.asarray(modes) if not isinstance(modes, torch.Tensor) else modes, dtype=dtype)
         sigma = torch.as_tensor(np.asarray(sigma) if not isinstance(sigma, torch.Tensor) else sigma, dtype=dtype)
@@ -183,6 +186,14 @@ class ShapeModel:
         if min(self.spacing) <= 0:
             raise ModelFileError(f"grid spacing must be positive, got {self.spacing}")
         self.meta = dict(meta or {})
+        self.beyond_cov = None
+        if beyond_cov is not None:
+            cov = np.asarray(beyond_cov, np.float32)
+            if cov.shape != (6,) + tuple(mean.shape[1:]) or not np.isfinite(cov).all() or cov[:3].min() < 0:
+                grid = ", ".join(map(str, mean.shape[1:]))
+                raise ModelFileError(f"the beyond-span covariance must be finite (6, {grid}) with variances >= 0, "
+                                     f"got {cov.shape}")
+            self.beyond_cov = cov
 
     # ---- sizes
     @property
@@ -200,7 +211,7 @@ class ShapeModel:
     def to(self, dtype) -> "ShapeModel":
         """A copy in another float dtype (float64 for gradient checks)."""
         return ShapeModel(self.mean.to(dtype), self.modes.to(dtype), self.sigma.to(dtype), self.spacing,
-                          self.origin, self.meta, dtype=dtype)
+                          self.origin, self.meta, dtype=dtype, beyond_cov=self.beyond_cov)
 
     def grid(self):
         return Grid(self.shape, tuple(self.origin[::-1]), tuple(self.spacing[::-1]))
@@ -353,6 +364,8 @@ def save_model(path, shape_model: Optional[ShapeModel], atlas: Optional[DensityA
                       modes=shape_model.modes.detach().cpu().numpy().astype(np.float32),
                       sigma=shape_model.sigma.detach().cpu().numpy().astype(np.float32),
                       spacing=np.asarray(shape_model.spacing), origin=np.asarray(shape_model.origin))
+        if shape_model.beyond_cov is not None:
+            arrays["beyond_cov"] = shape_model.beyond_cov
     if atlas is not None:
         record["atlas_shape"] = list(atlas.shape)
         arrays.update(atlas_mean=atlas.mean, atlas_var=atlas.var, atlas_spacing=np.asarray(atlas.spacing),
@@ -408,7 +421,7 @@ def _load_arrays(path, meta: dict, need_shape_model: bool):
             if not need <= files:
                 raise ModelFileError(f"{path}: shape model arrays missing: {sorted(need - files)}")
             sm = ShapeModel(z["velocity_mean"], z["modes"], z["sigma"], tuple(z["spacing"]), tuple(z["origin"]),
-                            meta=meta)
+                            meta=meta, beyond_cov=z["beyond_cov"] if "beyond_cov" in files else None)
             same_grid = list(sm.shape) == list(meta.get("grid_shape", sm.shape))
             if not same_grid or sm.n_modes != meta.get("n_modes", sm.n_modes):
                 raise ModelFileError(f"{path}: arrays do not match the metadata (grid {sm.shape} vs "

@@ -37,6 +37,38 @@ SPACING_MM = 3.0
 
 _population = None
 
+#: a head closer than this (mm) to the shaft's axis tells no side
+SIDE_MIN_OFFSET_MM = 5.0
+
+
+def femur_side(vertices) -> tuple:
+    """(side, offset mm) of a femur in the anatomy frame (z towards the hip, x towards the
+    patient's left, as LPS): the shaft's axis is the principal axis of the middle 40 % of its
+    length; the proximal 20 % (head, neck, trochanters) lies on average medial of that axis, the
+    head pulling it: at -x for a left femur, +x for a right one. The offset is that mean's x
+    distance from the axis (LLP26's 26 left femurs: -15 to -38 mm). Within
+    ``SIDE_MIN_OFFSET_MM`` of the axis: "undecided"."""
+    import numpy as np
+
+    v = np.asarray(vertices, np.float64)
+    z = v[:, 2]
+    lo, length = float(z.min()), float(np.ptp(z))
+    mid = v[(z > lo + 0.3 * length) & (z < lo + 0.7 * length)]
+    if len(mid) < 3:  # a coarse surface with no vertices along its middle: the whole one's axis
+        mid = v
+    centre = mid.mean(0)
+    axis = np.linalg.svd(mid - centre, full_matrices=False)[2][0]
+    rel = v[z > lo + 0.8 * length] - centre
+    offset = float((rel - np.outer(rel @ axis, axis)).mean(0)[0])
+    if abs(offset) < SIDE_MIN_OFFSET_MM:
+        return "undecided", offset
+    return ("left" if offset < 0 else "right"), offset
+
+
+femur_side.rule = ("the proximal 20 % of the femur's length lies medial of the shaft's axis (the head): at -x a "
+                   "left femur, at +x a right one (anatomy frame, x towards the patient's left); right femurs "
+                   "are mirrored into the template's side when most subjects are left, and the other way round")
+
 
 def params():
     """Density parameters of the femur (see :mod:`clgs.anatomy.phantom` for the values' sources).
@@ -63,7 +95,7 @@ def population_model():
             summary="left femur (LLP26 real surfaces: 20 model subjects, 6 held out)", version=__version__,
             data_dir=DATA_DIR,
             file_pattern="femur_left_LLP26_subject{id}.npz", ids=SUBJECTS, test_ids=TEST_SUBJECTS, params=params(),
-            frame_offset=FRAME_OFFSET)
+            frame_offset=FRAME_OFFSET, side_of=femur_side)
     return _population
 
 
