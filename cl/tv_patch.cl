@@ -20,7 +20,7 @@
  * loads and shuffles */
 inline void rows3(global const real *a, int i0, real8 *x, real8 *y, real8 *z)
 {
-    wide16 u = vload16(0, a + (size_t)i0 * 3);
+    real16 u = vload16(0, a + (size_t)i0 * 3);
     real8 v = vload8(0, a + (size_t)i0 * 3 + 16);
     *x = (real8)(u.s0369, u.sc, u.sf, v.s25);
     *y = (real8)(u.s147a, u.sd, v.s036);
@@ -32,8 +32,8 @@ inline void rows3(global const real *a, int i0, real8 *x, real8 *y, real8 *z)
  * by less): 8 Gaussians are tested at a time (reading all N rows is what this kernel costs), and
  * the few that pass go through cell_range. Chunk c keeps its Gaussians' indices, in order, at
  * kept[c * chunk ...], their count in count[c] and its per-brick counts in hist[c * ncells ...]. */
-kernel void patch_cull(global const real *means, global const real *ext, int n, int chunk, int nchunks, CELL_ARGS,
-                       real hix, real hiy, real hiz, real slack, global int *hist, global int *count, global int *kept)
+__kernel void patch_cull(global const real *means, global const real *ext, int n, int chunk, int nchunks, CELL_ARGS,
+                         real hix, real hiy, real hiz, real slack, global int *hist, global int *count, global int *kept)
 {
     int c = get_global_id(0);
     if (c >= nchunks)
@@ -45,7 +45,7 @@ kernel void patch_cull(global const real *means, global const real *ext, int n, 
     int i0 = c * chunk, i1 = min(n, i0 + chunk), cnt = 0;
     for (int b = i0; b < i1; b += 8) {
         int m = min(8, i1 - b);
-        mask_t pass[8];
+        mask1 pass[8];
         if (m == 8) {
             real8 px, py, pz, ex, ey, ez;
             rows3(means, b, &px, &py, &pz);
@@ -84,8 +84,8 @@ kernel void patch_cull(global const real *means, global const real *ext, int n, 
     count[c] = cnt;
 }
 
-kernel void patch_scan(global const int *count, global int *hist, int nchunks, int ncells, int cap_list,
-                       global int *koff, global int *start, global int *meta)
+__kernel void patch_scan(global const int *count, global int *hist, int nchunks, int ncells, int cap_list,
+                         global int *koff, global int *start, global int *meta)
 {
     if (get_global_id(0) != 0)
         return;
@@ -115,10 +115,10 @@ kernel void patch_scan(global const int *count, global int *hist, int nchunks, i
     meta[3] = over ? 0 : s;
 }
 
-kernel void patch_fill(global const real *means, global const real *prec, global const real *dens,
-                       global const real *ext, int chunk, int nchunks, CELL_ARGS, global const int *count,
-                       global const int *kept, global const int *koff, global int *hist, global const int *meta,
-                       global real *packed, global int *kidx, global int *list)
+__kernel void patch_fill(global const real *means, global const real *prec, global const real *dens,
+                         global const real *ext, int chunk, int nchunks, CELL_ARGS, global const int *count,
+                         global const int *kept, global const int *koff, global int *hist, global const int *meta,
+                         global real *packed, global int *kidx, global int *list)
 {
     int c = get_global_id(0);
     if (c >= nchunks || meta[2])
@@ -157,8 +157,8 @@ inline real8 sign8(real8 d)
  * (0 for an axis of one sample): the gradient of sum_a w_a sum |differences along a| (torch's sign(0)
  * = 0 convention). part[3 z + a]: that slice's sum of |differences| along x, y, z (z: to the next
  * slice). */
-kernel void patch_tv(global const real *f, int nx, int ny, int nz, int pitch, real wx, real wy, real wz,
-                     global real *g, global real *part)
+__kernel void patch_tv(global const real *f, int nx, int ny, int nz, int pitch, real wx, real wy, real wz,
+                       global real *g, global real *part)
 {
     int z = get_global_id(0);
     if (z >= nz)
@@ -204,9 +204,9 @@ kernel void patch_tv(global const real *f, int nx, int ny, int nz, int pitch, re
 
 /* Gradient rows of the kept Gaussians (rank k, meta[3] of them) from dL/dmu = g (patch_tv's
  * layout); a fixed number of work-items, each taking ranks gid, gid + size, ... */
-kernel void patch_grad(global const real *packed, global const int *meta, global const real *xs,
-                       global const real *ys, global const real *zs, int nx, int ny, int nz, int pitch,
-                       global const real *g, global real *grad)
+__kernel void patch_grad(global const real *packed, global const int *meta, global const real *xs,
+                         global const real *ys, global const real *zs, int nx, int ny, int nz, int pitch,
+                         global const real *g, global real *grad)
 {
     int n = meta[3], step = get_global_size(0);
     for (int k = get_global_id(0); k < n; k += step) {

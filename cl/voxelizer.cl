@@ -32,17 +32,7 @@
  * operands, so float rounding of the cell index can never drop a Gaussian from a cell whose
  * samples it covers (the exact test follows) */
 #define BIN_MARGIN ((real)1e-3)
-#ifdef REAL_DOUBLE
-#define REAL_EPS DBL_EPSILON
-typedef long8 mask8; /* what comparing two real8 gives */
-typedef long mask_t;
-typedef double16 wide16;
-#else
-#define REAL_EPS FLT_EPSILON
-typedef int8 mask8;
-typedef int mask_t;
-typedef float16 wide16;
-#endif
+/* REAL_EPS, mask1 and mask8 (what comparing reals gives) come from common.h */
 
 #if defined(WANT_MEAN) || defined(WANT_PREC)
 #define NEED_FIRST 1
@@ -121,8 +111,8 @@ inline int gauss_cells_mode(gauss_t g, int home, CELL_ARGS, int *x0, int *x1, in
 /* Binning: counting sort of (cell, Gaussian) pairs. hist is (ncells, nchunks), zeroed by the host. */
 
 /* also stores each Gaussian's cell box in ranges (8 ints; x0 = -1 when culled) for bin_fill */
-kernel void bin_count(global const real *gs, int n, int chunk, int nchunks, int home, CELL_ARGS, global int *hist,
-                      global int *ranges)
+__kernel void bin_count(global const real *gs, int n, int chunk, int nchunks, int home, CELL_ARGS, global int *hist,
+                        global int *ranges)
 {
     int c = get_global_id(0);
     if (c >= nchunks)
@@ -144,7 +134,7 @@ kernel void bin_count(global const real *gs, int n, int chunk, int nchunks, int 
 }
 
 /* per cell: chunk counts -> exclusive offsets within the cell (in place), and the cell's total */
-kernel void bin_cell_offsets(global int *hist, int nchunks, int ncells, global int *total)
+__kernel void bin_cell_offsets(global int *hist, int nchunks, int ncells, global int *total)
 {
     int cell = get_global_id(0);
     if (cell >= ncells)
@@ -161,7 +151,7 @@ kernel void bin_cell_offsets(global int *hist, int nchunks, int ncells, global i
 
 /* exclusive scan of the cell totals: start[ncells] is the length of the whole list, or -1 when
  * it would not fit in an int (the host reports that) */
-kernel void bin_scan(global const int *total, int ncells, global int *start)
+__kernel void bin_scan(global const int *total, int ncells, global int *start)
 {
     if (get_global_id(0) != 0)
         return;
@@ -175,9 +165,9 @@ kernel void bin_scan(global const int *total, int ncells, global int *start)
 
 /* list gets the Gaussian indices; when copy != 0, packed gets their GSTRIDE-real records in list
  * order too, so the forward kernels read them sequentially instead of chasing indices. */
-kernel void bin_fill(global const real *gs, int n, int chunk, int nchunks, int ncx, int ncy, global int *hist,
-                     global const int *ranges, global const int *start, global int *list, int copy,
-                     global real *packed)
+__kernel void bin_fill(global const real *gs, int n, int chunk, int nchunks, int ncx, int ncy, global int *hist,
+                       global const int *ranges, global const int *start, global int *list, int copy,
+                       global real *packed)
 {
     int c = get_global_id(0);
     if (c >= nchunks)
@@ -207,7 +197,7 @@ kernel void bin_fill(global const real *gs, int n, int chunk, int nchunks, int n
  * prefix sums and index lists in one launch, with no host round trip for the list length (the
  * host provides room for n x ncells entries). Same lists, in Gaussian index order, as bin_count /
  * bin_fill make. */
-kernel void bin_small(global const real *gs, int n, CELL_ARGS, global int *start, global int *list)
+__kernel void bin_small(global const real *gs, int n, CELL_ARGS, global int *start, global int *list)
 {
     if (get_global_id(0) != 0)
         return;
@@ -263,9 +253,9 @@ inline int count8(mask8 m)
  * Brick b runs over entries start[b] .. start[b+1] of its list: the records themselves in
  * packed (indexed == 0, bin_fill's copy) or indices into packed in list (indexed != 0, bin_small). */
 
-kernel void vox_grid(global const real *packed, global const int *start, global const int *list, int indexed,
-                     global const real *xs, global const real *ys, global const real *zs,
-                     int nx, int ny, int nz, int nbx, int nby, int nbricks, global real *out, int pitch, int offset)
+__kernel void vox_grid(global const real *packed, global const int *start, global const int *list, int indexed,
+                       global const real *xs, global const real *ys, global const real *zs,
+                       int nx, int ny, int nz, int nbx, int nby, int nbricks, global real *out, int pitch, int offset)
 {
     int b = get_global_id(0);
     if (b >= nbricks)
@@ -475,9 +465,9 @@ inline moments_t grid_moments(gauss_t g, global const real *xs, global const rea
  * in cache (large grids). sorted == 0: work-item k takes Gaussian k of all n (small grids, whose
  * gout stays in cache anyway); a Gaussian that misses the grid gets zeros. Each Gaussian's sums
  * are the same either way. */
-kernel void vox_grid_grad(global const real *gs, global const int *order, int sorted, int n, global const real *xs,
-                          global const real *ys, global const real *zs, int nx, int ny, int nz,
-                          global const real *gout, global real *grad)
+__kernel void vox_grid_grad(global const real *gs, global const int *order, int sorted, int n, global const real *xs,
+                            global const real *ys, global const real *zs, int nx, int ny, int nz,
+                            global const real *gout, global real *grad)
 {
     int k = get_global_id(0);
     if (k >= n)
@@ -492,9 +482,9 @@ kernel void vox_grid_grad(global const real *gs, global const int *order, int so
  * point of their cell: their outputs are dropped and their incoming gradient is zero);
  * chunk_cell gives the cell of each group of 8. */
 
-kernel void vox_points(global const real *packed, global const int *start,
-                       global const real *X, global const real *Y, global const real *Z,
-                       global const int *chunk_cell, int nchunks, global real *out)
+__kernel void vox_points(global const real *packed, global const int *start,
+                         global const real *X, global const real *Y, global const real *Z,
+                         global const int *chunk_cell, int nchunks, global real *out)
 {
     int c = get_global_id(0);
     if (c >= nchunks)
@@ -515,9 +505,9 @@ kernel void vox_points(global const real *packed, global const int *start,
     vstore8(acc, c, out);
 }
 
-kernel void vox_points_grad(global const real *gs, int n, CELL_ARGS, global const int *cell_pstart,
-                            global const real *X, global const real *Y, global const real *Z,
-                            global const real *G, global real *grad)
+__kernel void vox_points_grad(global const real *gs, int n, CELL_ARGS, global const int *cell_pstart,
+                              global const real *X, global const real *Y, global const real *Z,
+                              global const real *G, global real *grad)
 {
     int i = get_global_id(0);
     if (i >= n)
@@ -630,8 +620,8 @@ inline void store_rdr(const real8 *r, real8 d0, real8 d1, real8 d2, global real 
 
 /* want: bit 0 covariance, bit 1 precision, bit 2 half-widths (from the covariance's diagonal, as
  * axis_extent); outputs not wanted are not touched (any buffer may be passed) */
-kernel void cov_prec(global const real *scales, global const real *quats, int n, int want, real tiny,
-                     global real *cov, global real *prec, global real *extent)
+__kernel void cov_prec(global const real *scales, global const real *quats, int n, int want, real tiny,
+                       global real *cov, global real *prec, global real *extent)
 {
     int i0 = get_global_id(0) * 8;
     if (i0 >= n)
@@ -677,9 +667,9 @@ inline void rdr_grad(const real8 *r, global const real *g, int i0, int n, real8 
 
 /* Gradients to scales and quaternions from the packed gradients of the covariance (has & 1) and
  * of the precision (has & 2). */
-kernel void cov_prec_grad(global const real *scales, global const real *quats, int n, int has, real tiny,
-                          global const real *g_cov, global const real *g_prec, global real *d_scales,
-                          global real *d_quats)
+__kernel void cov_prec_grad(global const real *scales, global const real *quats, int n, int has, real tiny,
+                            global const real *g_cov, global const real *g_prec, global real *d_scales,
+                            global real *d_quats)
 {
     int i0 = get_global_id(0) * 8;
     if (i0 >= n)
