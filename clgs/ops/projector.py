@@ -120,7 +120,7 @@ import torch
 
 from clgs import runtime
 from clgs.errors import ClgsError
-from clgs.ops.gaussian_math import covariance, precision
+from clgs.reference.gaussians import covariance, precision
 from clgs.runtime import Operator, real_name, round_up, shared
 
 MODES = ("affine", "exact")

@@ -2,7 +2,7 @@
 
 The field is ``mu(x) = sum_i rho_i exp(-d^T P_i d / 2)`` with ``d = x - p_i`` and ``P_i`` the
 precision (inverse covariance). Each Gaussian is cut to its 3-sigma axis-aligned box
-(``clgs.ops.gaussian_math.axis_extent``): it contributes at ``x`` only where ``-e_i <= x - p_i <= e_i``
+(``clgs.reference.gaussians.axis_extent``): it contributes at ``x`` only where ``-e_i <= x - p_i <= e_i``
 on every axis. ``clgs.reference.voxelization`` computes the same field, with the same cut, in
 plain torch.
 
@@ -16,13 +16,13 @@ or float64 by the inputs' dtype; CPU tensors):
 * ``voxelize_points(means, scales, quats, densities, points) -> (M,)``: the field at arbitrary
   points (M, 3), e.g. the overlap count at the reference centres of the shape-guided start.
 * ``voxelize_precision(means, prec, densities, extent, grid_or_points)``: the same from a packed
-  precision (N, 6) and 3-sigma half-widths (N, 3) (``gaussian_math.precision``/``axis_extent``),
+  precision (N, 6) and 3-sigma half-widths (N, 3) (``gaussians.precision``/``axis_extent``),
   differentiable wrt means, prec and densities: lets a training step build them once for all
   Gaussians and reuse them for several blocks (for a 32^3 block of a 50k-Gaussian scene that torch
   work costs more than the kernel).
 * ``cov_prec(scales, quats, cov=True, prec=True, extent=False)``: covariance, precision (N, 6)
   and 3-sigma half-widths (N, 3) in one OpenCL pass, differentiable (closed-form backward kernel);
-  the values of ``gaussian_math.covariance`` / ``precision`` / ``axis_extent``. ``voxelize`` and
+  the values of ``gaussians.covariance`` / ``precision`` / ``axis_extent``. ``voxelize`` and
   ``voxelize_points`` build their precisions with it; the trainer builds the projector's
   covariances with it too.
 * ``Voxelizer``: owns the compiled programs and scratch buffers; the module functions share one.
@@ -115,7 +115,7 @@ def np_dtype(dtype: torch.dtype):
 
 
 def _tiny(dt) -> float:
-    """The quaternion norm below which it is clamped, as ``gaussian_math.quaternion_to_rotation``."""
+    """The quaternion norm below which it is clamped, as ``gaussians.quaternion_to_rotation``."""
     return float(np.finfo(dt).tiny) ** 0.5
 
 
@@ -589,8 +589,8 @@ class _CovPrec(torch.autograd.Function):
 def cov_prec(scales, quats, cov: bool = True, prec: bool = True, extent: bool = False,
              voxelizer: Voxelizer | None = None):
     """(covariance, precision, half-widths) of N Gaussians from activated scales (N, 3) and raw
-    quaternions (N, 4), as ``gaussian_math.covariance`` (N, 6), ``gaussian_math.precision`` (N, 6)
-    and ``gaussian_math.axis_extent`` (N, 3, no gradient), each None when not asked.
+    quaternions (N, 4), as ``gaussians.covariance`` (N, 6), ``gaussians.precision`` (N, 6)
+    and ``gaussians.axis_extent`` (N, 3, no gradient), each None when not asked.
 
     One OpenCL kernel for all three and one for the closed-form backward: on a CPU this is ~20x
     cheaper than the same maths as element-wise torch on (N,) columns (dozens of passes over
