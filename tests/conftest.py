@@ -13,7 +13,7 @@ import pytest  # noqa: E402
 KERNEL_TESTS = {
     "test_projector", "test_voxelizer", "test_tv_patch", "test_losses_cl", "test_field_sampler",
     "test_ct_projector", "test_ct_fdk", "test_ct_sart", "test_trainer", "test_vector_geometry",
-    "test_ct_fdk_vectors",
+    "test_ct_fdk_vectors", "test_operator_contract",
 }
 
 

@@ -366,7 +366,7 @@ class Voxelizer(Operator):
                          obuf, np.int32(nx), np.int32(0))
                 self.io.fetch([(obuf, out)])
             else:
-                self.queue.finish()
+                self.io.fetch([])  # nothing to read back: wait for the queue
             del gkeep, xk, yk, zk
             return torch.from_numpy(out)
 
@@ -403,7 +403,7 @@ class Voxelizer(Operator):
                           np.int32(nx), np.int32(ny), np.int32(nz), ob, rbuf)
                 self.io.fetch([(rbuf, grad)])
             else:
-                self.queue.finish()
+                self.io.fetch([])  # nothing to read back: wait for the queue
             del gkeep, xk, yk, zk, ok
             return torch.from_numpy(grad)
 
@@ -484,7 +484,7 @@ class Voxelizer(Operator):
                 self.io.fetch([(obuf, out)])
                 del xk, yk, zk, ck
             else:
-                self.queue.finish()
+                self.io.fetch([])  # nothing to read back: wait for the queue
             del gkeep
             return torch.from_numpy(out[bins.slot]), bins
 
