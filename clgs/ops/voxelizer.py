@@ -27,10 +27,10 @@ or float64 by the inputs' dtype; CPU tensors):
   covariances with it too.
 * ``Voxelizer``: owns the compiled programs and scratch buffers; the module functions share one.
 
-The TV loss on a small block (R2-Gaussian's random 32^3 patch) has a fused form in
-``clgs.fit.tv_patch`` (culling, field, TV and gradient rows on the device in one batch, one wait),
-built from the kernels here (``patch_*`` in ``cl/voxelizer.cl``, with ``vox_grid`` writing a padded
-layout and the gradient sums shared with ``vox_grid_grad``).
+The TV loss on a small block (R2-Gaussian's random 32^3 patch) has a fused operator,
+:class:`clgs.ops.tv_patch.PatchTV` (culling, field, TV and gradient rows on the device in one batch,
+one wait): ``cl/tv_patch.cl`` builds on this file (its ``vox_grid`` writing a padded layout, the
+gradient sums shared with ``vox_grid_grad``) with kernels of its own (``patch_*``).
 
 Accuracy: float32 kernels match the float32 torch reference to ~1e-7 of the peak. For very thin
 Gaussians (scale ratios near 1e-3) ``d^T P d`` cancels in float32 whatever the order of
