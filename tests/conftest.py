@@ -112,6 +112,28 @@ def cl_device(request):
         runtime.use_device(before)
 
 
+@pytest.fixture
+def cl_queue(cl_device):
+    """A new in-order queue on the context of the device under test, to hand to an operator
+    explicitly (``Op(..., queue=cl_queue)``)."""
+    import pyopencl as cl
+
+    from clgs import runtime
+
+    return cl.CommandQueue(runtime.get_context())
+
+
+@pytest.fixture
+def cl_context(cl_device):
+    """A context of its own on the device under test (not the process's), to hand to an operator
+    explicitly (``Op(..., ctx=cl_context)``)."""
+    import pyopencl as cl
+
+    from clgs import runtime
+
+    return cl.Context([runtime.device()])
+
+
 @pytest.fixture(autouse=True)
 def _keep_the_locale():
     """SimpleITK's DICOM writer (GDCM), which some tests use to make scanner-like series, sets the

@@ -140,14 +140,14 @@ def test_operators_reach_opencl_only_through_the_runtime():
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_explicit_queue_same_bits_and_every_launch_reported(name, cl_device):
+def test_explicit_queue_same_bits_and_every_launch_reported(name, cl_queue):
     import pyopencl as cl
 
     _, make, call = CASES[name]
     ctx = runtime.get_context()
     default = make(None, None)
     assert default.ctx is ctx and default.queue is runtime.get_queue()
-    queue = cl.CommandQueue(ctx)
+    queue = cl_queue
     op = make(None, queue)  # the queue implies its context
     assert op.queue is queue and op.ctx == ctx and op.io.queue is queue
     launched = []
@@ -159,13 +159,11 @@ def test_explicit_queue_same_bits_and_every_launch_reported(name, cl_device):
         assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True)
 
 
-def test_an_explicit_context_is_the_one_used(cl_device):
+def test_an_explicit_context_is_the_one_used(cl_context):
     """Made on a context of its own, an operator builds its programs and buffers there, and a
     queue from another context is refused."""
-    import pyopencl as cl
-
     dev = runtime.device()
-    ctx = cl.Context([dev])
+    ctx = cl_context
     op = _make("field_sampler", "FieldSampler", ctx=ctx)
     assert op.ctx is ctx and op.queue.context == ctx and op.queue.device == dev
     got = _arrays(run_field_sampler(op))
