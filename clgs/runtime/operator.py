@@ -53,6 +53,7 @@ class Operator:
         self.cpu = bool(self.device.type & cl.device_type.CPU)
         self.io = BufferPool(self, self.cpu)
         self._lock = threading.RLock()
+        self._depth = 0  # calls of this operator running in this thread (call() nests)
         self._variants: dict = {}
         self.on_launch = None  # profiling hook: called with (kernel name, event) after every launch
 
@@ -80,7 +81,7 @@ class Operator:
         same operator) and releases the host arrays the call's commands read when it ends (the
         call waits for its results before that)."""
         with self._lock:
-            depth = getattr(self, "_depth", 0)
+            depth = self._depth
             self._depth = depth + 1
             try:
                 yield self.io
