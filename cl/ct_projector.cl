@@ -71,16 +71,6 @@ inline void ct_restrict(real A, real B, real lo_v, real hi_v, int *lo, int *hi)
     if (ib < *hi) *hi = ib;
 }
 
-#define GATHER8(ptr, base, idx) \
-    (real8)((ptr)[(base) + (idx).s0], (ptr)[(base) + (idx).s1], (ptr)[(base) + (idx).s2], \
-            (ptr)[(base) + (idx).s3], (ptr)[(base) + (idx).s4], (ptr)[(base) + (idx).s5], \
-            (ptr)[(base) + (idx).s6], (ptr)[(base) + (idx).s7])
-
-#ifdef REAL_DOUBLE
-#define convert_real8 convert_double8
-#else
-#define convert_real8 convert_float8
-#endif
 
 /* One work-item: one view, one detector column u, eight consecutive rows v (a float8 of rays
  * sharing their in-plane path). Global size (nVp / 8, nU, n_views). */

@@ -14,17 +14,6 @@
  */
 #include "common.h"
 
-#ifdef REAL_DOUBLE
-#define convert_real8 convert_double8
-#else
-#define convert_real8 convert_float8
-#endif
-
-#define GATHER8(ptr, base, idx) \
-    (real8)((ptr)[(base) + (idx).s0], (ptr)[(base) + (idx).s1], (ptr)[(base) + (idx).s2], \
-            (ptr)[(base) + (idx).s3], (ptr)[(base) + (idx).s4], (ptr)[(base) + (idx).s5], \
-            (ptr)[(base) + (idx).s6], (ptr)[(base) + (idx).s7])
-
 /* Bilinear sample of one view's padded filtered projection qv (rows of SV values) at padded
  * coordinates (uf, vf), eight lanes: the gather both x-lane kernels share. */
 inline real8 bilinear8(__global const real *qv, const int SV, const real8 uf, const real8 vf)

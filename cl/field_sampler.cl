@@ -22,16 +22,6 @@
  */
 #include "common.h"
 
-#ifdef REAL_DOUBLE
-#define convert_real8 convert_double8
-#else
-#define convert_real8 convert_float8
-#endif
-
-#define GATHER8(ptr, idx) \
-    (real8)((ptr)[(idx).s0], (ptr)[(idx).s1], (ptr)[(idx).s2], (ptr)[(idx).s3], \
-            (ptr)[(idx).s4], (ptr)[(idx).s5], (ptr)[(idx).s6], (ptr)[(idx).s7])
-
 #ifndef CELLS_PER_ITEM
 #define CELLS_PER_ITEM 32
 #endif
@@ -82,14 +72,14 @@ static inline Where8 locate8(__global const real *pts, int g, int Pp, int X, int
 /* The field plane's values at the eight corners of each point's cell, v[dx + 2 dy + 4 dz]. */
 static inline void corners8(__global const real *fc, int8 b, int SY, int SZ, real8 *v)
 {
-    v[0] = GATHER8(fc, b);
-    v[1] = GATHER8(fc, b + 1);
-    v[2] = GATHER8(fc, b + SY);
-    v[3] = GATHER8(fc, b + SY + 1);
-    v[4] = GATHER8(fc, b + SZ);
-    v[5] = GATHER8(fc, b + SZ + 1);
-    v[6] = GATHER8(fc, b + SZ + SY);
-    v[7] = GATHER8(fc, b + SZ + SY + 1);
+    v[0] = GATHER8(fc, 0, b);
+    v[1] = GATHER8(fc, 0, b + 1);
+    v[2] = GATHER8(fc, 0, b + SY);
+    v[3] = GATHER8(fc, 0, b + SY + 1);
+    v[4] = GATHER8(fc, 0, b + SZ);
+    v[5] = GATHER8(fc, 0, b + SZ + 1);
+    v[6] = GATHER8(fc, 0, b + SZ + SY);
+    v[7] = GATHER8(fc, 0, b + SZ + SY + 1);
 }
 
 __kernel void sample_fwd(__global const real *field, __global const real *pts, __global real *out,
@@ -168,12 +158,6 @@ __kernel void sample_cell_sums(__global const real *pts, __global const real *go
     }
 }
 
-#ifdef REAL_DOUBLE
-#define LANE_MASK(m) convert_long8(m)
-#else
-#define LANE_MASK(m) (m)
-#endif
-
 /* One work-item per eight voxels along x: gfield[c][z][y][x] = the sum over the cells the voxel is
  * corner (dx, dy, dz) of, cell (x - dx, y - dy, z - dz), of that cell's corner sum. */
 __kernel void sample_grad_field(__global const real *sums, __global real *gfield, int n_cells, int C, int X,
@@ -198,8 +182,8 @@ __kernel void sample_grad_field(__global const real *sums, __global real *gfield
                 const int k = 2 * dy + 4 * dz;
                 __global const real *p0 = base + (long)(c * 8 + k) * n_cells + row;
                 __global const real *p1 = base + (long)(c * 8 + k + 1) * n_cells + row - 1;
-                acc += select((real8)0, vload8(0, p0), LANE_MASK(ok0));
-                acc += select((real8)0, vload8(0, p1), LANE_MASK(ok1));
+                acc += select((real8)0, vload8(0, p0), convert_mask8(ok0));
+                acc += select((real8)0, vload8(0, p1), convert_mask8(ok1));
             }
         }
         __global real *o = gfield + c * plane + ((long)z * Y + y) * X;

@@ -26,7 +26,6 @@
 #include "common.h"
 #include "fastexp.h"
 
-#define RC(x) ((real)(x))
 /* finite test without a builtin call (builtins are calls on PoCL): x - x is 0 unless x is Inf/NaN */
 #define FINITE(x) ((x) - (x) == RC(0.0))
 /* Square roots without calls: the OpenCL builtins are function calls on PoCL, and a call in a
@@ -79,21 +78,7 @@ inline real8 sqrt8(real8 y)
 #define ROW1_SLOT 7
 #endif
 
-/* real8 at any real-aligned address as a plain vector access: PoCL's vload8 / vstore8 are
- * library calls, and a call in a loop makes the compiler spill every live vector around it */
-typedef real8 real8u __attribute__((aligned(sizeof(real))));
-#define LD8G(p) (*(__global const real8u *)(p))
-#define ST8G(p) (*(__global real8u *)(p))
-
-#ifdef REAL_DOUBLE
-typedef long mask1;
-typedef long8 mask8; /* what comparing two real8 gives */
-#define convert_mask8 convert_long8
-#else
-typedef int mask1;
-typedef int8 mask8;
-#define convert_mask8(x) (x)
-#endif
+/* LD8G / ST8G (unaligned real8 access), mask1 / mask8 and convert_mask8 come from common.h */
 
 /* 2^t for the splat loops, which keep only lanes with t in [-QCUT/2 log2(e), 0] and select
  * zero for every other lane: whatever comes out on the other lanes (t very negative, -Inf or
@@ -232,7 +217,6 @@ inline int set_box(Splat *sp, real cu, real cv, real ru, real rv, int U, int V)
 }
 
 /* 8 Gaussians at once (one per lane): the set-ups that run on real8 across Gaussians */
-#define convert_real8 CAT(convert_, CAT(REAL, 8))
 typedef struct { real8 x, y, z; } vec8;
 
 inline real8 dot8(vec8 a, vec8 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }

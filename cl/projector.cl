@@ -31,16 +31,8 @@
 #endif
 
 /* ------------------------------------------------------------------ width-16 helpers */
-/* project_setup.h's 8-lane helpers (LD8G, mask8, splat_exp2_8, sqrt8) at 16 lanes */
-typedef real16 real16u __attribute__((aligned(sizeof(real))));
-#define LD16G(p) (*(__global const real16u *)(p))
-#define ST16G(p) (*(__global real16u *)(p))
-#ifdef REAL_DOUBLE
-typedef long16 mask16;
-#else
-typedef int16 mask16;
-/* splat_exp2_16 and fast_exp16 come from project_setup.h and fastexp.h */
-#endif
+/* project_setup.h's 8-lane helpers (splat_exp2_8, sqrt8) at 16 lanes; LD16G, ST16G and mask16
+ * come from common.h, splat_exp2_16 and fast_exp16 from project_setup.h and fastexp.h */
 inline real16 sqrt16(real16 y)
 {
     return (real16)(SQ(y.s0), SQ(y.s1), SQ(y.s2), SQ(y.s3), SQ(y.s4), SQ(y.s5), SQ(y.s6), SQ(y.s7),

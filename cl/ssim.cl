@@ -41,20 +41,13 @@
 #define SC1 0.0001f
 #define SC2 0.0009f
 #endif
-#define RC(x) ((real)(x))
-
-typedef real8 real8u __attribute__((aligned(sizeof(real))));
-#define LD8U(p) (*(__global const real8u *)(p))
-#define ST8U(p) (*(__global real8u *)(p))
-
+/* RC, LD8G and ST8G come from common.h */
 #ifdef REAL_DOUBLE
-typedef long8 bits8;
 #define AS_BITS8 as_long8
 #define AS_REAL8 as_double8
 #define SIGN_BITS ((long)0x8000000000000000UL)
 #define ONE_BITS ((long)0x3ff0000000000000L)
 #else
-typedef int8 bits8;
 #define AS_BITS8 as_int8
 #define AS_REAL8 as_float8
 #define SIGN_BITS ((int)0x80000000U)
@@ -83,7 +76,7 @@ inline real8 keep8(real8 v, int n)
 inline real8 load8(__global const real *p, int n)
 {
     if (n >= 8)
-        return LD8U(p);
+        return LD8G(p);
     const real z = RC(0.0);
     return (real8)(n > 0 ? p[0] : z, n > 1 ? p[1] : z, n > 2 ? p[2] : z, n > 3 ? p[3] : z, n > 4 ? p[4] : z,
                    n > 5 ? p[5] : z, n > 6 ? p[6] : z, z);
@@ -92,7 +85,7 @@ inline real8 load8(__global const real *p, int n)
 inline void store8(__global real *p, real8 v, int n)
 {
     if (n >= 8) {
-        ST8U(p) = v;
+        ST8G(p) = v;
         return;
     }
     if (n > 0) p[0] = v.s0;
@@ -124,8 +117,8 @@ inline real8 vblur(__global const real8 *p, size_t st)
            RC(WT5) * (p[-5 * (long)st] + p[5 * st]);
 }
 
-kernel void ssim_h(const int H, const int W, const int nseg, __global const real *a, __global const real8 *b,
-                   __global real8 *S, __global real *rows)
+__kernel void ssim_h(const int H, const int W, const int nseg, __global const real *a, __global const real8 *b,
+                     __global real8 *S, __global real *rows)
 {
     const int img = get_global_id(1);
     const int y0 = get_global_id(0) * RB;
@@ -159,9 +152,9 @@ kernel void ssim_h(const int H, const int W, const int nseg, __global const real
     }
 }
 
-kernel void ssim_v(const int H, const int W, const int nseg, const int grad, __global const real8 *S,
-                   __global const real8 *mub, __global const real8 *bbm, __global real8 *T,
-                   __global real *rows)
+__kernel void ssim_v(const int H, const int W, const int nseg, const int grad, __global const real8 *S,
+                     __global const real8 *mub, __global const real8 *bbm, __global real8 *T,
+                     __global real *rows)
 {
     const int img = get_global_id(1);
     const int y0 = get_global_id(0) * RB;
@@ -216,9 +209,9 @@ kernel void ssim_v(const int H, const int W, const int nseg, const int grad, __g
 }
 
 /* out = wl * sign(a - b) + ws * (G0 + 2 a G1 + b G2), (G0, G1, G2) = vertical pass of T */
-kernel void ssim_grad(const int H, const int W, const int nseg, const real wl, const real ws,
-                      __global const real8 *T, __global const real *a, __global const real8 *b,
-                      __global real *out)
+__kernel void ssim_grad(const int H, const int W, const int nseg, const real wl, const real ws,
+                        __global const real8 *T, __global const real *a, __global const real8 *b,
+                        __global real *out)
 {
     const int img = get_global_id(1);
     const int y0 = get_global_id(0) * RB;

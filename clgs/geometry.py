@@ -92,6 +92,12 @@ def check_orientation(codes) -> str:
     return text
 
 
+#: How much larger than a volume's shadow a detector sized to see that volume whole is made (the
+#: same factor on each axis): the one margin of ``Geometry.default``, ``clgs simulate``'s scanner
+#: and the anatomies' scenes.
+DETECTOR_MARGIN = 1.05
+
+
 def shadow_half_extents(size_zyx, DSO: float, DSD: float, mode: str = "cone") -> tuple:
     """(half width u, half height v) in mm on the detector of the shadow of a box of ``size_zyx``
     mm centred on the rotation axis, over every angle: what a detector must span to see the whole
@@ -572,7 +578,7 @@ class Geometry:
         """A scanner sized for a ``volume_mm`` cube, whose detector sees it whole at DSD/DSO = 1.5."""
         DSO, DSD = 1000.0, 1500.0
         mag = DSD / DSO if mode == "cone" else 1.0
-        half = 0.5 * volume_mm * np.sqrt(2.0) * mag * 1.05  # corners of the volume, with margin
+        half = 0.5 * volume_mm * np.sqrt(2.0) * mag * DETECTOR_MARGIN  # corners of the volume, with margin
         d_det = 2 * half / n_detector
         angles = np.linspace(0.0, arc, n_views, endpoint=False) if n_views > 0 else []
         return cls(DSD=DSD, DSO=DSO, nDetector=(n_detector, n_detector), dDetector=(d_det, d_det),

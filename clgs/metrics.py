@@ -48,6 +48,14 @@ class MetricError(ClgsError, ValueError):
     """Inputs a metric cannot be computed on (shapes differ, constant truth, empty mask, NaN)."""
 
 
+def tv_count(shape) -> int:
+    """Number of neighbour differences in a (Z, Y, X) block, over the three axes together (the
+    denominator of R2-Gaussian's total variation)."""
+    nz, ny, nx = (int(n) for n in shape)
+    total = nx * ny * nz
+    return sum(total // n * (n - 1) for n in (nx, ny, nz) if n > 0)
+
+
 def _pair(pred, truth, ndim=3):
     p = np.asarray(pred, dtype=np.float64)
     t = np.asarray(truth, dtype=np.float64)

@@ -13,7 +13,7 @@ import pytest  # noqa: E402
 KERNEL_TESTS = {
     "test_projector", "test_voxelizer", "test_tv_patch", "test_losses_cl", "test_field_sampler",
     "test_ct_projector", "test_ct_fdk", "test_ct_sart", "test_trainer", "test_vector_geometry",
-    "test_ct_fdk_vectors",
+    "test_ct_fdk_vectors", "test_operator_contract",
 }
 
 
@@ -110,6 +110,28 @@ def cl_device(request):
         yield dev
     finally:
         runtime.use_device(before)
+
+
+@pytest.fixture
+def cl_queue(cl_device):
+    """A new in-order queue on the context of the device under test, to hand to an operator
+    explicitly (``Op(..., queue=cl_queue)``)."""
+    import pyopencl as cl
+
+    from clgs import runtime
+
+    return cl.CommandQueue(runtime.get_context())
+
+
+@pytest.fixture
+def cl_context(cl_device):
+    """A context of its own on the device under test (not the process's), to hand to an operator
+    explicitly (``Op(..., ctx=cl_context)``)."""
+    import pyopencl as cl
+
+    from clgs import runtime
+
+    return cl.Context([runtime.device()])
 
 
 @pytest.fixture(autouse=True)

@@ -1,11 +1,11 @@
-"""clgs.ops.fixed_points (trilinear sampling at fixed points through a sparse matrix) against
+"""clgs.fit.fixed_points (trilinear sampling at fixed points through a sparse matrix) against
 torch's grid_sample, finite differences in float64, bits; and the shape-guided centres built on
 it against the grid_sample path."""
 import pytest
 import torch
 
 from clgs.errors import InputError
-from clgs.ops.fixed_points import FixedPointSampler
+from clgs.fit.fixed_points import FixedPointSampler
 from tests.test_field_sampler import reference, scene
 
 

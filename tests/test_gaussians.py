@@ -207,7 +207,7 @@ def test_view_space_gradient_matches_the_detector_coordinate_gradient(mode):
 
 def test_training_covariances_match_gaussian_math_values_and_gradients():
     """What training feeds the kernels (the OpenCL cov_prec) against the torch reference."""
-    from clgs.ops import gaussian_math as gm
+    from clgs.reference import gaussians as gm
     from clgs.ops.voxelizer import cov_prec
 
     g = torch.Generator().manual_seed(0)

@@ -98,3 +98,28 @@ def test_default_detector_sees_whole_volume():
             u = np.dot(hit, du) / np.dot(du, du)
             vv = np.dot(hit, dv) / np.dot(dv, dv)
             assert abs(u) < g.nDetector[1] / 2 and abs(vv) < g.nDetector[0] / 2
+
+
+def test_every_detector_sized_to_see_a_volume_uses_the_one_margin(monkeypatch):
+    """Geometry.default, clgs simulate's scanner and the anatomies' scenes all size their detector
+    as clgs.geometry.DETECTOR_MARGIN times the volume's shadow (they once used 1.05 and 1.04)."""
+    from clgs import geometry
+    from clgs.anatomy.population import scan_geometry_kwargs
+    from clgs.anatomy.simulation import _detector_sized
+    from clgs.ct.simulate import scanner_geometry
+
+    grid = Grid((40, 60, 50), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    half_u, half_v = geometry.shadow_half_extents((40.0, 60.0, 50.0), 1000.0, 1500.0, "cone")
+    for margin in (geometry.DETECTOR_MARGIN, 1.3):
+        monkeypatch.setattr(geometry, "DETECTOR_MARGIN", margin)
+        monkeypatch.setattr("clgs.ct.simulate.DETECTOR_MARGIN", margin)
+        monkeypatch.setattr("clgs.anatomy.population.DETECTOR_MARGIN", margin)
+        sim = scanner_geometry((40, 60, 50), (1.0, 1.0, 1.0), views=4, detector=64)
+        assert sim.dDetector[0] * 64 == pytest.approx(2 * margin * max(half_u, half_v))
+        kw = scan_geometry_kwargs(grid, pixel_mm=0.5)
+        (nv, nu), _ = _detector_sized((40, 60, 50), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0),
+                                      {"DSO": 1000.0, "DSD": 1500.0, "dDetector": (0.5, 0.5)}, 64)
+        for v, u in (kw["nDetector"], (nv, nu)):
+            assert 0 <= v * 0.5 - 2 * margin * half_v < 8 * 0.5 and 0 <= u * 0.5 - 2 * margin * half_u < 8 * 0.5
+        assert geometry.Geometry.default(n_voxel=8, volume_mm=100.0).dDetector[0] * 256 == pytest.approx(
+            100.0 * np.sqrt(2.0) * 1.5 * margin)

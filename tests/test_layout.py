@@ -19,9 +19,9 @@ LAYERS = [
     ["clgs.io"],
     ["clgs.mesh"],
     ["clgs.metrics", "clgs.figures"],
+    ["clgs.reference"],
     ["clgs.runtime"],
     ["clgs.ops"],
-    ["clgs.reference"],
     ["clgs.ct"],
     ["clgs.fit"],
     ["clgs.shape"],
@@ -34,9 +34,8 @@ LAYERS = [
 # The package's own __init__ is the public facade: it loads each public name from its home module
 # on first attribute access.
 FACADE = "clgs"
-# Known, function-level: choosing a device builds the probe kernel with the program cache, which
-# itself asks for the chosen device's context. Both sit inside clgs.runtime.
-ALLOWED_EDGES = {("clgs.runtime.devices", "clgs.runtime.programs")}
+# Edges the cycle check leaves out (none: a cycle inside a subpackage is a cycle too).
+ALLOWED_EDGES: set = set()
 
 
 def module_name(path: Path) -> str:
@@ -121,6 +120,28 @@ def test_no_import_cycles():
     assert not cycles, "import cycles:\n" + "\n".join(cycles)
 
 
+def test_no_import_cycles_inside_a_subpackage():
+    """Within each subpackage (clgs.runtime, clgs.ops, ...) too, every import, lazy ones included,
+    runs one way: each module reached from another cannot reach it back."""
+    edges, _ = graph()
+
+    def package(name):
+        return name.rpartition(".")[0] if name.count(".") >= 2 else name
+
+    def reach(start, pkg):
+        seen, todo = set(), [start]
+        while todo:
+            for nxt in edges.get(todo.pop(), ()):
+                if package(nxt) == pkg and nxt not in seen:
+                    seen.add(nxt)
+                    todo.append(nxt)
+        return seen
+
+    cycles = sorted(f"{a} <-> {b}" for a, targets in edges.items() for b in targets
+                    if package(a) == package(b) and a < b and a in reach(b, package(a)))
+    assert not cycles, "import cycles inside a subpackage:\n" + "\n".join(cycles)
+
+
 def test_no_private_name_is_imported_from_another_module():
     _, private = graph()
     assert not private, "\n".join(private)
@@ -150,3 +171,34 @@ def test_the_code_passes_ruff():
     out = subprocess.run([ruff, "check", "clgs", "tests", "examples", "anatomies"], cwd=ROOT, capture_output=True,
                          text=True, timeout=120)
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+CL = ROOT / "cl"
+
+
+def test_kernel_sources_share_common_h_and_spell_kernel_one_way():
+    """Every ``.cl`` file reaches ``common.h`` (directly or through a header it includes), none
+    defines again a macro or type ``common.h`` defines, and kernels are declared ``__kernel``."""
+    import re
+
+    common = (CL / "common.h").read_text(encoding="utf-8")
+    shared = set(re.findall(r"^#define (\w+)", common, re.M)) | set(re.findall(r"typedef [^;]*?(\w+);", common))
+    shared -= {"CLGS_COMMON_H", "REAL"}  # the guard; REAL is the build option's default
+
+    def includes(path):
+        return re.findall(r'^#include "([^"]+)"', path.read_text(encoding="utf-8"), re.M)
+
+    def reaches_common(path, seen=()):
+        return any(inc == "common.h" or (inc not in seen and reaches_common(CL / inc, (*seen, inc)))
+                   for inc in includes(path))
+
+    problems = []
+    for path in sorted(CL.glob("*.cl")) + sorted(p for p in CL.glob("*.h") if p.name != "common.h"):
+        text = path.read_text(encoding="utf-8")
+        if not reaches_common(path):
+            problems.append(f"{path.name} does not include common.h")
+        again = set(re.findall(r"^\s*#define (\w+)", text, re.M)) | set(re.findall(r"typedef [^;{]*?(\w+);", text))
+        problems += [f"{path.name} defines {name} again (common.h has it)" for name in sorted(again & shared)]
+        problems += [f"{path.name}:{text[:m.start()].count(chr(10)) + 1}: kernel spelled 'kernel', not '__kernel'"
+                     for m in re.finditer(r"(?m)^\s*kernel\s+void\b", text)]
+    assert not problems, "\n".join(problems)

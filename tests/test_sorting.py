@@ -14,17 +14,29 @@ def test_same_order_as_the_stable_argsort(n, top):
         assert np.array_equal(got, np.argsort(k, kind="stable"))
 
 
-def test_nearly_sorted_cells_and_the_switch():
+def test_nearly_sorted_cells():
     # displaced grid points: each cell's points nearly in order, many ties
     rng = np.random.default_rng(1)
     keys = np.clip(np.arange(50_000) // 2 + rng.integers(-3, 4, 50_000), 0, None).astype(np.int32)
-    want = np.argsort(keys, kind="stable")
-    assert np.array_equal(sorting.stable_order(keys), want)
-    sorting.USE_ARGSORT = True
+    assert np.array_equal(sorting.stable_order(keys), np.argsort(keys, kind="stable"))
+
+
+def test_the_benchmark_switch_lives_in_the_benchmark():
+    """``clgs bench train --alternate`` swaps NumPy's argsort in and out from clgs.bench; the
+    library keeps no switch for it."""
+    from clgs.bench.switches import steps
+    from clgs.ops import field_sampler, voxelizer
+
+    assert not hasattr(sorting, "USE_ARGSORT")
+    step = steps()["cell order by a sort of packed keys (field sampler, voxelizer)"]
+    step(False)
     try:
-        assert np.array_equal(sorting.stable_order(keys), want)
+        assert field_sampler.stable_order is not sorting.stable_order
+        keys = np.array([3, 1, 2, 1, 0])
+        assert np.array_equal(voxelizer.stable_order(keys), np.argsort(keys, kind="stable"))
     finally:
-        sorting.USE_ARGSORT = False
+        step(True)
+    assert field_sampler.stable_order is sorting.stable_order and voxelizer.stable_order is sorting.stable_order
 
 
 def test_negative_keys_fall_back_to_the_argsort():

@@ -329,7 +329,7 @@ def test_gaussian_projector_gives_the_same_bits_on_circular_vectors(beam, mode):
 def test_gaussian_projection_on_a_tilted_detector_matches_the_references(beam):
     """Exact mode against trapezoid integration along every pixel's own ray (geometry.rays), and
     both modes against the dense reference, on a detector turned about all three of its axes."""
-    from clgs.ops.gaussian_math import covariance, precision
+    from clgs.reference.gaussians import covariance, precision
     from clgs.ops.projector import project_packed
     from clgs.reference.projection import exact_quadrature, project_dense, ray_min_q
 

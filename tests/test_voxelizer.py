@@ -3,7 +3,7 @@ and itself (blocks vs full grid, points vs grid, float32 vs float64, run vs run)
 import pytest
 import torch
 
-from clgs.ops.gaussian_math import axis_extent, precision
+from clgs.reference.gaussians import axis_extent, precision
 from clgs.geometry import Grid
 from clgs.reference import voxelization as ref
 from clgs.ops.voxelizer import Voxelizer, voxelize, voxelize_points, voxelize_precision
@@ -345,10 +345,10 @@ def test_small_grid_and_binned_paths_give_the_same_bits(monkeypatch):
 
 
 def test_cov_prec_matches_gaussian_math_and_differentiates():
-    """The OpenCL covariance / precision / half-widths kernel against clgs.ops.gaussian_math (float32,
+    """The OpenCL covariance / precision / half-widths kernel against clgs.reference.gaussians (float32,
     N not a multiple of 8 so the last group has idle lanes), gradcheck of its closed-form backward
     (float64) for each output alone and for both together."""
-    from clgs.ops.gaussian_math import covariance
+    from clgs.reference.gaussians import covariance
     from clgs.ops.voxelizer import cov_prec
 
     _, scales, quats, _ = scene(1003, seed=6)

@@ -9,7 +9,7 @@ import numpy as np
 
 from clgs.anatomy.alignment import align_rigid
 from clgs.anatomy.phantom import PHANTOM_VERSION, DensityParams, Phantom, make_phantom
-from clgs.geometry import shadow_half_extents
+from clgs.geometry import DETECTOR_MARGIN, shadow_half_extents
 from clgs.io.mesh import check_mesh
 from clgs.mesh.voxels import as_grid, mesh_to_label, signed_distance
 from clgs.errors import InputError
@@ -60,10 +60,12 @@ def cache_dir() -> str:
 
 
 def scan_geometry_kwargs(grid, DSO: float = 1000.0, DSD: float = 1500.0, pixel_mm: float = 3.0,
-                         margin: float = 1.04) -> dict:
+                         margin: float | None = None) -> dict:
     """Geometry keyword arguments (no angles) for a cone-beam scan of ``grid``, centred on the
     rotation axis (offOrigin 0), with a flat detector just large enough to see the whole volume
-    from every angle (the nearest corner to the source sets the magnification)."""
+    from every angle (the nearest corner to the source sets the magnification), ``margin``
+    (default ``clgs.geometry.DETECTOR_MARGIN``) times its shadow."""
+    margin = DETECTOR_MARGIN if margin is None else float(margin)
     nz, ny, nx = grid.shape
     dx, dy, dz = grid.spacing
     half_u, half_v = shadow_half_extents((nz * dz, ny * dy, nx * dx), DSO, DSD, "cone")

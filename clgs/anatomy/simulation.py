@@ -22,10 +22,11 @@ def as_float32(x):
 
 def _detector_sized(shape, spacing, centre, d: dict, n_det: int):
     """(nDetector, dDetector) of a flat detector that sees a grid (Z, Y, X shape and spacing, centre
-    (Z, Y, X) mm) whole from every angle, 4 % margin; the pixel is ``d['dDetector']`` when given."""
+    (Z, Y, X) mm) whole from every angle, ``clgs.geometry.DETECTOR_MARGIN`` larger than its
+    shadow; the pixel is ``d['dDetector']`` when given."""
     import numpy as np
 
-    from clgs.geometry import shadow_half_extents
+    from clgs.geometry import DETECTOR_MARGIN, shadow_half_extents
 
     size = np.asarray(shape) * np.asarray(spacing, float)
     size = size + 2.0 * np.abs(np.asarray(centre, float))  # a box about the axis that holds the grid
@@ -33,9 +34,9 @@ def _detector_sized(shape, spacing, centre, d: dict, n_det: int):
     if "dDetector" in d:
         pix = np.asarray(d["dDetector"], float)
     else:
-        pix = np.full(2, 2 * 1.04 * max(half_u, half_v) / n_det)
-    nv = int(8 * np.ceil(2 * 1.04 * half_v / pix[0] / 8))
-    nu = int(8 * np.ceil(2 * 1.04 * half_u / pix[1] / 8))
+        pix = np.full(2, 2 * DETECTOR_MARGIN * max(half_u, half_v) / n_det)
+    nv = int(8 * np.ceil(2 * DETECTOR_MARGIN * half_v / pix[0] / 8))
+    nu = int(8 * np.ceil(2 * DETECTOR_MARGIN * half_u / pix[1] / 8))
     return (nv, nu), (float(pix[0]), float(pix[1]))
 
 

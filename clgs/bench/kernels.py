@@ -330,7 +330,7 @@ def _bench(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt,
     """One device's run of :func:`main`; returns {case: (forward ms, backward ms)}."""
     import torch
 
-    from clgs.ops.gaussian_math import covariance, precision
+    from clgs.reference.gaussians import covariance, precision
     from clgs.geometry import Geometry
     from clgs.ops.projector import GaussianProjector
 

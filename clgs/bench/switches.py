@@ -1,8 +1,9 @@
 """Side by side in one process: each speed step of the shape-guided iteration against the code
 before it, on the same trainer, in alternating blocks of iterations (``clgs bench train --method
 shape --alternate N``). The machine's load drifts; alternating blocks share it, so the ratios
-hold where absolute times from different runs would not. Every step keeps its old path behind a
-module or class switch for this, and only this, comparison."""
+hold where absolute times from different runs would not. Steps whose old path is a plain
+function are switched here, by putting that function back where the library calls the new one;
+the others keep their old path behind a class switch for this, and only this, comparison."""
 from __future__ import annotations
 
 import time
@@ -11,12 +12,17 @@ from contextlib import contextmanager
 
 def steps() -> dict:
     """name -> a function that turns the step on (True) or off (False, the code before it)."""
-    from clgs.ops import sorting, voxelizer
+    import numpy as np
+
+    from clgs.ops import field_sampler, sorting, voxelizer
     from clgs.shape.gaussian_set import ShapeGuidedSet
     from clgs.shape.priors import DensityPrior
 
-    def argsort(on):
-        sorting.USE_ARGSORT = not on
+    def numpy_order(keys):
+        return np.argsort(np.asarray(keys), kind="stable")
+
+    def argsort(on):  # the cell orders of the field sampler and the voxelizer
+        field_sampler.stable_order = voxelizer.stable_order = sorting.stable_order if on else numpy_order
 
     def fixed_points(on):
         ShapeGuidedSet.FIXED_POINTS = on

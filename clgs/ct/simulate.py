@@ -14,12 +14,9 @@ from typing import Callable, Optional
 import numpy as np
 
 from clgs.errors import InputError
-from clgs.geometry import Geometry, shadow_half_extents
+from clgs.geometry import DETECTOR_MARGIN, Geometry, shadow_half_extents
 
 __all__ = ["SimulationWarning", "simulate_scan", "project_with_noise", "scanner_geometry"]
-
-#: extra room on each side of the volume's shadow on a detector sized to see it whole
-DETECTOR_MARGIN = 1.05
 
 
 class SimulationWarning(UserWarning):
@@ -37,7 +34,7 @@ def scanner_geometry(shape, spacing, views: int, arc_deg: float = 180.0, mode: s
                      detector: int = 256, pixel=None, centre_xyz=(0.0, 0.0, 0.0)) -> Geometry:
     """A circular scanner turning about the volume's centre (``centre_xyz``, world mm) whose square
     detector of ``detector`` pixels sees the whole volume (``shape`` (Z, Y, X) voxels of ``spacing``
-    mm) from every angle, with a 5 % margin, unless ``pixel`` (mm) is given. DSO / DSD default to
+    mm) from every angle, with ``clgs.geometry.DETECTOR_MARGIN``, unless ``pixel`` (mm) is given. DSO / DSD default to
     1000 / 1500 mm. Raises :class:`clgs.geometry.GeometryError` for a source inside the volume."""
     base = Geometry.default(n_views=views, arc=math.radians(arc_deg), mode=mode, n_voxel=max(shape),
                             n_detector=detector, volume_mm=float(max(np.multiply(shape, spacing))))

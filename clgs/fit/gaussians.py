@@ -41,7 +41,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from clgs.ops.gaussian_math import quaternion_to_rotation
+from clgs.reference.gaussians import quaternion_to_rotation
 from clgs.errors import InputError
 
 PARAM_NAMES = ("means", "scales", "quats", "densities")

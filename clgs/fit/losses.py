@@ -16,7 +16,7 @@ import weakref
 
 import torch
 
-from clgs.metrics import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW
+from clgs.metrics import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW, tv_count
 from clgs.ops import ssim as ssim_cl
 from clgs.ops.ssim import Blur, shift_blur, target_maps
 from clgs.ops.ssim import window as window_tensor
@@ -145,13 +145,6 @@ class ImageTerms:
         if self._use_cl(ctx, ctx.render):
             return self._both(ctx)[1]
         return dssim(ctx.render, ctx.target, b_maps=self._target_maps(ctx))
-
-
-def tv_count(shape) -> int:
-    """Number of neighbour differences in a (Z, Y, X) block, over the three axes together."""
-    nz, ny, nx = (int(n) for n in shape)
-    total = nx * ny * nz
-    return sum(total // n * (n - 1) for n in (nx, ny, nz) if n > 0)
 
 
 def tv3d(vol: torch.Tensor) -> torch.Tensor:

@@ -49,7 +49,7 @@ from clgs.fit import checkpoint as ckpt
 from clgs.fit.estimate import WarmUp
 from clgs.fit.training_log import RATE, Progress, TrainingLog
 from clgs.geometry import Grid
-from clgs.ops import gaussian_math
+from clgs.reference import gaussians
 from clgs.ops.projector import project_packed
 from clgs.ops.voxelizer import columns, cov_prec, grid_candidates, voxelize_precision
 from clgs.reference import voxelization
@@ -155,7 +155,7 @@ class Backend:
     def _torch_project(self, means, scales, quats, densities, geometry, views, mode):
         # the reference builds its Jacobians with torch.func, which returns NaN under no_grad here
         with torch.enable_grad():
-            mats = (gaussian_math.covariance if mode == "affine" else gaussian_math.precision)(scales, quats)
+            mats = (gaussians.covariance if mode == "affine" else gaussians.precision)(scales, quats)
             return torch.stack([project_patches(means, mats, densities, geometry, int(v), mode=mode) for v in views])
 
     def project(self, means, scales, quats, densities, geometry, views):

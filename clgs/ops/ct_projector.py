@@ -24,11 +24,10 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-import pyopencl as cl
 
 from clgs.geometry import Geometry
 from clgs.ops.ct_upright import tilted_views, upright_stand_in
-from clgs.ops.operator import Operator
+from clgs.runtime import Operator
 from clgs.errors import InputError
 
 _VIEW_STRIDE = 16
@@ -61,15 +60,15 @@ class CTProjector(Operator):
     sequence of view indices) to work on a subset, as OS-SART does. float64 inputs run the
     double-precision build (for tests); anything else runs in float32. Programs are compiled once
     per variant (cone/parallel, precision) and cached by :mod:`clgs.runtime`; device buffers are
-    kept and reused between calls.
+    kept and reused between calls. ``ctx``/``queue``: where it runs (default: the process's device).
     """
 
     SOURCE = "ct_projector.cl"
 
-    def __init__(self, geometry: Geometry):
+    def __init__(self, geometry: Geometry, ctx=None, queue=None):
         if not isinstance(geometry, Geometry):
             raise TypeError(f"CTProjector needs a clgs.geometry.Geometry, got {type(geometry).__name__}")
-        super().__init__()
+        super().__init__(ctx, queue)
         self.geometry = geometry
         self.cone = geometry.mode == "cone"
         nz, ny, nx = geometry.nVoxel
@@ -79,7 +78,7 @@ class CTProjector(Operator):
         self._upright = None
         if np.any(tilted_views(geometry)):  # a rolled or pitched detector: see clgs.ops.ct_upright
             virtual, mats = upright_stand_in(geometry, _round8(geometry.nDetector[0]))
-            self._upright = (CTProjector(virtual), mats)
+            self._upright = (CTProjector(virtual, self.ctx, self.queue), mats)
             self._views_all = self._upright[0]._views_all  # view indices check against these
             return
         self._views_all = self._index_views()
@@ -197,7 +196,7 @@ class CTProjector(Operator):
             arr = np.ascontiguousarray(rec, dtype=dtype)
             if len(self._view_cache) > 4096:
                 self._view_cache.clear()
-            hit = self._view_cache[key] = (arr, self._constant_buffer(arr))
+            hit = self._view_cache[key] = (arr, self.io.constant(arr))
         return hit
 
     def _column_table(self, views, dtype, vbuf, n, prog):
@@ -206,8 +205,8 @@ class CTProjector(Operator):
         hit = self._view_cache.get(key)
         if hit is None:
             nu = self.geometry.nDetector[1]
-            hit = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, size=n * nu * 8 * np.dtype(dtype).itemsize)
-            prog.kernel("ct_columns")(self.queue, (nu, n), None, vbuf, hit, np.int32(nu))
+            hit = self.io.new(n * nu * 8 * np.dtype(dtype).itemsize)
+            self.launch(prog, "ct_columns", (nu, n), None, vbuf, hit, np.int32(nu))
             self._view_cache[key] = hit
         return hit
 
@@ -232,18 +231,6 @@ class CTProjector(Operator):
                 hit[:, :, :nv] = np.sqrt(dx * dx + dy * dy + dz * dz)
             self._view_cache[key] = hit
         return hit
-
-    def _buffer(self, name, nbytes):
-        return self.io.scratch(name, nbytes)
-
-    def _constant_buffer(self, array):
-        return cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=array)
-
-    def _to_device(self, name, array):
-        """Copy ``array`` into the reusable device buffer ``name`` (grown when too small)."""
-        buf = self._buffer(name, array.nbytes)
-        cl.enqueue_copy(self.queue, buf, array)
-        return buf
 
     # ------------------------------------------------------------------------------ public
     @property
@@ -305,19 +292,19 @@ class CTProjector(Operator):
         nz, ny, nx = self.shape
         if padded.shape != (nx + 3, ny + 3, nz + 3):
             raise InputError(f"padded volume has shape {padded.shape}, expected {(nx + 3, ny + 3, nz + 3)}")
-        rec, vbuf = self._views(views, dtype)
-        nv, nu = self.geometry.nDetector
-        nvp = _round8(nv)
-        n = rec.shape[0]
-        vol_buf = self._to_device("vol_in", padded)
-        out_buf = self._buffer("proj_out", n * nu * nvp * padded.itemsize)
-        k = self._program(dtype, "forward").kernel("ct_forward")
-        sx, sy, sz = (dtype(s) for s in self.spacing_xyz)
-        q = self.queue
-        k(q, (nvp // 8, nu, n), None, vol_buf, vbuf, out_buf, np.int32(nx), np.int32(ny), np.int32(nz),
-          np.int32(nu), np.int32(nvp), sx, sy, sz)
-        out = np.empty((n, nu, nvp), dtype)
-        cl.enqueue_copy(q, out, out_buf)
+        with self.call() as io:
+            rec, vbuf = self._views(views, dtype)
+            nv, nu = self.geometry.nDetector
+            nvp = _round8(nv)
+            n = rec.shape[0]
+            out = np.empty((n, nu, nvp), dtype)
+            prog = self._program(dtype, "forward")
+            sx, sy, sz = (dtype(s) for s in self.spacing_xyz)
+            vol_buf = io.input(padded, "vol_in")
+            out_buf = io.output(out, "proj_out")
+            self.launch(prog, "ct_forward", (nvp // 8, nu, n), None, vol_buf, vbuf, out_buf, np.int32(nx),
+                        np.int32(ny), np.int32(nz), np.int32(nu), np.int32(nvp), sx, sy, sz)
+            io.fetch([(out_buf, out)])
         return out
 
     def backward_internal(self, tp, views=None) -> np.ndarray:
@@ -337,24 +324,24 @@ class CTProjector(Operator):
                 virtual[k] = (mats[i].T @ tp[k].ravel()).reshape(nu2, -1)
             return P.backward_internal(virtual, views)
         dtype = np.float64 if tp.dtype == np.float64 else np.float32
-        rec, vbuf = self._views(views, dtype)
-        n = rec.shape[0]
-        nv, nu = self.geometry.nDetector
-        nvp = _round8(nv)
-        if tp.shape != (n, nu, nvp):
-            raise InputError(f"projections in kernel layout have shape {tp.shape}, expected {(n, nu, nvp)}")
-        nz, ny, nx = self.shape
-        nzp = (nz + _ZB - 1) // _ZB * _ZB
-        scaled = np.empty((n, nu, nvp), dtype)
-        np.multiply(tp, self._ray_scale(views, dtype), out=scaled)
-        p_buf = self._to_device("proj_in", scaled)
-        out_buf = self._buffer("vol_out", nx * ny * nzp * scaled.itemsize)
-        prog = self._program(dtype, "backward")
-        q = self.queue
-        t_buf = self._column_table(views, dtype, vbuf, n, prog)
-        k = prog.kernel("ct_backward")
-        k(q, (nzp // _ZB, ny, nx), None, p_buf, vbuf, t_buf, out_buf, np.int32(n), np.int32(nx), np.int32(ny),
-          np.int32(nz), np.int32(nzp), np.int32(nu), np.int32(nv), np.int32(nvp))
-        out = np.empty((nx, ny, nzp), dtype)
-        cl.enqueue_copy(q, out, out_buf)
+        with self.call() as io:
+            rec, vbuf = self._views(views, dtype)
+            n = rec.shape[0]
+            nv, nu = self.geometry.nDetector
+            nvp = _round8(nv)
+            if tp.shape != (n, nu, nvp):
+                raise InputError(f"projections in kernel layout have shape {tp.shape}, expected {(n, nu, nvp)}")
+            nz, ny, nx = self.shape
+            nzp = (nz + _ZB - 1) // _ZB * _ZB
+            scaled = np.empty((n, nu, nvp), dtype)
+            np.multiply(tp, self._ray_scale(views, dtype), out=scaled)
+            prog = self._program(dtype, "backward")
+            out = np.empty((nx, ny, nzp), dtype)
+            t_buf = self._column_table(views, dtype, vbuf, n, prog)
+            p_buf = io.input(scaled, "proj_in")
+            out_buf = io.output(out, "vol_out")
+            self.launch(prog, "ct_backward", (nzp // _ZB, ny, nx), None, p_buf, vbuf, t_buf, out_buf, np.int32(n),
+                        np.int32(nx), np.int32(ny), np.int32(nz), np.int32(nzp), np.int32(nu), np.int32(nv),
+                        np.int32(nvp))
+            io.fetch([(out_buf, out)])
         return out

@@ -7,17 +7,20 @@ from the view's own source, detector centre and pixel steps."""
 from __future__ import annotations
 
 import numpy as np
-import pyopencl as cl
 
 from clgs.geometry import Geometry
-from clgs.ops.operator import Operator
-from clgs.runtime import shared
+from clgs.runtime import Operator, shared
 
 
 class FDKBackprojector(Operator):
-    """Runs ``cl/fdk.cl`` (programs per precision and beam)."""
+    """Runs ``cl/fdk.cl`` (an :class:`~clgs.runtime.Operator`: programs per precision and beam,
+    pooled buffers, one call at a time)."""
 
     SOURCE = "fdk.cl"
+
+    def _program(self, dtype, mode: str):
+        real = "double" if dtype == np.float64 else "float"
+        return self.variant((real, mode), {"REAL": real, "CONE": mode == "cone"})
 
     def __call__(self, filtered, geometry: Geometry) -> np.ndarray:
         """Voxel-driven FDK/FBP backprojection (OpenCL) of already filtered, weighted projections.
@@ -41,28 +44,23 @@ class FDKBackprojector(Operator):
         c0 = np.asarray(g.offOrigin[::-1], np.float64) - 0.5 * (np.array([nx, ny, nz]) - 1) * sp
         geo = np.array([*c0, *sp, g.DSO, g.DSD, g.dDetector[1], g.dDetector[0], g.offDetector[1],
                         g.offDetector[0], 0.5 * (nu - 1), 0.5 * (nv - 1)], dtype)
-        ctx, queue = self.ctx, self.queue
-        mf = cl.mem_flags
-        q_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=padded)
-        t_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=trig)
-        g_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=geo)
-        real = "double" if dtype == np.float64 else "float"
-        prog = self.variant((real, g.mode), {"REAL": real, "CONE": g.mode == "cone"})
-        if nz >= 8:  # eight z voxels per work-item
-            out = np.empty((nx, ny, nzp), dtype)
-            o_buf = cl.Buffer(ctx, mf.WRITE_ONLY, size=out.nbytes)
-            prog.kernel("fdk_backproject")(queue, (nzp // 8, ny, nx), None, q_buf, t_buf, o_buf, g_buf, np.int32(n),
-                                           np.int32(nx), np.int32(ny), np.int32(nzp), np.int32(nu), np.int32(nv))
-            cl.enqueue_copy(queue, out, o_buf)
-            return np.ascontiguousarray(out[:, :, :nz].transpose(2, 1, 0))
-        nxp = (nx + 7) // 8 * 8  # thin volumes (a single slice): eight x voxels per work-item
-        out = np.empty((nz, ny, nxp), dtype)
-        o_buf = cl.Buffer(ctx, mf.WRITE_ONLY, size=out.nbytes)
-        prog.kernel("fdk_backproject_x")(queue, (nxp // 8, ny, nz), None, q_buf, t_buf, o_buf, g_buf, np.int32(n),
-                                         np.int32(nxp), np.int32(ny), np.int32(nu), np.int32(nv))
-        cl.enqueue_copy(queue, out, o_buf)
+        prog = self._program(dtype, g.mode)
+        with self.call() as io:
+            q_buf, t_buf, g_buf = io.input(padded, "proj"), io.input(trig, "trig"), io.input(geo, "geo")
+            if nz >= 8:  # eight z voxels per work-item
+                out = np.empty((nx, ny, nzp), dtype)
+                o_buf = io.output(out, "out")
+                self.launch(prog, "fdk_backproject", (nzp // 8, ny, nx), None, q_buf, t_buf, o_buf, g_buf,
+                            np.int32(n), np.int32(nx), np.int32(ny), np.int32(nzp), np.int32(nu), np.int32(nv))
+                io.fetch([(o_buf, out)])
+                return np.ascontiguousarray(out[:, :, :nz].transpose(2, 1, 0))
+            nxp = (nx + 7) // 8 * 8  # thin volumes (a single slice): eight x voxels per work-item
+            out = np.empty((nz, ny, nxp), dtype)
+            o_buf = io.output(out, "out")
+            self.launch(prog, "fdk_backproject_x", (nxp // 8, ny, nz), None, q_buf, t_buf, o_buf, g_buf, np.int32(n),
+                        np.int32(nxp), np.int32(ny), np.int32(nu), np.int32(nv))
+            io.fetch([(o_buf, out)])
         return np.ascontiguousarray(out[:, :, :nx])
-
 
     def _vectors(self, q: np.ndarray, g: Geometry) -> np.ndarray:
         """The per-view kernel: eight lanes along z, or along x for volumes thinner than eight slices."""
@@ -82,19 +80,15 @@ class FDKBackprojector(Operator):
             n_lane, n1, n2, axes = nx, ny, nz, (ex, ey, ez)
         nlp = (n_lane + 7) // 8 * 8
         geo = np.concatenate([p0, *axes]).astype(dtype)
-        ctx, queue = self.ctx, self.queue
-        mf = cl.mem_flags
-        q_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=padded)
-        m_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(mats.ravel()))
-        g_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=geo)
-        real = "double" if dtype == np.float64 else "float"
-        prog = self.variant((real, g.mode), {"REAL": real, "CONE": g.mode == "cone"})
+        prog = self._program(dtype, g.mode)
         out = np.empty((n2, n1, nlp), dtype)
-        o_buf = cl.Buffer(ctx, mf.WRITE_ONLY, size=out.nbytes)
-        prog.kernel("fdk_backproject_vec")(queue, (nlp // 8, n1, n2), None, q_buf, m_buf, o_buf, g_buf,
-                                           np.int32(g.n_views), np.int32(nlp), np.int32(n1), np.int32(nu),
-                                           np.int32(nv))
-        cl.enqueue_copy(queue, out, o_buf)
+        with self.call() as io:
+            q_buf, g_buf = io.input(padded, "proj"), io.input(geo, "geo")
+            m_buf = io.input(np.ascontiguousarray(mats.ravel()), "mats")
+            o_buf = io.output(out, "out")
+            self.launch(prog, "fdk_backproject_vec", (nlp // 8, n1, n2), None, q_buf, m_buf, o_buf, g_buf,
+                        np.int32(g.n_views), np.int32(nlp), np.int32(n1), np.int32(nu), np.int32(nv))
+            io.fetch([(o_buf, out)])
         out = out[:, :, :n_lane]
         return np.ascontiguousarray(out.transpose(2, 1, 0) if nz >= 8 else out)
 

@@ -23,9 +23,8 @@ import numpy as np
 import torch
 
 from clgs import runtime
-from clgs.ops.operator import Operator
 from clgs.ops.sorting import stable_order
-from clgs.runtime import round_up
+from clgs.runtime import Operator, round_up
 from clgs.errors import InputError
 
 SOURCE = "field_sampler.cl"
@@ -35,13 +34,14 @@ GUARD = 16  # spare entries around the cell sums (cl/field_sampler.cl)
 
 
 class FieldSampler(Operator):
-    """Runs ``cl/field_sampler.cl`` on one context and queue; owns its pooled buffers. One call at
-    a time (a lock serialises them)."""
+    """Runs ``cl/field_sampler.cl`` (an :class:`~clgs.runtime.Operator`: programs per precision,
+    pooled buffers, one call at a time)."""
 
     SOURCE = SOURCE
 
     def _program(self, dtype):
-        return self.build({"REAL": runtime.real_name(dtype, "the field"), "CELLS_PER_ITEM": CELLS_PER_ITEM})
+        real = runtime.real_name(dtype, "the field")
+        return self.variant(real, {"REAL": real, "CELLS_PER_ITEM": CELLS_PER_ITEM})
 
     @staticmethod
     def _dims(field: np.ndarray):
@@ -55,14 +55,12 @@ class FieldSampler(Operator):
         Pp = pts.shape[1]
         out = np.empty((int(C), Pp), field.dtype)
         cells = np.empty(Pp, np.int32)
-        with self._lock:
-            io = self.io
+        with self.call() as io:
             f_buf, p_buf = io.input(field, "field"), io.input(pts, "pts")
             o_buf, c_buf = io.output(out, "out"), io.output(cells, "cells")
-            runtime.launch(self.queue, self._program(field.dtype).kernel("sample_fwd"), (Pp // 8,), None,
-                           f_buf, p_buf, o_buf, c_buf, np.int32(Pp), C, X, Y, Z)
+            self.launch(self._program(field.dtype), "sample_fwd", (Pp // 8,), None, f_buf, p_buf, o_buf, c_buf,
+                        np.int32(Pp), C, X, Y, Z)
             io.fetch([(o_buf, out), (c_buf, cells)])
-            io.release()
         return out, cells
 
     def grad_points(self, field: np.ndarray, pts: np.ndarray, gout: np.ndarray) -> np.ndarray:
@@ -70,14 +68,12 @@ class FieldSampler(Operator):
         C, X, Y, Z = self._dims(field)
         Pp = pts.shape[1]
         gpts = np.empty((3, Pp), field.dtype)
-        with self._lock:
-            io = self.io
+        with self.call() as io:
             bufs = io.input(field, "field"), io.input(pts, "pts"), io.input(gout, "gout")
             g_buf = io.output(gpts, "gpts")
-            runtime.launch(self.queue, self._program(field.dtype).kernel("sample_grad_pts"), (Pp // 8,), None,
-                           *bufs, g_buf, np.int32(Pp), C, X, Y, Z)
+            self.launch(self._program(field.dtype), "sample_grad_pts", (Pp // 8,), None, *bufs, g_buf,
+                        np.int32(Pp), C, X, Y, Z)
             io.fetch([(g_buf, gpts)])
-            io.release()
         return gpts
 
     def grad_field(self, shape, pts: np.ndarray, gout: np.ndarray, cells: np.ndarray, n_points: int) -> np.ndarray:
@@ -91,20 +87,17 @@ class FieldSampler(Operator):
         gfield = np.empty((C, Z, Y, X), gout.dtype)
         Pp = pts.shape[1]
         prog = self._program(gout.dtype)
-        with self._lock:
-            io = self.io
+        with self.call() as io:
             p_buf, go_buf = io.input(pts, "pts"), io.input(gout, "gout")
             o_buf, s_buf = io.input(order, "order"), io.input(start, "start")
             sums = io.scratch("sums", (n_cells * C * 8 + 2 * GUARD) * gout.itemsize)
             g_buf = io.output(gfield, "gfield")
             dims = np.int32(C), np.int32(X), np.int32(Y), np.int32(Z)
-            runtime.launch(self.queue, prog.kernel("sample_cell_sums"), (round_up(n_cells, CELLS_PER_ITEM)
-                                                                         // CELLS_PER_ITEM,), None,
-                           p_buf, go_buf, o_buf, s_buf, sums, np.int32(n_cells), np.int32(Pp), *dims)
-            runtime.launch(self.queue, prog.kernel("sample_grad_field"), (round_up(X, 8) // 8, Y, Z), None,
-                           sums, g_buf, np.int32(n_cells), *dims)
+            self.launch(prog, "sample_cell_sums", (round_up(n_cells, CELLS_PER_ITEM) // CELLS_PER_ITEM,), None,
+                        p_buf, go_buf, o_buf, s_buf, sums, np.int32(n_cells), np.int32(Pp), *dims)
+            self.launch(prog, "sample_grad_field", (round_up(X, 8) // 8, Y, Z), None, sums, g_buf,
+                        np.int32(n_cells), *dims)
             io.fetch([(g_buf, gfield)])
-            io.release()
         return gfield
 
 

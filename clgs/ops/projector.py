@@ -82,8 +82,9 @@ the pair count comes back with the image; a call that needed more runs again wit
 (the first call, or a scene that grew a lot). CPUs get few chunks (8 per compute unit, at
 least 32): the render reads a tile's entries region by region, and longer runs stream better.
 
-Per call, the host sets only the kernel arguments that changed since the kernel's last launch
-(pyopencl spends about 8-10 us per scalar argument), keeps each geometry's view parameters, and
+Per call, the host sets the kernel arguments through the runtime's one launch helper (all of
+them packed in one call once the kernel's scalar types are declared, about 6 us for twenty, where
+pyopencl's own setter spends 10-15 us on each NumPy scalar), keeps each geometry's view parameters, and
 waits once per call (every read-back mapped without blocking, then one wait). An earlier
 version (separate offsets and list-filling kernels, four launches, every argument set on every
 call) was measured side by side in one process against this one, 50k Gaussians, 256^2 detector,
@@ -120,9 +121,8 @@ import torch
 
 from clgs import runtime
 from clgs.errors import ClgsError
-from clgs.ops.gaussian_math import covariance, precision
-from clgs.ops.operator import Operator
-from clgs.runtime import launch, real_name, round_up, shared
+from clgs.reference.gaussians import covariance, precision
+from clgs.runtime import Operator, real_name, round_up, shared
 
 MODES = ("affine", "exact")
 VP = 20
@@ -219,9 +219,10 @@ class GaussianProjector(Operator):
     TILE_CPU = {8: (8, 256), 16: (16, 256)}
     TILE_GPU = {8: (8, 16), 16: (16, 8)}
 
-    def __init__(self, width: int | None = None):
-        """``width`` (8 or 16) forces that vector width on every kernel; None: ``tile_width()``."""
-        super().__init__()
+    def __init__(self, width: int | None = None, ctx=None, queue=None):
+        """``width`` (8 or 16) forces that vector width on every kernel; None: ``tile_width()``.
+        ``ctx``/``queue``: where it runs (default: the process's device)."""
+        super().__init__(ctx, queue)
         self.LOCAL_G = self.LOCAL_G_CPU if self.cpu else self.LOCAL_G_GPU
         self.LOCAL_TILE = self.LOCAL_TILE_CPU if self.cpu else self.LOCAL_TILE_GPU
         self.PER = self.PER_CPU if self.cpu else self.PER_GPU
@@ -230,7 +231,7 @@ class GaussianProjector(Operator):
         self.last_token = None
         self.extra_defines: dict = {}  # tuning experiments only
         if width is None:
-            self.width, self.forced = tile_width(runtime.device())
+            self.width, self.forced = tile_width(self.device)
         else:
             self.width, self.forced = _check_width(width, "width"), True
         self.tile = None  # (TW, TH) to use for every forward instead of the automatic tile (tests, tuning)
@@ -240,10 +241,9 @@ class GaussianProjector(Operator):
         # tile lists in one region (cl/projector.cl): enough chunks to keep every compute
         # unit busy, and no more on CPUs, where the render reads each tile's entries region by
         # region and longer runs stream better (256 chunks: render about 10% slower than 32).
-        cus = int(runtime.device().max_compute_units)
+        cus = int(self.device.max_compute_units)
         self.max_chunks = min(256, max(32, 8 * cus)) if self.cpu else 256
         self._pair_ratio = 2.0  # Gaussian-tile pairs per Gaussian and view in the last forward
-        self.on_launch = None  # profiling hook: called with (kernel name, event) for every launch
 
     # ----------------------------------------------------------------------------- plumbing
     def widths(self, beam: str, mode: str) -> tuple[int, int]:
@@ -277,13 +277,6 @@ class GaussianProjector(Operator):
         defines["NO_GRAD_DENSITY"] = not grads[2]
         defines.update(self.extra_defines)
         return defines
-
-    def _launch(self, prog, name: str, gsize, lsize, *args):
-        """Enqueue a kernel (only changed arguments are set, see ``runtime.launch``)."""
-        event = launch(self.queue, prog.kernel(name), gsize, lsize, *args)
-        if self.on_launch is not None:
-            self.on_launch(name, event)
-        return event
 
     @staticmethod
     def _check(means, mats, densities):
@@ -346,7 +339,7 @@ class GaussianProjector(Operator):
                 mode: str = "affine") -> np.ndarray:
         """Projections (len(views), V, U) from NumPy means (N,3), packed covariance (affine) or
         precision (exact) (N,6) and densities (N,), all float32 or all float64."""
-        with self._lock:
+        with self.call():
             real, dt, nv, vp, scale = self._setup(means, mats, densities, geometry, views, mode)
             V, U = geometry.nDetector
             N = means.shape[0]
@@ -384,30 +377,27 @@ class GaussianProjector(Operator):
             # a margin, and whatever the pooled buffers already hold), the kernels never write past
             # that capacity, and a call that needed more runs again with larger lists.
             want = int(self._pair_ratio * 1.25 * N * nv) + 4096
-            try:
-                while True:
-                    # the Gaussian indices of the entries are only read for the exact cone's straddlers
-                    b_gidx = self.io.scratch("gidx", want * 4 if uses_list else 16)
-                    b_lst = self.io.scratch(f"lst{dt.itemsize}", want * rec_len * dt.itemsize)
-                    cap = min(b_lst.size // (rec_len * dt.itemsize), 2**31 - 1)
-                    if uses_list:
-                        cap = min(cap, b_gidx.size // 4)
-                    b_alloc, alloc = self.io.zeros("alloc", 2)
-                    self._launch(prog, "preprocess", (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks),
-                                 i32(U), i32(V), dt.type(scale), i32(ntx), i32(ntiles), i32(cap), b_means, b_mats,
-                                 b_rho, b_vp, b_rec, b_box, b_cnt, b_cst, b_rbase, b_alloc, b_lst, b_gidx)
-                    self._launch(prog, "render", (round_up(ntx, lt[0]), round_up(nty, lt[1]), nv), lt, i32(U),
-                                 i32(V), i32(ntx), i32(ntiles), i32(nchunks), b_lst, b_cst, b_rbase, b_gidx,
-                                 b_means, b_mats, b_rho, b_vp, dt.type(scale), b_out)
-                    self.io.fetch([(b_alloc, alloc), (b_out, out)])  # the call's one wait
-                    total = int(alloc[0])
-                    if alloc[1] or total < 0:
-                        raise ProjectorError("more Gaussian-tile pairs than 2^31: use fewer views per call")
-                    if total <= cap:
-                        break
-                    want = total + total // 4
-            finally:
-                self.io.release()
+            while True:
+                # the Gaussian indices of the entries are only read for the exact cone's straddlers
+                b_gidx = self.io.scratch("gidx", want * 4 if uses_list else 16)
+                b_lst = self.io.scratch(f"lst{dt.itemsize}", want * rec_len * dt.itemsize)
+                cap = min(b_lst.size // (rec_len * dt.itemsize), 2**31 - 1)
+                if uses_list:
+                    cap = min(cap, b_gidx.size // 4)
+                b_alloc, alloc = self.io.zeros("alloc", 2)
+                self.launch(prog, "preprocess", (nchunks, nv), (1, 1), i32(N), i32(chunk), i32(nchunks),
+                            i32(U), i32(V), dt.type(scale), i32(ntx), i32(ntiles), i32(cap), b_means, b_mats,
+                            b_rho, b_vp, b_rec, b_box, b_cnt, b_cst, b_rbase, b_alloc, b_lst, b_gidx)
+                self.launch(prog, "render", (round_up(ntx, lt[0]), round_up(nty, lt[1]), nv), lt, i32(U),
+                            i32(V), i32(ntx), i32(ntiles), i32(nchunks), b_lst, b_cst, b_rbase, b_gidx,
+                            b_means, b_mats, b_rho, b_vp, dt.type(scale), b_out)
+                self.io.fetch([(b_alloc, alloc), (b_out, out)])  # the call's one wait
+                total = int(alloc[0])
+                if alloc[1] or total < 0:
+                    raise ProjectorError("more Gaussian-tile pairs than 2^31: use fewer views per call")
+                if total <= cap:
+                    break
+                want = total + total // 4
             self._pair_ratio = total / (N * nv)
             self.last_pairs = total
             self._rec_token = self._token
@@ -420,7 +410,7 @@ class GaussianProjector(Operator):
         entries not in ``needs`` are returned as None. ``token``: the ``last_token`` of the
         forward call with these very inputs and views; if no other forward ran since, the
         per-(view, Gaussian) set-up it left on the device is reused instead of recomputed."""
-        with self._lock:
+        with self.call():
             real, dt, nv, vp, scale = self._setup(means, mats, densities, geometry, views, mode)
             V, U = geometry.nDetector
             N = means.shape[0]
@@ -444,15 +434,12 @@ class GaussianProjector(Operator):
             rec_len = 20 if (mode == "exact" and geometry.mode == "cone") else 8
             b_rec = self.io.scratch(f"rec{dt.itemsize}", nv * N * rec_len * dt.itemsize)
             b_box = self.io.scratch("box", nv * N * 16)
-            self._launch(prog, "backward", (round_up(nitems, LG),), (LG,), np.int32(N), np.int32(per),
-                         np.int32(nv), np.int32(U), np.int32(V), dt.type(scale),
-                         np.int32(cached), b_rec, b_box, self.io.input(means, "means"),
-                         self.io.input(mats, "mats"), self.io.input(densities, "rho"), self.io.input(vp, "vp"),
-                         self.io.input(grad_out, "gimg"), *b)
-            try:
-                self.io.fetch([(buf, o) for buf, o in zip(b, outs) if o is not None])
-            finally:
-                self.io.release()
+            self.launch(prog, "backward", (round_up(nitems, LG),), (LG,), np.int32(N), np.int32(per),
+                        np.int32(nv), np.int32(U), np.int32(V), dt.type(scale),
+                        np.int32(cached), b_rec, b_box, self.io.input(means, "means"),
+                        self.io.input(mats, "mats"), self.io.input(densities, "rho"), self.io.input(vp, "vp"),
+                        self.io.input(grad_out, "gimg"), *b)
+            self.io.fetch([(buf, o) for buf, o in zip(b, outs) if o is not None])
             return tuple(outs)
 
 

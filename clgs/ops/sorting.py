@@ -7,15 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 
-# the stable argsort instead (for side-by-side timing: ``clgs bench train --alternate``)
-USE_ARGSORT = False
-
-
 def stable_order(keys: np.ndarray) -> np.ndarray:
     """int64 indices that sort ``keys`` (1-D, integers >= 0) stably."""
     keys = np.asarray(keys)
     n = keys.shape[0]
-    if USE_ARGSORT or n == 0:
+    if n == 0:
         return np.argsort(keys, kind="stable")
     shift = max(int(n - 1).bit_length(), 1)
     top = int(keys.max())

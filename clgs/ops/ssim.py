@@ -37,13 +37,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 from clgs.errors import ClgsError, InputError
-from clgs.ops.operator import Operator
 from clgs.metrics import SSIM_C1 as C1
 from clgs.metrics import SSIM_C2 as C2
 from clgs.metrics import SSIM_SIGMA as SIGMA
 from clgs.metrics import SSIM_WINDOW as WINDOW
 from clgs.metrics import gaussian_window
-from clgs.runtime import launch, real_name, shared
+from clgs.runtime import Operator, real_name, shared
 
 
 
@@ -158,17 +157,15 @@ class SSIMTarget:
         wp = 8 * self.nseg
         self.arrays = {name: _padded(t.contiguous().numpy(), wp)
                        for name, t in (("b", b), ("mub", mu_b), ("bbm", bb))}
-        self._device: dict = {}  # id(context) -> {name: buffer} (GPUs)
+        self._device: dict = {}  # context handle -> {name: buffer}
 
-    def buffers(self, ctx, queue, cpu: bool) -> dict:
-        import pyopencl as cl
-
-        key = id(ctx)
+    def buffers(self, io) -> dict:
+        """The target's arrays as read-only buffers of the operator's pool ``io`` (wrapping this
+        very memory on a CPU device, uploaded once otherwise), kept per context."""
+        key = io.ctx.int_ptr
         bufs = self._device.get(key)
         if bufs is None:
-            mf = cl.mem_flags
-            flags = mf.READ_ONLY | (mf.USE_HOST_PTR if cpu else mf.COPY_HOST_PTR)
-            bufs = self._device[key] = {k: cl.Buffer(ctx, flags, hostbuf=v) for k, v in self.arrays.items()}
+            bufs = self._device[key] = {k: io.wrap(v) for k, v in self.arrays.items()}
         return bufs
 
 
@@ -184,8 +181,9 @@ class ImageLoss(Operator):
 
     SOURCE = "ssim.cl"
 
-    def __init__(self):
-        super().__init__()
+    def __init__(self, ctx=None, queue=None):
+        """``ctx``/``queue``: where it runs (default: the process's device)."""
+        super().__init__(ctx, queue)
         self.rb = self.RB_CPU if self.cpu else self.RB_GPU
         self.local = (1, 1) if self.cpu else None
         w = window(WINDOW, SIGMA, torch.float64).tolist()
@@ -214,18 +212,16 @@ class ImageLoss(Operator):
 
     def _scratch(self, name: str, nbytes: int, layout):
         """A pooled device buffer, all zeros whenever its layout changes (its halo rows must be 0)."""
-        import pyopencl as cl
-
         buf = self.io.scratch(name, nbytes)
         zeroed = self._layout.get(name)
         if zeroed is None or zeroed[0] is not buf or zeroed[1] != layout:
-            cl.enqueue_fill_buffer(self.queue, buf, np.zeros(1, np.float64), 0, buf.size)
+            self.io.fill(buf, np.zeros(1, np.float64))
             self._layout[name] = (buf, layout)
         return buf
 
     def _launch(self, prog, name: str, gsize, *args):
-        """Enqueue a kernel (only changed arguments are set, see ``runtime.launch``)."""
-        launch(self.queue, prog.kernel(name), gsize, self.local, *args)
+        """Enqueue a kernel with this device's work-group shape (:meth:`Operator.launch`)."""
+        self.launch(prog, name, gsize, self.local, *args)
 
     def _check(self, a: np.ndarray, target: SSIMTarget) -> np.ndarray:
         if not isinstance(target, SSIMTarget):
@@ -241,8 +237,6 @@ class ImageLoss(Operator):
     # ------------------------------------------------------------------ passes
     def _forward(self, a: np.ndarray, target: SSIMTarget, grad: bool):
         """Enqueue the two forward passes; returns the (2, B, H) row sums (after waiting)."""
-        import pyopencl as cl
-
         B, H, W = a.shape
         nseg, dt = target.nseg, a.dtype
         prog = self.program(real_name(dt, "images", SSIMError))
@@ -251,14 +245,14 @@ class ImageLoss(Operator):
         nbytes = B * (H + 10) * nseg * 3 * 8 * dt.itemsize
         S = self._scratch(f"S{dt.itemsize}", nbytes, layout)
         T = self._scratch(f"T{dt.itemsize}", nbytes, layout)
-        tb = target.buffers(self.ctx, self.queue, self.io.host_memory)
+        tb = target.buffers(self.io)
         rows = np.empty((2, B, H), dt)
         b_rows = self.io.scratch(f"rows{dt.itemsize}", rows.nbytes)
         gsize = (-(-H // self.rb), B)
         self._launch(prog, "ssim_h", gsize, i32(H), i32(W), i32(nseg), self.io.input(a), tb["b"], S, b_rows)
         self._launch(prog, "ssim_v", gsize, i32(H), i32(W), i32(nseg), i32(bool(grad)), S, tb["mub"], tb["bbm"],
                      T, b_rows)
-        cl.enqueue_copy(self.queue, rows, b_rows, is_blocking=True)
+        self.io.copy(rows, b_rows, is_blocking=True)
         return rows
 
     def _grad_pass(self, a: np.ndarray, target: SSIMTarget, w_l1: float, w_ssim: float):
@@ -268,7 +262,7 @@ class ImageLoss(Operator):
         n = a.size
         layout = (B, H, target.nseg, dt.str)
         T = self._scratch(f"T{dt.itemsize}", B * (H + 10) * target.nseg * 3 * 8 * dt.itemsize, layout)
-        tb = target.buffers(self.ctx, self.queue, self.io.host_memory)
+        tb = target.buffers(self.io)
         b_out = self.io.scratch(f"out{dt.itemsize}", a.nbytes)
         i32 = np.int32
         prog = self.program(real_name(dt, "images", SSIMError))
@@ -283,7 +277,7 @@ class ImageLoss(Operator):
         With ``grad``, the backward pass is also enqueued right away with the weights of the last
         backward (training repeats them every iteration), to run while the caller goes on;
         :meth:`backward` then only collects it (any other weights: it runs again)."""
-        with self._lock:
+        with self.call():
             a = self._check(a, target)
             try:
                 rows = self._forward(a, target, grad)
@@ -305,9 +299,7 @@ class ImageLoss(Operator):
     def backward(self, a: np.ndarray, target: SSIMTarget, w_l1: float, w_ssim: float, token=None) -> np.ndarray:
         """d(w_l1 * mean|a - b| + w_ssim * mean SSIM)/da, (B, H, W). ``token``: the ``last_token``
         of the forward of this very ``a`` (with ``grad=True``); otherwise the forward is redone."""
-        import pyopencl as cl
-
-        with self._lock:
+        with self.call():
             a = self._check(a, target)
             out = np.empty(a.shape, a.dtype)
             weights = (float(w_l1), float(w_ssim))
@@ -321,7 +313,7 @@ class ImageLoss(Operator):
                     b_out = self.io.pooled(f"out{a.dtype.itemsize}")  # already enqueued by the forward
                 else:
                     b_out = self._grad_pass(a, target, *weights)
-                cl.enqueue_copy(self.queue, out, b_out, is_blocking=True)
+                self.io.copy(out, b_out, is_blocking=True)
             finally:
                 self.io.release()
             self._weights = weights

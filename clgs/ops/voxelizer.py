@@ -2,7 +2,7 @@
 
 The field is ``mu(x) = sum_i rho_i exp(-d^T P_i d / 2)`` with ``d = x - p_i`` and ``P_i`` the
 precision (inverse covariance). Each Gaussian is cut to its 3-sigma axis-aligned box
-(``clgs.ops.gaussian_math.axis_extent``): it contributes at ``x`` only where ``-e_i <= x - p_i <= e_i``
+(``clgs.reference.gaussians.axis_extent``): it contributes at ``x`` only where ``-e_i <= x - p_i <= e_i``
 on every axis. ``clgs.reference.voxelization`` computes the same field, with the same cut, in
 plain torch.
 
@@ -16,21 +16,21 @@ or float64 by the inputs' dtype; CPU tensors):
 * ``voxelize_points(means, scales, quats, densities, points) -> (M,)``: the field at arbitrary
   points (M, 3), e.g. the overlap count at the reference centres of the shape-guided start.
 * ``voxelize_precision(means, prec, densities, extent, grid_or_points)``: the same from a packed
-  precision (N, 6) and 3-sigma half-widths (N, 3) (``gaussian_math.precision``/``axis_extent``),
+  precision (N, 6) and 3-sigma half-widths (N, 3) (``gaussians.precision``/``axis_extent``),
   differentiable wrt means, prec and densities: lets a training step build them once for all
   Gaussians and reuse them for several blocks (for a 32^3 block of a 50k-Gaussian scene that torch
   work costs more than the kernel).
 * ``cov_prec(scales, quats, cov=True, prec=True, extent=False)``: covariance, precision (N, 6)
   and 3-sigma half-widths (N, 3) in one OpenCL pass, differentiable (closed-form backward kernel);
-  the values of ``gaussian_math.covariance`` / ``precision`` / ``axis_extent``. ``voxelize`` and
+  the values of ``gaussians.covariance`` / ``precision`` / ``axis_extent``. ``voxelize`` and
   ``voxelize_points`` build their precisions with it; the trainer builds the projector's
   covariances with it too.
 * ``Voxelizer``: owns the compiled programs and scratch buffers; the module functions share one.
 
-The TV loss on a small block (R2-Gaussian's random 32^3 patch) has a fused form in
-``clgs.fit.tv_patch`` (culling, field, TV and gradient rows on the device in one batch, one wait),
-built from the kernels here (``patch_*`` in ``cl/voxelizer.cl``, with ``vox_grid`` writing a padded
-layout and the gradient sums shared with ``vox_grid_grad``).
+The TV loss on a small block (R2-Gaussian's random 32^3 patch) has a fused operator,
+:class:`clgs.ops.tv_patch.PatchTV` (culling, field, TV and gradient rows on the device in one batch,
+one wait): ``cl/tv_patch.cl`` builds on this file (its ``vox_grid`` writing a padded layout, the
+gradient sums shared with ``vox_grid_grad``) with kernels of its own (``patch_*``).
 
 Accuracy: float32 kernels match the float32 torch reference to ~1e-7 of the peak. For very thin
 Gaussians (scale ratios near 1e-3) ``d^T P d`` cancels in float32 whatever the order of
@@ -68,17 +68,14 @@ from __future__ import annotations
 
 import math
 import re
-import threading
 
 import numpy as np
-import pyopencl as cl
 import torch
 
 from clgs import runtime
-from clgs.ops.operator import Operator
 from clgs.ops.sorting import stable_order
 from clgs.geometry import Grid
-from clgs.runtime import round_up
+from clgs.runtime import Operator, round_up
 from clgs.errors import InputError
 
 SOURCE = "voxelizer.cl"
@@ -118,7 +115,7 @@ def np_dtype(dtype: torch.dtype):
 
 
 def _tiny(dt) -> float:
-    """The quaternion norm below which it is clamped, as ``gaussian_math.quaternion_to_rotation``."""
+    """The quaternion norm below which it is clamped, as ``gaussians.quaternion_to_rotation``."""
     return float(np.finfo(dt).tiny) ** 0.5
 
 
@@ -171,28 +168,24 @@ def grid_candidates(means: torch.Tensor, half_widths: torch.Tensor, grid: Grid):
         return None if idx.numel() == n else idx
 
 
-_declared: set = set()
-_declared_lock = threading.Lock()
+def brick_cells(grid: Grid, brick_y: int = 8, brick_z: int = 8):
+    """Bricks (8 x ``brick_y`` x ``brick_z`` samples) of ``grid`` as binning cells: (lower corner,
+    1 / brick size, bricks per axis), all (x, y, z)."""
+    nz, ny, nx = (int(s) for s in grid.shape)
+    h = np.asarray(grid.spacing, np.float64)
+    brick = np.array([8, brick_y, brick_z], np.float64) * h
+    origin = np.asarray(grid.origin, np.float64) - 0.5 * h
+    return origin, 1.0 / brick, (-(-nx // 8), -(-ny // brick_y), -(-nz // brick_z))
 
 
-def _declare_scalars(kernel, args) -> None:
-    """Tell pyopencl the kernel's scalar argument types (from the NumPy scalars of its first call):
-    its argument setter then packs them directly, ~3 us per launch instead of ~100 us for a
-    kernel with twenty arguments (a cost paid on the host at every launch otherwise)."""
-    key = id(kernel)
-    if key in _declared:
-        return
-    dtypes = []
-    for a in args:
-        if isinstance(a, cl.MemoryObjectHolder):
-            dtypes.append(None)
-        elif isinstance(a, np.generic):
-            dtypes.append(a.dtype)
-        else:  # a Python number: leave pyopencl's own conversion
-            return
-    kernel.set_scalar_arg_dtypes(dtypes)
-    with _declared_lock:
-        _declared.add(key)
+def check_grid(grid: Grid):
+    """A clear error for anything but a 3-D :class:`~clgs.geometry.Grid` with positive, finite spacing."""
+    if not isinstance(grid, Grid):
+        raise TypeError(f"grid must be a clgs.geometry.Grid, got {type(grid).__name__}")
+    if len(grid.shape) != 3 or min(grid.shape) < 1:
+        raise InputError(f"grid shape must be 3 positive sizes (Z, Y, X), got {grid.shape}")
+    if min(grid.spacing) <= 0 or not np.all(np.isfinite(grid.spacing)) or not np.all(np.isfinite(grid.origin)):
+        raise InputError(f"grid spacing must be positive and finite, origin finite: {grid}")
 
 
 class _PointBins:
@@ -257,10 +250,8 @@ class _PointBins:
 
 
 class Voxelizer(Operator):
-    """Runs ``cl/voxelizer.cl``: owns programs per (precision, gradient set) and scratch buffers.
-
-    Not thread-safe (scratch buffers are reused between calls); use one per thread.
-    """
+    """Runs ``cl/voxelizer.cl`` (an :class:`~clgs.runtime.Operator`): programs per (precision,
+    gradient set), pooled scratch buffers, one call at a time. ``brick``: brick rows (y, z)."""
 
     SOURCE = SOURCE
 
@@ -270,11 +261,15 @@ class Voxelizer(Operator):
 
     # ------------------------------------------------------------------------- plumbing
     def program(self, np_dtype, grads=()):
-        defines = {"REAL": "double" if np_dtype == np.float64 else "float",
-                   "BRICK_Y": self.brick_y, "BRICK_Z": self.brick_z}
-        for g in grads:
-            defines[g] = True
-        return self.build(defines)
+        """The variant for this precision and set of ``WANT_*`` gradients."""
+        real = "double" if np_dtype == np.float64 else "float"
+
+        def defines():
+            d = {"REAL": real, "BRICK_Y": self.brick_y, "BRICK_Z": self.brick_z}
+            d.update({g: True for g in grads})
+            return d
+
+        return self.variant((real, tuple(grads)), defines)
 
     def device_input(self, arr: np.ndarray):
         """(buffer, array): a read-only buffer of ``arr`` and the array it reads, which the caller
@@ -284,10 +279,9 @@ class Voxelizer(Operator):
             arr = np.zeros(1, arr.dtype)
         return self.io.wrap(arr), arr
 
-    def run(self, kernel, n_items: int, *args):
-        _declare_scalars(kernel, args)
-        kernel.set_args(*args)
-        cl.enqueue_nd_range_kernel(self.queue, kernel, (round_up(max(n_items, 1), _LOCAL),), (_LOCAL,))
+    def run(self, prog, name: str, n_items: int, *args):
+        """Launch kernel ``name`` over ``n_items`` work-items in groups of ``_LOCAL``."""
+        return self.launch(prog, name, (round_up(max(n_items, 1), _LOCAL),), (_LOCAL,), *args)
 
     def _bin(self, prog, gbuf, n, real, origin, inv, nc, home=False, copy=False):
         """Counting sort of Gaussians into cells: (start (ncells+1), list, list length), where
@@ -303,14 +297,14 @@ class Voxelizer(Operator):
         hist = self.io.scratch("hist", 4 * ncells * nchunks)
         total = self.io.scratch("total", 4 * ncells)
         start = self.io.scratch("start", 4 * (ncells + 1))
-        cl.enqueue_fill_buffer(self.queue, hist, np.int32(0), 0, 4 * ncells * nchunks)
+        self.io.fill(hist, np.int32(0), 4 * ncells * nchunks)
         ranges = self.io.scratch("ranges", 32 * n)
-        self.run(prog.kernel("bin_count"), nchunks, gbuf, np.int32(n), np.int32(chunk), np.int32(nchunks),
+        self.run(prog, "bin_count", nchunks, gbuf, np.int32(n), np.int32(chunk), np.int32(nchunks),
                   np.int32(bool(home)), *cell_args, hist, ranges)
-        self.run(prog.kernel("bin_cell_offsets"), ncells, hist, np.int32(nchunks), np.int32(ncells), total)
-        self.run(prog.kernel("bin_scan"), 1, total, np.int32(ncells), start)
+        self.run(prog, "bin_cell_offsets", ncells, hist, np.int32(nchunks), np.int32(ncells), total)
+        self.run(prog, "bin_scan", 1, total, np.int32(ncells), start)
         length = np.empty(1, np.int32)
-        cl.enqueue_copy(self.queue, length, start, src_offset=4 * ncells)
+        self.io.copy(length, start, src_offset=4 * ncells)
         length = int(length[0])
         itemsize = GSTRIDE * np.dtype(real).itemsize if copy else 4
         if length < 0 or length * itemsize > self.ctx.devices[0].max_mem_alloc_size:
@@ -322,151 +316,142 @@ class Voxelizer(Operator):
         lst = self.io.scratch("list", 4 * max(length, 1))
         packed = self.io.scratch("packed", GSTRIDE * np.dtype(real).itemsize * max(length, 1)) if copy else lst
         if length > 0:
-            self.run(prog.kernel("bin_fill"), nchunks, gbuf, np.int32(n), np.int32(chunk), np.int32(nchunks),
+            self.run(prog, "bin_fill", nchunks, gbuf, np.int32(n), np.int32(chunk), np.int32(nchunks),
                       np.int32(nc[0]), np.int32(nc[1]), hist, ranges, start, lst, np.int32(bool(copy)), packed)
         return start, (packed if copy else lst), length
-
-    @staticmethod
-    def _check_grid(grid: Grid):
-        if not isinstance(grid, Grid):
-            raise TypeError(f"grid must be a clgs.geometry.Grid, got {type(grid).__name__}")
-        if len(grid.shape) != 3 or min(grid.shape) < 1:
-            raise InputError(f"grid shape must be 3 positive sizes (Z, Y, X), got {grid.shape}")
-        if min(grid.spacing) <= 0 or not np.all(np.isfinite(grid.spacing)) or not np.all(np.isfinite(grid.origin)):
-            raise InputError(f"grid spacing must be positive and finite, origin finite: {grid}")
 
     # ------------------------------------------------------------------------- grid
     def brick_cells(self, grid: Grid):
         """Bricks as binning cells: (lower corner, 1 / brick size, bricks per axis), all (x, y, z)."""
-        nz, ny, nx = (int(s) for s in grid.shape)
-        h = np.asarray(grid.spacing, np.float64)
-        brick = np.array([8, self.brick_y, self.brick_z], np.float64) * h
-        origin = np.asarray(grid.origin, np.float64) - 0.5 * h
-        return origin, 1.0 / brick, (-(-nx // 8), -(-ny // self.brick_y), -(-nz // self.brick_z))
+        return brick_cells(grid, self.brick_y, self.brick_z)
 
     def grid_forward(self, gauss: torch.Tensor, grid: Grid) -> torch.Tensor:
         """Field on ``grid`` from packed Gaussians ``gauss`` (N, 16) -> (Z, Y, X) tensor."""
-        self._check_grid(grid)
-        dt = np_dtype(gauss.dtype)
-        nz, ny, nx = (int(s) for s in grid.shape)
-        out = np.zeros((nz, ny, nx), dt)
-        n = gauss.shape[0]
-        if n == 0:
+        with self.call():
+            check_grid(grid)
+            dt = np_dtype(gauss.dtype)
+            nz, ny, nx = (int(s) for s in grid.shape)
+            out = np.zeros((nz, ny, nx), dt)
+            n = gauss.shape[0]
+            if n == 0:
+                return torch.from_numpy(out)
+            real = dt
+            prog = self.program(dt)
+            xs, ys, zs = grid_axes(grid, dt)
+            nxp = round_up(nx, 8) + 8
+            xs_p = np.concatenate([xs, (np.float64(grid.origin[0]) + np.float64(grid.spacing[0])
+                                        * np.arange(nx, nxp)).astype(dt)])
+            gnp = gauss.detach().numpy()
+            gbuf, gkeep = self.device_input(gnp)
+            xb, xk = self.device_input(xs_p)
+            yb, yk = self.device_input(ys)
+            zb, zk = self.device_input(zs)
+            origin, inv, (nbx, nby, nbz) = self.brick_cells(grid)
+            nbricks = nbx * nby * nbz
+            if nbricks <= SMALL_CELLS and nbricks * n <= _SMALL_PAIRS:
+                # a small grid (a TV patch): lists by one work-item, no host round trip
+                start = self.io.scratch("start", 4 * (nbricks + 1))
+                lst = self.io.scratch("list", 4 * nbricks * n)
+                self.run(prog, "bin_small", 1, gbuf, np.int32(n), real(origin[0]), real(origin[1]),
+                          real(origin[2]), real(inv[0]), real(inv[1]), real(inv[2]), np.int32(nbx), np.int32(nby),
+                          np.int32(nbz), start, lst)
+                packed, length, indexed = gbuf, 1, 1
+            else:
+                start, packed, length = self._bin(prog, gbuf, n, real, origin, inv, (nbx, nby, nbz), copy=True)
+                lst, indexed = start, 0
+            if length:
+                obuf = self.io.output(out)
+                self.run(prog, "vox_grid", nbricks, packed, start, lst, np.int32(indexed), xb, yb, zb,
+                         np.int32(nx), np.int32(ny), np.int32(nz), np.int32(nbx), np.int32(nby), np.int32(nbricks),
+                         obuf, np.int32(nx), np.int32(0))
+                self.io.fetch([(obuf, out)])
+            else:
+                self.io.fetch([])  # nothing to read back: wait for the queue
+            del gkeep, xk, yk, zk
             return torch.from_numpy(out)
-        real = dt
-        prog = self.program(dt)
-        xs, ys, zs = grid_axes(grid, dt)
-        nxp = round_up(nx, 8) + 8
-        xs_p = np.concatenate([xs, (np.float64(grid.origin[0]) + np.float64(grid.spacing[0])
-                                    * np.arange(nx, nxp)).astype(dt)])
-        gnp = gauss.detach().numpy()
-        gbuf, gkeep = self.device_input(gnp)
-        xb, xk = self.device_input(xs_p)
-        yb, yk = self.device_input(ys)
-        zb, zk = self.device_input(zs)
-        origin, inv, (nbx, nby, nbz) = self.brick_cells(grid)
-        nbricks = nbx * nby * nbz
-        if nbricks <= SMALL_CELLS and nbricks * n <= _SMALL_PAIRS:
-            # a small grid (a TV patch): lists by one work-item, no host round trip
-            start = self.io.scratch("start", 4 * (nbricks + 1))
-            lst = self.io.scratch("list", 4 * nbricks * n)
-            self.run(prog.kernel("bin_small"), 1, gbuf, np.int32(n), real(origin[0]), real(origin[1]),
-                      real(origin[2]), real(inv[0]), real(inv[1]), real(inv[2]), np.int32(nbx), np.int32(nby),
-                      np.int32(nbz), start, lst)
-            packed, length, indexed = gbuf, 1, 1
-        else:
-            start, packed, length = self._bin(prog, gbuf, n, real, origin, inv, (nbx, nby, nbz), copy=True)
-            lst, indexed = start, 0
-        if length:
-            obuf = self.io.output(out)
-            self.run(prog.kernel("vox_grid"), nbricks, packed, start, lst, np.int32(indexed), xb, yb, zb,
-                      np.int32(nx), np.int32(ny), np.int32(nz), np.int32(nbx), np.int32(nby), np.int32(nbricks), obuf,
-                      np.int32(nx), np.int32(0))
-            self.io.fetch([(obuf, out)])
-        else:
-            self.queue.finish()
-        del gkeep, xk, yk, zk
-        return torch.from_numpy(out)
 
     def grid_backward(self, gauss: torch.Tensor, grid: Grid, grad_out: torch.Tensor, want) -> torch.Tensor:
         """(N, 10) gradient rows ``[dp (3), dP (6), drho]`` from dL/dfield ``grad_out`` (Z, Y, X).
 
         ``want`` is a subset of ``("WANT_MEAN", "WANT_PREC", "WANT_RHO")``."""
-        dt = np_dtype(gauss.dtype)
-        n = gauss.shape[0]
-        grad = np.zeros((n, GRADSTRIDE), dt)
-        if n == 0 or not want:
+        with self.call():
+            dt = np_dtype(gauss.dtype)
+            n = gauss.shape[0]
+            grad = np.zeros((n, GRADSTRIDE), dt)
+            if n == 0 or not want:
+                return torch.from_numpy(grad)
+            nz, ny, nx = (int(s) for s in grid.shape)
+            prog = self.program(dt, tuple(sorted(want)))
+            xs, ys, zs = grid_axes(grid, dt)
+            nxp = round_up(nx, 8) + 8
+            xs_p = np.concatenate([xs, (np.float64(grid.origin[0]) + np.float64(grid.spacing[0])
+                                        * np.arange(nx, nxp)).astype(dt)])
+            g_np = grad_out.detach().to(gauss.dtype).contiguous().numpy()
+            gbuf, gkeep = self.device_input(gauss.detach().numpy())
+            xb, xk = self.device_input(xs_p)
+            yb, yk = self.device_input(ys)
+            zb, zk = self.device_input(zs)
+            ob, ok = self.device_input(g_np)
+            if g_np.nbytes <= _UNSORTED_BYTES:  # dL/dfield stays in cache: no sort, no round trip
+                order, kept, sort = gbuf, n, 0
+            else:
+                _, order, kept = self._bin(prog, gbuf, n, dt, *self.brick_cells(grid), home=True)
+                sort = 1
+            if kept:
+                rbuf = self.io.output(grad, initial=True)
+                self.run(prog, "vox_grid_grad", kept, gbuf, order, np.int32(sort), np.int32(kept), xb, yb, zb,
+                          np.int32(nx), np.int32(ny), np.int32(nz), ob, rbuf)
+                self.io.fetch([(rbuf, grad)])
+            else:
+                self.io.fetch([])  # nothing to read back: wait for the queue
+            del gkeep, xk, yk, zk, ok
             return torch.from_numpy(grad)
-        nz, ny, nx = (int(s) for s in grid.shape)
-        prog = self.program(dt, tuple(sorted(want)))
-        xs, ys, zs = grid_axes(grid, dt)
-        nxp = round_up(nx, 8) + 8
-        xs_p = np.concatenate([xs, (np.float64(grid.origin[0]) + np.float64(grid.spacing[0])
-                                    * np.arange(nx, nxp)).astype(dt)])
-        g_np = grad_out.detach().to(gauss.dtype).contiguous().numpy()
-        gbuf, gkeep = self.device_input(gauss.detach().numpy())
-        xb, xk = self.device_input(xs_p)
-        yb, yk = self.device_input(ys)
-        zb, zk = self.device_input(zs)
-        ob, ok = self.device_input(g_np)
-        if g_np.nbytes <= _UNSORTED_BYTES:  # dL/dfield stays in cache: no sort, no round trip
-            order, kept, sort = gbuf, n, 0
-        else:
-            _, order, kept = self._bin(prog, gbuf, n, dt, *self.brick_cells(grid), home=True)
-            sort = 1
-        if kept:
-            rbuf = self.io.output(grad, initial=True)
-            self.run(prog.kernel("vox_grid_grad"), kept, gbuf, order, np.int32(sort), np.int32(kept), xb, yb, zb,
-                      np.int32(nx), np.int32(ny), np.int32(nz), ob, rbuf)
-            self.io.fetch([(rbuf, grad)])
-        else:
-            self.queue.finish()
-        del gkeep, xk, yk, zk, ok
-        return torch.from_numpy(grad)
 
     # ------------------------------------------------------------------------- matrices
     def cov_prec_forward(self, scales: torch.Tensor, quats: torch.Tensor, want: int):
         """(covariance, precision, 3-sigma half-widths) of N Gaussians, (N, 6), (N, 6), (N, 3), each
         computed when bit 0, 1, 2 of ``want`` is set (else an empty tensor); no autograd."""
-        dt = np_dtype(scales.dtype)
-        n = scales.shape[0]
-        shapes = ((n, 6), (n, 6), (n, 3))
-        outs = [np.empty(shape if want >> b & 1 else (0,), dt) for b, shape in enumerate(shapes)]
-        if n:
-            prog = self.program(dt)
-            sb, sk = self.device_input(scales.detach().numpy())
-            qb, qk = self.device_input(quats.detach().numpy())
-            bufs = [self.io.output(o) if o.size else sb for o in outs]
-            self.run(prog.kernel("cov_prec"), -(-n // 8), sb, qb, np.int32(n), np.int32(want), dt(_tiny(dt)), *bufs)
-            self.io.fetch([(b, o) for b, o in zip(bufs, outs) if o.size])
-            del sk, qk
-        return tuple(torch.from_numpy(o) for o in outs)
+        with self.call():
+            dt = np_dtype(scales.dtype)
+            n = scales.shape[0]
+            shapes = ((n, 6), (n, 6), (n, 3))
+            outs = [np.empty(shape if want >> b & 1 else (0,), dt) for b, shape in enumerate(shapes)]
+            if n:
+                prog = self.program(dt)
+                sb, sk = self.device_input(scales.detach().numpy())
+                qb, qk = self.device_input(quats.detach().numpy())
+                bufs = [self.io.output(o) if o.size else sb for o in outs]
+                self.run(prog, "cov_prec", -(-n // 8), sb, qb, np.int32(n), np.int32(want), dt(_tiny(dt)), *bufs)
+                self.io.fetch([(b, o) for b, o in zip(bufs, outs) if o.size])
+                del sk, qk
+            return tuple(torch.from_numpy(o) for o in outs)
 
     def cov_prec_backward(self, scales: torch.Tensor, quats: torch.Tensor, g_cov, g_prec):
         """(dL/dscales (N, 3), dL/dquats (N, 4)) from the packed gradients of the covariance and of
         the precision (N, 6) (either may be None)."""
-        dt = np_dtype(scales.dtype)
-        n = scales.shape[0]
-        ds, dq = np.empty((n, 3), dt), np.empty((n, 4), dt)
-        if n:
-            prog = self.program(dt)
-            sb, sk = self.device_input(scales.detach().numpy())
-            qb, qk = self.device_input(quats.detach().numpy())
-            has, keep, gbufs = 0, [], []
-            for bit, g in enumerate((g_cov, g_prec)):
-                if g is None:
-                    gbufs.append(sb)
-                    continue
-                has |= 1 << bit
-                gb, gk = self.device_input(g.detach().to(scales.dtype).contiguous().numpy())
-                gbufs.append(gb)
-                keep.append(gk)
-            dsb, dqb = self.io.output(ds), self.io.output(dq)
-            self.run(prog.kernel("cov_prec_grad"), -(-n // 8), sb, qb, np.int32(n), np.int32(has), dt(_tiny(dt)),
-                     *gbufs, dsb, dqb)
-            self.io.fetch([(dsb, ds), (dqb, dq)])
-            del sk, qk, keep
-        return torch.from_numpy(ds), torch.from_numpy(dq)
+        with self.call():
+            dt = np_dtype(scales.dtype)
+            n = scales.shape[0]
+            ds, dq = np.empty((n, 3), dt), np.empty((n, 4), dt)
+            if n:
+                prog = self.program(dt)
+                sb, sk = self.device_input(scales.detach().numpy())
+                qb, qk = self.device_input(quats.detach().numpy())
+                has, keep, gbufs = 0, [], []
+                for bit, g in enumerate((g_cov, g_prec)):
+                    if g is None:
+                        gbufs.append(sb)
+                        continue
+                    has |= 1 << bit
+                    gb, gk = self.device_input(g.detach().to(scales.dtype).contiguous().numpy())
+                    gbufs.append(gb)
+                    keep.append(gk)
+                dsb, dqb = self.io.output(ds), self.io.output(dq)
+                self.run(prog, "cov_prec_grad", -(-n // 8), sb, qb, np.int32(n), np.int32(has), dt(_tiny(dt)),
+                         *gbufs, dsb, dqb)
+                self.io.fetch([(dsb, ds), (dqb, dq)])
+                del sk, qk, keep
+            return torch.from_numpy(ds), torch.from_numpy(dq)
 
     # ------------------------------------------------------------------------- points
     def point_bins(self, points: np.ndarray, extent: torch.Tensor) -> _PointBins:
@@ -475,57 +460,59 @@ class Voxelizer(Operator):
 
     def points_forward(self, gauss: torch.Tensor, points: np.ndarray, bins: _PointBins | None = None):
         """Field at ``points`` (M, 3) -> ((M,) tensor, the point bins for the backward)."""
-        dt = np_dtype(gauss.dtype)
-        m, n = points.shape[0], gauss.shape[0]
-        if m == 0:
-            return torch.zeros(0, dtype=gauss.dtype), None
-        if bins is None:
-            bins = self.point_bins(points, gauss[:, 10:13])
-        if n == 0:
-            return torch.zeros(m, dtype=gauss.dtype), bins
-        prog = self.program(dt)
-        gbuf, gkeep = self.device_input(gauss.detach().numpy())
-        start, packed, length = self._bin(prog, gbuf, n, dt, bins.origin, (bins.inv,) * 3, bins.nc, copy=True)
-        out = np.zeros(bins.total, dt)
-        if length:
-            xb, xk = self.device_input(bins.X)
-            yb, yk = self.device_input(bins.Y)
-            zb, zk = self.device_input(bins.Z)
-            cb, ck = self.device_input(bins.chunk_cell)
-            obuf = self.io.output(out)
-            nchunks = bins.total // 8
-            self.run(prog.kernel("vox_points"), nchunks, packed, start, xb, yb, zb, cb, np.int32(nchunks), obuf)
-            self.io.fetch([(obuf, out)])
-            del xk, yk, zk, ck
-        else:
-            self.queue.finish()
-        del gkeep
-        return torch.from_numpy(out[bins.slot]), bins
+        with self.call():
+            dt = np_dtype(gauss.dtype)
+            m, n = points.shape[0], gauss.shape[0]
+            if m == 0:
+                return torch.zeros(0, dtype=gauss.dtype), None
+            if bins is None:
+                bins = self.point_bins(points, gauss[:, 10:13])
+            if n == 0:
+                return torch.zeros(m, dtype=gauss.dtype), bins
+            prog = self.program(dt)
+            gbuf, gkeep = self.device_input(gauss.detach().numpy())
+            start, packed, length = self._bin(prog, gbuf, n, dt, bins.origin, (bins.inv,) * 3, bins.nc, copy=True)
+            out = np.zeros(bins.total, dt)
+            if length:
+                xb, xk = self.device_input(bins.X)
+                yb, yk = self.device_input(bins.Y)
+                zb, zk = self.device_input(bins.Z)
+                cb, ck = self.device_input(bins.chunk_cell)
+                obuf = self.io.output(out)
+                nchunks = bins.total // 8
+                self.run(prog, "vox_points", nchunks, packed, start, xb, yb, zb, cb, np.int32(nchunks), obuf)
+                self.io.fetch([(obuf, out)])
+                del xk, yk, zk, ck
+            else:
+                self.io.fetch([])  # nothing to read back: wait for the queue
+            del gkeep
+            return torch.from_numpy(out[bins.slot]), bins
 
     def points_backward(self, gauss: torch.Tensor, bins: _PointBins, grad_out: torch.Tensor, want) -> torch.Tensor:
         """(N, 10) gradient rows from dL/dfield at the points (M,)."""
-        dt = np_dtype(gauss.dtype)
-        n = gauss.shape[0]
-        grad = np.zeros((n, GRADSTRIDE), dt)
-        if n == 0 or bins is None or not want:
+        with self.call():
+            dt = np_dtype(gauss.dtype)
+            n = gauss.shape[0]
+            grad = np.zeros((n, GRADSTRIDE), dt)
+            if n == 0 or bins is None or not want:
+                return torch.from_numpy(grad)
+            prog = self.program(dt, tuple(sorted(want)))
+            gp = np.zeros(bins.total, dt)
+            gp[bins.slot] = grad_out.detach().to(gauss.dtype).numpy()
+            gbuf, gkeep = self.device_input(gauss.detach().numpy())
+            xb, xk = self.device_input(bins.X)
+            yb, yk = self.device_input(bins.Y)
+            zb, zk = self.device_input(bins.Z)
+            pb, pk = self.device_input(gp)
+            sb, sk = self.device_input(bins.cell_pstart)
+            rbuf = self.io.output(grad)
+            o, nc = bins.origin, bins.nc
+            self.run(prog, "vox_points_grad", n, gbuf, np.int32(n),
+                      dt(o[0]), dt(o[1]), dt(o[2]), dt(bins.inv), dt(bins.inv), dt(bins.inv),
+                      np.int32(nc[0]), np.int32(nc[1]), np.int32(nc[2]), sb, xb, yb, zb, pb, rbuf)
+            self.io.fetch([(rbuf, grad)])
+            del gkeep, xk, yk, zk, pk, sk
             return torch.from_numpy(grad)
-        prog = self.program(dt, tuple(sorted(want)))
-        gp = np.zeros(bins.total, dt)
-        gp[bins.slot] = grad_out.detach().to(gauss.dtype).numpy()
-        gbuf, gkeep = self.device_input(gauss.detach().numpy())
-        xb, xk = self.device_input(bins.X)
-        yb, yk = self.device_input(bins.Y)
-        zb, zk = self.device_input(bins.Z)
-        pb, pk = self.device_input(gp)
-        sb, sk = self.device_input(bins.cell_pstart)
-        rbuf = self.io.output(grad)
-        o, nc = bins.origin, bins.nc
-        self.run(prog.kernel("vox_points_grad"), n, gbuf, np.int32(n),
-                  dt(o[0]), dt(o[1]), dt(o[2]), dt(bins.inv), dt(bins.inv), dt(bins.inv),
-                  np.int32(nc[0]), np.int32(nc[1]), np.int32(nc[2]), sb, xb, yb, zb, pb, rbuf)
-        self.io.fetch([(rbuf, grad)])
-        del gkeep, xk, yk, zk, pk, sk
-        return torch.from_numpy(grad)
 
 
 # ----------------------------------------------------------------------------- autograd ops
@@ -602,8 +589,8 @@ class _CovPrec(torch.autograd.Function):
 def cov_prec(scales, quats, cov: bool = True, prec: bool = True, extent: bool = False,
              voxelizer: Voxelizer | None = None):
     """(covariance, precision, half-widths) of N Gaussians from activated scales (N, 3) and raw
-    quaternions (N, 4), as ``gaussian_math.covariance`` (N, 6), ``gaussian_math.precision`` (N, 6)
-    and ``gaussian_math.axis_extent`` (N, 3, no gradient), each None when not asked.
+    quaternions (N, 4), as ``gaussians.covariance`` (N, 6), ``gaussians.precision`` (N, 6)
+    and ``gaussians.axis_extent`` (N, 3, no gradient), each None when not asked.
 
     One OpenCL kernel for all three and one for the closed-form backward: on a CPU this is ~20x
     cheaper than the same maths as element-wise torch on (N,) columns (dozens of passes over
@@ -661,7 +648,7 @@ def voxelize(means, scales, quats, densities, grid: Grid, voxelizer: Voxelizer |
     densities (N,) activated. Differentiable wrt all four.
     """
     prec, extent = _prepare(means, scales, quats, densities)
-    Voxelizer._check_grid(grid)
+    check_grid(grid)
     return voxelize_precision(means, prec, densities, extent, grid, voxelizer)
 
 
@@ -691,7 +678,7 @@ def voxelize_precision(means, prec, densities, extent, where, voxelizer: Voxeliz
     vox = voxelizer or default_voxelizer()
     extent = extent.detach()
     if isinstance(where, Grid):
-        Voxelizer._check_grid(where)
+        check_grid(where)
         idx = grid_candidates(means, extent, where) if cull else None  # same field, less to pack and bin
         if idx is not None:
             means, prec, densities, extent = (t.index_select(0, idx) for t in (means, prec, densities, extent))

@@ -21,7 +21,7 @@ import math
 import numpy as np
 import torch
 
-from clgs.ops.gaussian_math import unpack_sym
+from clgs.reference.gaussians import unpack_sym
 
 NEAR_PLANE = 0.2
 QCUT = 9.0

@@ -2,7 +2,7 @@
 
 Same field and the same cut as the kernels: Gaussian i contributes
 ``rho_i exp(-d^T P_i d / 2)``, ``d = x - p_i``, only where ``-e_i <= d <= e_i`` on every axis
-(``e_i`` its 3-sigma half-widths, ``clgs.ops.gaussian_math.axis_extent``), with ``d`` computed in the
+(``e_i`` its 3-sigma half-widths, ``clgs.reference.gaussians.axis_extent``), with ``d`` computed in the
 input dtype exactly as the kernels compute it; autograd gives the gradients.
 
 ``field_at_points``/``voxelize``/``voxelize_points`` are dense over (points x Gaussians): slow but
@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from clgs.ops.gaussian_math import axis_extent, precision
+from clgs.reference.gaussians import axis_extent, precision
 
 
 def field_at_points(means, prec, densities, extent, points, chunk: int = 1 << 22) -> torch.Tensor:

@@ -5,8 +5,8 @@ become visible in the array by mapping its buffer. On other devices arrays are c
 buffers and back. Scratch buffers (lists, partial sums, records) are pooled by name and reused
 call after call, grown by a quarter when too small, so a training loop allocates nothing.
 
-One :class:`BufferPool` per operator instance; like the operators it is not meant to be used
-from two threads at once (the projector and the image loss hold their own lock around it).
+One :class:`BufferPool` per operator instance (:class:`clgs.runtime.operator.Operator`), used
+inside the operator's lock (``with op.call():``), never from two threads at once.
 """
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ class BufferPool:
         self._owner = owner  # the operator: its context and queue, read at each use (a benchmark may swap the queue)
         self.host_memory = bool(host_memory)  # wrap host arrays (CPU devices) or copy them
         self._pool: dict = {}
+        self._host: dict = {}
         self.keep: list = []
 
     @property
@@ -48,6 +49,51 @@ class BufferPool:
     def pooled(self, name: str):
         """The scratch buffer ``name`` as it is (a result an earlier call left there)."""
         return self._pool[name]
+
+    def new(self, nbytes: int):
+        """A device buffer of ``nbytes`` that the caller keeps (tables cached across calls); not pooled."""
+        import pyopencl as cl
+
+        return cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, size=max(int(nbytes), 64))
+
+    def constant(self, arr: np.ndarray):
+        """A read-only device copy of ``arr`` that the caller keeps as long as it likes (tables
+        cached across calls); not pooled, ``arr`` may go right away."""
+        import pyopencl as cl
+
+        return cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=arr)
+
+    def host_block(self, name: str, nbytes: int, align: int = 4096):
+        """(host byte array, buffer): a pooled ``align``-aligned host array of at least ``nbytes``
+        (a power of two, 4 KiB at least) with a buffer kernels write into: its own memory on a CPU
+        device, a device buffer that :meth:`fetch` copies back otherwise. Sub-buffers of one block
+        let one map or copy bring several outputs back."""
+        import pyopencl as cl
+
+        entry = self._host.get(name)
+        if entry is None or entry[0].size < nbytes:
+            size = 1 << max(int(max(nbytes, 1) - 1).bit_length(), 12)
+            raw = np.zeros(size + align, np.uint8)
+            off = -raw.ctypes.data % align
+            arr = raw[off:off + size]
+            if self.host_memory:
+                buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
+            else:
+                buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, size=size)
+            entry = self._host[name] = (arr, buf)
+        return entry
+
+    def copy(self, dst, src, **kwargs):
+        """Enqueue a copy between buffers (or a buffer and a host array) on the operator's queue."""
+        import pyopencl as cl
+
+        return cl.enqueue_copy(self.queue, dst, src, **kwargs)
+
+    def fill(self, buf, pattern, nbytes: int | None = None):
+        """Enqueue filling ``nbytes`` (default all) of ``buf`` with the NumPy scalar/array ``pattern``."""
+        import pyopencl as cl
+
+        return cl.enqueue_fill_buffer(self.queue, buf, pattern, 0, buf.size if nbytes is None else nbytes)
 
     # ------------------------------------------------------------------------ host arrays
     def wrap(self, arr: np.ndarray):

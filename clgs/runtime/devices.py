@@ -121,7 +121,7 @@ def probe(dev) -> str | None:
             return _probes[key]
     import numpy as np
 
-    from .programs import build, cl_source_dir
+    from .compiler import build, cl_source_dir
 
     error = None
     try:

@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from clgs.fit.gaussians import GaussianSet
-from clgs.ops.fixed_points import FixedPointSampler
+from clgs.fit.fixed_points import FixedPointSampler
 from clgs.shape.model import exp_velocity, squarings_for
 from clgs.shape.template import zyx_triple
 
@@ -28,7 +28,7 @@ class ShapeGuidedSet(GaussianSet):
     Leaves: ``alpha`` (M,), raw scales, quaternions, raw densities. ``p_ref`` is fixed."""
 
     MIN_SQUARINGS = 2
-    # the centres through a sparse matrix built once (clgs.ops.fixed_points); False: grid_sample
+    # the centres through a sparse matrix built once (clgs.fit.fixed_points); False: grid_sample
     # each time (kept for side-by-side timing, ``clgs bench train --method shape --alternate``)
     FIXED_POINTS = True
     # The centres between refreshes of exp(v): u(alpha) = u(a0) + J (alpha - a0), J the secant
