@@ -698,11 +698,11 @@ def _experiment_command(anatomy) -> click.Command:
                     f"held-out subjects only: {', '.join(held) if held else '(the plugin has none)'}",
                     param_hint="--subjects")
         per_run = {"log_every": log_every, "checkpoint_every": 0}
-        shape_opts = parse_settings(shape_settings)
-        if shape_opts:  # fail now, not in every run
-            from clgs.methods.shape_guided import ShapeGuidedConfig
-
-            ShapeGuidedConfig.from_json(shape_opts)
+        raw: dict = {}
+        shape_opts = parse_settings(shape_settings, raw)
+        if shape_opts:  # fail now, not in every run; checked as every --set is
+            m, run = _get_method("shape")
+            shape_opts = check_settings("shape", m, run, shape_opts, raw)
         summary = run_experiment(anatomy, out, views=views, subjects=ids, iterations=iterations,
                                  ablation_views=ablation_views or None, seed=seed, progress=progress,
                                  settings={"r2gs": per_run, "shape": {**per_run, **shape_opts}}, echo=click.echo,
