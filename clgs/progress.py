@@ -49,8 +49,15 @@ def on_terminal(stream=None) -> bool:
         return False
 
 
+def progress_enabled() -> bool:
+    """False under ``clgs --quiet`` (CLGS_VERBOSITY=quiet): no bar, whatever the caller asked."""
+    return os.environ.get("CLGS_VERBOSITY", "").strip().lower() != "quiet"
+
+
 def progress_bar(iterable=None, **kwargs):
     """A tqdm bar (same arguments as ``tqdm``): live on a terminal, log lines elsewhere."""
+    if not progress_enabled():
+        kwargs["disable"] = True
     if on_terminal(kwargs.get("file")):
         from tqdm.auto import tqdm
 

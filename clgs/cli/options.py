@@ -220,19 +220,3 @@ def force_option(detail: str = "", aliases=()):
     return click.option("--force", "force", cls=AliasOption, aliases=aliases, is_flag=True,
                         help=FORCE_HELP + (f": {detail}" if detail else ""))
 
-
-class ViewCounts(click.ParamType):
-    """View counts: ``5,10,25`` -> (5, 10, 25), each a whole number of at least 1."""
-
-    name = "count[,count...]"
-
-    def convert(self, value, param, ctx):
-        if isinstance(value, (tuple, list)):
-            return tuple(value)
-        try:
-            counts = tuple(int(v) for v in str(value).split(",") if v.strip())
-        except ValueError:
-            counts = ()
-        if not counts or min(counts) < 1:
-            self.fail(f"{value!r}: give view counts of at least 1, e.g. 5,10,25", param, ctx)
-        return counts

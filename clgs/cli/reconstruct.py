@@ -25,7 +25,8 @@ from clgs.cli.common import (
     out_of_memory,
     remove_empty,
 )
-from clgs.cli.options import FiniteFloat, check_option_values, method_params
+from clgs.cli.verbosity import detail, info, is_verbose
+from clgs.cli.options import FiniteFloat, check_option_values, force_option, method_params, out_option
 
 
 METHOD_KEY = "clgs.reconstruct.method"  # ctx.meta: (method record or None, its click options)
@@ -157,14 +158,14 @@ def _prepare_outputs(scan, out, json_out, force, into_folder: bool, resuming: bo
 @click.command(cls=_ReconstructCommand, add_help_option=False)
 @click.argument("scan", type=click.Path(path_type=Path), required=False)
 @click.option("--method", "-m", "method_name", default="fdk", show_default=True, help="reconstruction method")
-@click.option("--out", "-o", "out", type=click.Path(path_type=Path), default=None,
-              help="a volume file (.nii.gz, .nii, .npy) or a folder (volume.nii.gz, volume.npy, report.json, "
+@out_option(type=click.Path(path_type=Path),
+            help="a volume file (.nii.gz, .nii, .npy) or a folder (volume.nii.gz, volume.npy, report.json, "
                    "method extras)")
 @click.option("--split", type=click.Choice(["train", "test"]), default="train", show_default=True,
               help="which views of an R2-Gaussian dataset folder to use")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="also write the report (method, options, time, metrics) to this JSON file")
-@click.option("--force", is_flag=True, help="overwrite an existing --out")
+@force_option("replace an existing --out (and --json)")
 @click.option("--to-hu", "hu", is_flag=True,
               help="write the volume in Hounsfield units, at the X-ray energy the scan records (a simulation of a "
                    "CT with `simulate --hu`) or --kev [default: attenuation, 1/mm]")
@@ -276,6 +277,7 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
                     report[key]["path"] = str(Path(out) / Path(report[key]["path"]).name)
             atomic.write_json(folder / "report.json", report)
 
+    t_start = time.perf_counter()
     sc = None
     report = {"method": method.name, "options": options, "scan": str(scan)}
     claimed = contextlib.ExitStack()  # the lock on --out, held until the report is written
@@ -293,8 +295,9 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
             except UnitsError as exc:
                 raise click.UsageError(str(exc)) from None
             report["volume_orientation"] = sc.geometry.orientation
-            click.echo(f"{method.name}: {sc.n_views} views, {'x'.join(map(str, sc.geometry.nVoxel))} voxels",
-                       err=True)
+            info(f"{method.name}: {sc.n_views} views, {'x'.join(map(str, sc.geometry.nVoxel))} voxels")
+            if is_verbose():
+                _say_detail(method, options, sc, time.perf_counter() - t_start)
             try:
                 run = method.callable()
             except (ImportError, AttributeError) as exc:
@@ -339,11 +342,27 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
             line += f"; metrics undefined ({m.get('metrics_undefined')}); the volume is written"
         else:
             line += f", PSNR {fmt_number(m['psnr3d'])} dB, SSIM {m['ssim3d']:.4f}"
+    detail(f"timings: {time.perf_counter() - t_start:.2f} s in all, {report['seconds']:.2f} s in the method")
     click.echo(line)
     click.echo(f"wrote {out}")
     for text in figure_lines(report):
         click.echo(text)
     exit_if_interrupted(report.get("info"))
+
+
+def _say_detail(method, options: dict, scan, seconds: float) -> None:
+    """``clgs --verbose``: the device, the settings the run uses, the time to load the scan."""
+    import json
+
+    try:
+        from clgs.runtime import device
+
+        detail(f"device: {device().name.strip()}")
+    except Exception as exc:  # noqa: BLE001 - no OpenCL device: the method says so if it needs one
+        detail(f"device: none ({exc})")
+    detail(f"settings: {json.dumps(options, sort_keys=True, default=str) if options else '(the method defaults)'}")
+    detail(f"scan loaded in {seconds:.2f} s ({scan.geometry.mode} beam, detector "
+           f"{scan.geometry.nDetector[0]} x {scan.geometry.nDetector[1]})")
 
 
 def _takes_surface_level(method) -> bool:

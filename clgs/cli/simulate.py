@@ -19,6 +19,7 @@ from clgs.cli.common import (
 )
 from clgs.cli.options import AliasOption, FiniteFloat, Seed, distance_options, force_option, out_option
 from clgs.cli.settings import option_settings
+from clgs.cli.verbosity import detail, info
 
 
 SIMULATION_SETTINGS = ("views", "arc", "mode", "DSO", "DSD", "detector", "pixel", "I0", "sigma", "scatter", "seed",
@@ -169,10 +170,10 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
             grid=recon_shape, protocol=protocol, noise=noise,
             I0=I0, sigma=sigma, scatter=scatter, seed=seed, surface_level=surface_level, name=str(volume),
             warn=lambda message: click.echo(f"warning: {message}", err=True), meta=meta,
-            announce=lambda geo, shape: click.echo(
+            announce=lambda geo, shape: info(
                 f"projecting {geo.n_views} {geo.mode}-beam views of a {'x'.join(map(str, shape))} volume "
                 f"({protocol} grid; reconstruction grid {'x'.join(map(str, recon_shape))}) onto "
-                f"{geo.nDetector[0]}x{geo.nDetector[1]} pixels of {geo.dDetector[0]:.3g} mm ...", err=True))
+                f"{geo.nDetector[0]}x{geo.nDetector[1]} pixels of {geo.dDetector[0]:.3g} mm ..."))
     except GeometryError as exc:
         raise click_error(exc, "invalid scanner") from None
     except MemoryError:
@@ -181,6 +182,8 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
         raise click_error(exc) from None
     elapsed = time.perf_counter() - t0
     views = scan.n_views
+    acq = scan.meta.get("acquisition") or {}
+    detail("settings: " + ", ".join(f"{k}={acq[k]}" for k in ("noise", "I0", "sigma", "scatter", "seed") if k in acq))
     try:
         scan.save(out, overwrite=force)
     except (ScanError, FileExistsError) as exc:
