@@ -25,6 +25,7 @@ from clgs.cli.cohort_options import check_cohort_options, cohort_options
 from clgs.cli.common import check_memory, check_not_input, exit_if_interrupted
 from clgs.cli.options import FiniteFloat, Seed, force_option, mesh_space_option, out_option
 from clgs.cli.settings import check_settings, option_settings, parse_settings
+from clgs.cli.verbosity import detail, info
 from clgs.errors import ClgsError
 
 # --------------------------------------------------------------------------------------- errors
@@ -501,7 +502,7 @@ def _build_model_command(anatomy) -> click.Command:
             from clgs.experiment import anatomy_by_name
 
             settings["run_registrations"] = registration_runner(anatomy_by_name(anatomy), workers or None, scheduler,
-                                                                echo=click.echo)
+                                                                echo=info)
         t0 = time.perf_counter()
         if anatomy.build_model is not None:
             if "run_registrations" in settings and not _takes(anatomy.build_model, "run_registrations"):
@@ -637,8 +638,8 @@ def _run_demo(anatomy, subject, views, method, out, seed, surface_level, opts, t
     name = anatomy.name
     scene = anatomy.scene or {}
     scan = _simulate(anatomy, subject, views, math.radians(float(scene.get("arc_deg", 180.0))), True, seed)
-    click.echo(f"{name} demo: subject {subject.id}, {views} views, method {method} "
-               f"(simulated in {time.perf_counter() - t0:.1f} s)")
+    info(f"{name} demo: subject {subject.id}, {views} views, method {method} "
+               f"(simulated in {time.perf_counter() - t0:.1f} s)", err=False)
     work = out or tempfile.mkdtemp(prefix=f"clgs-{name}-demo-")
     scan.save(os.path.join(work, "scan"), overwrite=True)  # a new folder, or one claimed (and cleared) above
     t1 = time.perf_counter()
@@ -647,19 +648,19 @@ def _run_demo(anatomy, subject, views, method, out, seed, surface_level, opts, t
     elapsed = time.perf_counter() - t1
     history = result.get("history") or (result.get("info") or {}).get("history")
     if history:
-        click.echo("  iteration   time (s)   metrics")
+        info("  iteration   time (s)   metrics", err=False)
         for row in history:
             row = dict(row)
             it, tt = row.pop("iteration", ""), row.pop("time", row.pop("seconds", float("nan")))
-            click.echo(f"  {it!s:>9} {tt:10.1f}   " + "  ".join(
-                f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
+            info(f"  {it!s:>9} {tt:10.1f}   " + "  ".join(
+                f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()), err=False)
     click.echo(f"reconstructed in {elapsed:.1f} s; final error (volume surface: the bone surface written):")
     _echo_metrics(_evaluate(anatomy, scan, result["volume"], os.path.join(work, "recon")))
     _echo_outputs(result)
     _surface_picture(anatomy, scan, result["volume"], os.path.join(work, "recon"))
     from clgs.bench.train import peak_memory_mib
 
-    click.echo(f"peak resident memory: {peak_memory_mib():.0f} MiB")
+    detail(f"peak resident memory: {peak_memory_mib():.0f} MiB")
     click.echo(f"outputs in {work}")
     exit_if_interrupted(result.get("info"))
 
@@ -737,7 +738,7 @@ def _experiment_command(anatomy) -> click.Command:
             shape_opts = check_settings("shape", m, run, shape_opts, raw)
         summary = run_experiment(anatomy, out, views=views, subjects=ids, iterations=iterations,
                                  ablation_views=ablation_views or None, seed=seed, progress=progress,
-                                 settings={"r2gs": per_run, "shape": {**per_run, **shape_opts}}, echo=click.echo,
+                                 settings={"r2gs": per_run, "shape": {**per_run, **shape_opts}}, echo=info,
                                  workers=workers or None, scheduler=scheduler, simulation=protocol, detector_mm=fov,
                                  meshes=mesh_files)
         click.echo(open(os.path.join(out, "table.md")).read())

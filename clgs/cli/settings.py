@@ -184,8 +184,10 @@ def option_settings(*names: str, owner: str):
         @functools.wraps(f)
         def wrapper(*args, settings=(), **kwargs):
             if settings:
-                kwargs.update(_options_from_settings(click.get_current_context(), settings, names, owner))
+                kwargs.update(options_from_settings(click.get_current_context(), settings, names, owner))
             return f(*args, **kwargs)
+
+        wrapper.setting_keys, wrapper.setting_owner = tuple(names), owner  # read by the docs' checks
 
         return click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
                             help=f"a setting of {owner} by name, the same as its option (repeatable; keys: "
@@ -194,7 +196,8 @@ def option_settings(*names: str, owner: str):
     return decorate
 
 
-def _options_from_settings(ctx, pairs, names, owner) -> dict:
+def options_from_settings(ctx, pairs, names, owner) -> dict:
+    """{parameter name: value} of ``--set`` pairs naming some of the command's options (``names``)."""
     raw: dict = {}
     parse_settings(pairs, raw)
     params = {setting_key(p): p for p in ctx.command.params if setting_key(p) in names}
