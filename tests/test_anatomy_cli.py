@@ -202,11 +202,11 @@ def test_corrupt_scan_is_a_clean_error(bare, tmp_path, tiny_scan):
 
 def test_evaluate_garbage_or_missing_volume_is_a_clean_error(bare, tiny_scan, tmp_path):
     (tmp_path / "junk.npy").write_bytes(b"this is no array")
-    assert_clean_error(invoke(bare, "evaluate", tiny_scan, tmp_path / "junk.npy"), "junk.npy", code=1)
+    assert_clean_error(invoke(bare, "evaluate", tmp_path / "junk.npy", tiny_scan), "junk.npy", code=1)
     np.save(tmp_path / "flat.npy", np.zeros((4, 4), np.float32))
-    assert_clean_error(invoke(bare, "evaluate", tiny_scan, tmp_path / "flat.npy"), "3-D", code=1)
+    assert_clean_error(invoke(bare, "evaluate", tmp_path / "flat.npy", tiny_scan), "3-D", code=1)
     (tmp_path / "empty").mkdir()
-    assert_clean_error(invoke(bare, "evaluate", tiny_scan, tmp_path / "empty"), "volume.npy", code=1)
+    assert_clean_error(invoke(bare, "evaluate", tmp_path / "empty", tiny_scan), "volume.npy", code=1)
 
 
 def test_resume_without_a_checkpoint_is_a_clean_error(bare, tiny_scan, tmp_path):
