@@ -259,7 +259,8 @@ def test_simulate_unknown_subject_or_bad_mesh(tmp_path):
 @pytest.mark.parametrize("views", [N_VIEWS + 1, 50, 0, -3])
 def test_views_outside_the_scan_are_refused(bare, stand_ins, tiny_scan, tmp_path, views):
     res = invoke(bare, "reconstruct", tiny_scan, "--out", tmp_path / "o", "--method", "t-ones", "--views", views)
-    assert_clean_error(res, "--views", f"has {N_VIEWS} views", code=2)
+    # a count below 1 is refused as the option is read (--views is always a count); more than the scan has, once read
+    assert_clean_error(res, "--views", f"has {N_VIEWS} views" if views >= 1 else "x>=1", code=2)
     assert stand_ins["t-ones"].calls == []
 
 

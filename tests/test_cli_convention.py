@@ -84,7 +84,8 @@ def test_the_convention(path):
     for p in options(params):
         if "--views" in p.opts:
             t = p.type
-            counts = (isinstance(t, click.IntRange) and t.min is not None and t.min >= 1) or t.name == "count[,count...]"
+            counts = (isinstance(t, click.IntRange) and t.min is not None and t.min >= 1) \
+                or t.name == "count[,count...]"
             assert counts, f"clgs {path} --views is not a count of views ({t.name})"
         if "--force" in p.opts:
             assert p.is_flag and (p.help or "").startswith(FORCE_HELP), f"clgs {path} --force: {p.help!r}"
