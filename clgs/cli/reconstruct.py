@@ -1,4 +1,4 @@
-"""``clgs reconstruct``: any registered method on a scan folder, with its options after SCAN. Heavy
+"""``clgs reconstruct``: any registered method on a scan folder, with its options before or after SCAN. Heavy
 modules load when it runs."""
 from __future__ import annotations
 
