@@ -77,9 +77,10 @@ def set_quiet(quiet: bool = True) -> None:
 
 
 def progress_enabled() -> bool:
-    """Whether bars, phase lines and notes are shown here: not quiet, and no enclosing
-    :func:`enabled` (False) turned them off."""
-    return not _QUIET and _ENABLED.get()
+    """Whether bars, phase lines and notes are shown here: not quiet (:func:`set_quiet`, or
+    ``clgs --quiet``, which sets CLGS_VERBOSITY=quiet for this process and its workers), and no
+    enclosing :func:`enabled` (False) turned them off."""
+    return not _QUIET and _ENABLED.get() and os.environ.get("CLGS_VERBOSITY", "").strip().lower() != "quiet"
 
 
 @contextlib.contextmanager

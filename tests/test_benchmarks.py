@@ -125,7 +125,7 @@ def test_bench_train_on_two_devices_prints_the_ratio_table():
 def test_bench_scaling_prints_both_series_the_fit_and_draws_the_plot(tmp_path):
     plot = tmp_path / "scaling.png"
     out = _run("scaling", "--gaussians", "500", "--gaussians", "1000", "--detectors", "32", "--detectors", "48",
-               "--iterations", "1", "--views", "2", "--plot", str(plot))
+               "--iterations", "1", "--views", "2", "--out", str(plot))
     assert len(re.findall(r"N\s+(500|1000), 256\^2:\s+[0-9.]+ ms / it", out)) == 2
     assert len(re.findall(r"N\s+50000, (32|48)\^2:\s+[0-9.]+ ms / it", out)) == 2
     assert "linear fit over N" in out and plot.is_file() and plot.stat().st_size > 1000

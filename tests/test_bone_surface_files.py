@@ -161,7 +161,7 @@ def test_a_held_out_subject_reconstructed_and_evaluated_measures_the_file(anatom
     assert_the_bone_not_the_limb(surface, scan / "truth_surface.stl")
     indep = independent_mean_distance(surface, scan / "truth_surface.stl")
     assert indep == pytest.approx(printed(res.output, "surface_mean_mm"), rel=0.03, abs=0.02)
-    again = runner.invoke(group, ["evaluate", str(scan), str(tmp_path / "run")])
+    again = runner.invoke(group, ["evaluate", str(tmp_path / "run"), str(scan)])
     assert again.exit_code == 0, again.output
     assert printed(again.output, "surface_mean_mm") == printed(res.output, "surface_mean_mm")
     assert re.search(rf"^\s*surface_file\s+{re.escape(str(surface))}\s*$", again.output, re.M)

@@ -199,6 +199,8 @@ def _convert(cmd, ctx, values: dict) -> None:
 
 def _parse(cmd, ctx, words: list) -> tuple:
     """(values by parameter name, words left) from click's own parser for ``cmd``."""
+    if hasattr(cmd, "prepare"):  # clgs reconstruct: the method's options join the command's
+        cmd.prepare(ctx, list(words))
     parser = cmd.make_parser(ctx)
     values, rest, _ = parser.parse_args(list(words))
     _convert(cmd, ctx, values)
@@ -240,26 +242,22 @@ def check_command(words: list) -> None:
             raise click.MissingParameter(ctx=ctx, param=param)
     anatomy = plugins.get_anatomy(path[0]) if path and path[0] in plugins.anatomy_names() else None
     settings = given(values, "settings") or []
-    if path == ["reconstruct"]:
-        from clgs import methods
-        from clgs.cli.reconstruct import _method_command
-
-        name = given(values, "method_name") or "fdk"
-        mcmd = _method_command(methods.get(name))
-        mctx = click.Context(mcmd, info_name=mcmd.name, parent=ctx)
-        _, left = _parse(mcmd, mctx, rest)
-        if left:
-            raise click.UsageError(f"unexpected words {left} after the options of --method {name}")
-        method_names = [name]
-    elif rest:
+    if rest:
         raise click.UsageError(f"unexpected extra words {rest} for 'clgs {' '.join(path)}'")
+    keys = getattr(cmd.callback, "setting_keys", None)  # a command whose --set names its own options
+    if path == ["reconstruct"]:
+        method_names = [given(values, "method_name") or "fdk"]
     elif path == ["batch"]:
         method_names = list(given(values, "method_names") or []) or (["fdk"] if settings else [])
     elif anatomy is not None and path[1:] and path[1] in ("reconstruct", "demo"):
         method_names = [given(values, "method") or default_method(anatomy)]
     else:
         method_names = []
-    if settings:
+    if settings and keys:
+        from clgs.cli.settings import options_from_settings
+
+        options_from_settings(ctx, list(settings), keys, cmd.callback.setting_owner)
+    elif settings:
         if not method_names:
             raise click.UsageError(f"--set given to 'clgs {' '.join(path)}', which runs no method")
         _check_settings(method_names, list(settings))

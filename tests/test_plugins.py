@@ -261,7 +261,7 @@ def test_group_simulate_reconstruct_evaluate(toy, tmp_path):
     import numpy as np
 
     np.save(truth, s.truth)
-    r = runner.invoke(group, ["evaluate", str(scan), str(truth)])
+    r = runner.invoke(group, ["evaluate", str(truth), str(scan)])
     assert r.exit_code == 0, r.output
     lines = dict(line.split(None, 1) for line in r.output.strip().splitlines())
     assert float(lines["ssim3d"]) == pytest.approx(1.0, abs=1e-6)

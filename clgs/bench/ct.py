@@ -187,13 +187,30 @@ def bench_2d(size, views_list, sart_iters, noise, seed, repeat, echo):
     return rows
 
 
+class ViewCounts(click.ParamType):
+    """View counts: ``5,10,25`` -> (5, 10, 25), each a whole number of at least 1."""
+
+    name = "count[,count...]"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, (tuple, list)):
+            return tuple(value)
+        try:
+            counts = tuple(int(v) for v in str(value).split(",") if v.strip())
+        except ValueError:
+            counts = ()
+        if not counts or min(counts) < 1:
+            self.fail(f"{value!r}: give view counts of at least 1, e.g. 5,10,25", param, ctx)
+        return counts
+
+
 @click.command()
 @click.option("--quick", is_flag=True, help="64^3 volume, 64^2 slice, 5 SART iterations, one repeat")
 @click.option("--size", type=int, default=128, show_default=True, help="3-D volume side (voxels)")
-@click.option("--views", default="5,10,25,50", show_default=True, help="comma-separated view counts")
+@click.option("--views", type=ViewCounts(), default="5,10,25,50", show_default=True, help="comma-separated view counts")
 @click.option("--sart-iters", type=int, default=10, show_default=True, help="OS-SART iterations (and skimage passes)")
 @click.option("--arc", "arc_deg", type=float, default=360.0, show_default=True, help="3-D scan arc, degrees")
-@click.option("--noise/--noiseless", default=True, show_default=True)
+@click.option("--noise/--no-noise", default=True, show_default=True, help="Poisson + electronic noise")
 @click.option("--repeat", type=int, default=3, show_default=True, help="timed repeats of FDK (median)")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--skip-2d", is_flag=True, help="only the 3-D part")
@@ -201,9 +218,7 @@ def main(quick, size, views, sart_iters, arc_deg, noise, repeat, seed, skip_2d):
     """FDK and SART: wall time and 3-D PSNR/SSIM at 5-50 views; 2-D against scikit-image."""
     from clgs.runtime import device
 
-    views_list = [int(v) for v in views.split(",") if v.strip()]
-    if not views_list or min(views_list) < 1:
-        raise click.BadParameter("give at least one positive view count", param_hint="--views")
+    views_list = list(views)
     size2d = 128
     if quick:
         size, size2d, sart_iters, repeat = 64, 64, 5, 1

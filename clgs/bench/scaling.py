@@ -6,7 +6,7 @@ and, for the projection, in the pixels each Gaussian covers; so at a fixed detec
 should follow ``a + b N`` and at a fixed N grow with the pixel count. The command times the same
 iteration as ``clgs bench train`` on the same synthetic scene over a range of N (at 256^2) and of
 detector sizes (at 50k Gaussians), fits the line to the N series by least squares, prints both
-series with the fit, and draws them (``--plot``).
+series with the fit, and draws them (``--out``).
 """
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ def _time_iteration(n, det, views, iterations, seed):
 @click.option("--detectors", "dets", type=int, multiple=True, help="detector sizes [default: 128, 256, 384, 512]")
 @click.option("--iterations", default=20, show_default=True, type=click.IntRange(min=1))
 @click.option("--views", default=10, show_default=True, type=click.IntRange(min=1))
-@click.option("--plot", type=click.Path(dir_okay=False), default=None, help="write the plot here (PNG)")
+@click.option("--out", "-o", "plot", type=click.Path(dir_okay=False), default=None, help="write the plot here (PNG)")
 @click.option("--seed", default=0, show_default=True)
 @device_option
 def main(sizes, dets, iterations, views, plot, seed, devices):

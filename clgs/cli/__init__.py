@@ -87,12 +87,24 @@ class LazyGroup(click.Group):
               help="OpenCL device to run on: P:D indices or a piece of its name (pocl, intel, nvidia), "
                    "as 'clgs info' lists them. Default: the first device that passes the probe "
                    "(CLGS_DEVICE or PYOPENCL_CTX set it too).")
-def main(device):
+@click.option("--quiet", "-q", is_flag=True,
+              help="say only errors, warnings and the result (what was written, the figures): no progress bars")
+@click.option("--verbose", "-v", is_flag=True, help="say more: the device, the settings a run uses, timings")
+@click.pass_context
+def main(ctx, device, quiet, verbose):
     """clgs: sparse-view X-ray 3D reconstruction with Gaussian splatting and shape priors.
 
     Kernels run in OpenCL (PoCL or Intel's runtime on the CPU, or any OpenCL GPU). Each
-    installed anatomy plugin adds a command group (e.g. ``clgs femur demo``).
+    installed anatomy plugin adds a command group (e.g. ``clgs femur demo``). Every command
+    follows one convention: -o/--out where it writes, --set KEY=VALUE for settings, --force to
+    overwrite existing outputs (docs/commands.md).
     """
+    from clgs.cli.verbosity import set_level
+
+    if quiet and verbose:
+        raise click.UsageError("give --quiet or --verbose, not both")
+    if quiet or verbose:
+        set_level(ctx, "quiet" if quiet else "verbose")
     _plain_warnings()
     # torch's OpenMP threads spin for a while after every parallel op by default and starve PoCL's
     # worker threads on the same cores (a 32^3 voxelizer block: 22-325 ms with spinning, 6-7 ms

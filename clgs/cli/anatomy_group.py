@@ -23,8 +23,9 @@ import click
 
 from clgs.cli.cohort_options import check_cohort_options, cohort_options
 from clgs.cli.common import check_memory, check_not_input, exit_if_interrupted
-from clgs.cli.options import FiniteFloat, Seed, mesh_space_option
-from clgs.cli.settings import check_settings, parse_settings
+from clgs.cli.options import FiniteFloat, Seed, force_option, mesh_space_option, out_option
+from clgs.cli.settings import check_settings, option_settings, parse_settings
+from clgs.cli.verbosity import detail, info
 from clgs.errors import ClgsError
 
 # --------------------------------------------------------------------------------------- errors
@@ -327,10 +328,12 @@ def _simulate_command(anatomy) -> click.Command:
     scene = anatomy.scene or {}
 
     @click.command(cls=AnatomyCommand)
+    @option_settings("views", "arc", "angles", "detector_mm", "noise", "seed", "simulation",
+                     owner=f"clgs {name} simulate")
     @click.option("--subject", "subject_id", help="subject id (held-out ones: see `info`)")
     @click.option("--mesh", type=click.Path(exists=True, dir_okay=False),
                   help="a surface file instead (mm, or see --units; either side, any frame)")
-    @click.option("--out", required=True, type=click.Path(file_okay=False), help="scan folder to write")
+    @out_option("scan folder to write", required=True, type=click.Path(file_okay=False))
     @click.option("--views", default=int(scene.get("n_views", 50)), show_default=True, type=click.IntRange(min=1),
                   help="number of projections")
     @click.option("--arc", type=FiniteFloat(min=0, min_open=True, max=360), default=float(scene.get("arc_deg", 180.0)),
@@ -349,13 +352,12 @@ def _simulate_command(anatomy) -> click.Command:
     @mesh_space_option("--mesh")
     @click.option("--noise/--no-noise", default=True, show_default=True, help="Poisson + electronic noise")
     @click.option("--seed", type=Seed(), default=0, show_default=True, help="noise seed, 0 to 2**64 - 1")
-    @click.option("--force", is_flag=True, help="replace an existing scan folder")
+    @force_option("replace an existing scan folder --out", aliases=("--overwrite",))
     @click.option("--simulation", "protocol", type=click.Choice(["fine", "same"]), default="fine", show_default=True,
                   help="fine: projections from a grid twice as fine as the reconstruction grid; same: on the "
                        "reconstruction grid itself (R2-Gaussian's protocol, flatters FDK and SART)")
-    @click.option("--overwrite", "force_alias", is_flag=True, hidden=True)  # the flag's earlier name
     def simulate(subject_id, mesh, out, views, arc, geometry_file, angles, detector_mm, units, mesh_space, noise,
-                 seed, force, force_alias, protocol):
+                 seed, force, protocol):
         """Simulate a CT scan of a subject (default: the first held-out one) or of a surface file."""
         import math
 
@@ -392,7 +394,7 @@ def _simulate_command(anatomy) -> click.Command:
                          geometry_file=geometry_file, angles=None if view_set is None else view_set.radians,
                          detector_mm=fov)
         try:
-            scan.save(out, overwrite=force or force_alias)
+            scan.save(out, overwrite=force)
         except FileExistsError:
             raise click.ClickException(f"{out} exists: pass --force to replace it")
         if geometry_file:
@@ -412,17 +414,17 @@ def _reconstruct_command(anatomy) -> click.Command:
 
     @click.command(cls=AnatomyCommand)
     @click.argument("scan_dir", type=click.Path(exists=True, file_okay=False))
-    @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
+    @out_option("output folder", required=True, type=click.Path(file_okay=False))
     @click.option("--method", default=None, help="shape (default with a shape model) | r2gs | fdk | sart | ...")
-    @click.option("--views", default=None, type=int,
+    @click.option("--views", default=None, type=click.IntRange(min=1),
                   help="use only this many of the scan's views, evenly spread [default: all]")
     @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
                   help="method setting, e.g. iterations=3000 (repeatable; an unknown key lists the valid ones)")
     @click.option("--resume", is_flag=True,
                   help="continue the run in --out from its checkpoint, with its settings (same as --set "
                        "resume=true); without --set iterations=N it runs to the checkpoint's planned iterations")
-    @click.option("--force", is_flag=True, help="replace what --out holds: an earlier clgs run's files are removed "
-                                               "first (anything else there is refused)")
+    @force_option("replace what --out holds: an earlier clgs run's files are removed first (anything else "
+                  "there is refused)")
     @click.option("--surface-level", type=FiniteFloat(min=0, min_open=True), default=None,
                   help="bone level (1/mm) of OUT/surface.stl [default: the anatomy's, or the truth's for a simulated "
                        "scan; docs/outputs.md]")
@@ -486,7 +488,7 @@ def _build_model_command(anatomy) -> click.Command:
     name = anatomy.name
 
     @click.command("build-model", cls=AnatomyCommand)
-    @click.option("--out", "out_path", type=click.Path(dir_okay=False), help="model file (default: the plugin's)")
+    @out_option("model file (default: the plugin's)", name="out_path", type=click.Path(dir_okay=False))
     @click.option("--variance", type=float, default=None,
                   help="keep the fewest modes holding this fraction of the variance [0.95] ...")
     @click.option("--generalisation-tol", "generalisation_tol_mm", type=float, default=None,
@@ -494,7 +496,7 @@ def _build_model_command(anatomy) -> click.Command:
                        "this (mm; 0: the variance rule alone) [0.05]")
     @click.option("--n-modes", type=int, default=None, help="keep exactly this many modes (overrides the rule)")
     @click.option("--max-cells", type=int, default=None, help="velocity grid cells along the longest side")
-    @click.option("--force", is_flag=True, help="rebuild even if an up-to-date model exists")
+    @force_option("rebuild the model file even if an up-to-date one exists")
     @cohort_options
     def build_model_cmd(out_path, variance, generalisation_tol_mm, n_modes, max_cells, force, workers, scheduler):
         """Register the population to the template, PCA of the velocities, density atlas; prints the
@@ -508,7 +510,7 @@ def _build_model_command(anatomy) -> click.Command:
             from clgs.experiment import anatomy_by_name
 
             settings["run_registrations"] = registration_runner(anatomy_by_name(anatomy), workers or None, scheduler,
-                                                                echo=click.echo)
+                                                                echo=info)
         t0 = time.perf_counter()
         if anatomy.build_model is not None:
             if "run_registrations" in settings and not _takes(anatomy.build_model, "run_registrations"):
@@ -541,15 +543,38 @@ def _build_model_command(anatomy) -> click.Command:
 
 
 def _evaluate_command(anatomy) -> click.Command:
-    """``clgs <anatomy> evaluate``."""
+    """``clgs <anatomy> evaluate``: VOLUME then SCAN, the order of every evaluate (result, then truth)."""
     @click.command(cls=AnatomyCommand)
-    @click.argument("scan_dir", type=click.Path(exists=True, file_okay=False))
     @click.argument("volume", type=click.Path(exists=True))
-    def evaluate(scan_dir, volume):
-        """Compare a reconstructed VOLUME (.npy/.nii[.gz], or a folder with volume.npy) with the truth of SCAN_DIR."""
+    @click.argument("scan_arg", metavar="SCAN", required=False, type=click.Path(exists=True))
+    @click.option("--truth", "-t", "truth", type=click.Path(exists=True, file_okay=False), default=None,
+                  help="the scan folder holding the truth (the same as SCAN)")
+    @out_option("also write the figures to this JSON file", type=click.Path(dir_okay=False))
+    @force_option("replace an existing --out")
+    def evaluate(volume, scan_arg, truth, out, force):
+        """Compare a reconstructed VOLUME (.npy/.nii[.gz], or a run folder with volume.npy) with the truth
+        of the scan folder SCAN."""
+        from clgs.cli.common import check_evaluate_order
         from clgs.io.scan import Scan
         from clgs.io.volume import load_volume
 
+        if scan_arg is not None and truth is not None:
+            raise click.UsageError("give the scan once: as SCAN or as --truth")
+        scan_dir = scan_arg or truth
+        if scan_dir is None:
+            raise click.UsageError("missing argument SCAN (the scan folder holding the truth): "
+                                   f"clgs {anatomy.name} evaluate VOLUME SCAN")
+        check_evaluate_order(volume, scan_dir, f"clgs {anatomy.name} evaluate VOLUME SCAN")
+        if not os.path.isdir(scan_dir):
+            raise click.BadParameter(f"{scan_dir}: not a scan folder", param_hint="SCAN")
+        if out is not None:
+            from pathlib import Path
+
+            from clgs.cli.common import check_output, check_writable
+
+            check_not_input(Path(out), [("volume", Path(volume), False), ("scan", Path(scan_dir), True)])
+            check_output(Path(out), force, kind="file")
+            check_writable(Path(out))
         if os.path.isdir(volume):
             volume = os.path.join(volume, "volume.npy")
         scan = Scan.load(scan_dir)
@@ -561,7 +586,13 @@ def _evaluate_command(anatomy) -> click.Command:
             vol = to_working(vol, scan.geometry.orientation)
         # a run folder's surfaces are its volume's: another volume file lying there is measured alone
         run_volume = os.path.basename(volume) in ("volume.npy", "volume.nii.gz")
-        _echo_metrics(_evaluate(anatomy, scan, vol, os.path.dirname(volume) if run_volume else None))
+        figures = _evaluate(anatomy, scan, vol, os.path.dirname(volume) if run_volume else None)
+        _echo_metrics(figures)
+        if out is not None:
+            from clgs.io import atomic
+
+            atomic.write_json(out, {**figures, "volume": str(volume), "scan": str(scan_dir)}, overwrite=True)
+            click.echo(f"wrote {out}")
 
     return evaluate
 
@@ -573,16 +604,18 @@ def _demo_command(anatomy) -> click.Command:
     @click.option("--subject", "subject_id", default=None, help="held-out subject (default: the first)")
     @click.option("--views", default=5, show_default=True, type=click.IntRange(min=1))
     @click.option("--method", default=None, help="default: shape when the anatomy has a model, else r2gs")
-    @click.option("--out", default=None, type=click.Path(file_okay=False), help="keep outputs here")
+    @out_option("keep outputs here (OUT/scan, OUT/recon) [default: a new temporary folder]",
+                type=click.Path(file_okay=False))
     @click.option("--iterations", default=600, show_default=True, type=click.IntRange(min=1),
                   help="optimisation steps for iterative methods (the papers use 30000: hours on a CPU; "
                        "the shape-guided method peaks near 600 on the femur, see docs/results.md)")
     @click.option("--seed", type=Seed(), default=0, show_default=True, help="random seed, 0 to 2**64 - 1")
-    @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="method option (repeatable)")
+    @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
+                  help="method setting, e.g. tau=0.5 (repeatable; an unknown key lists the valid ones)")
     @click.option("--surface-level", type=FiniteFloat(min=0, min_open=True), default=None,
                   help="bone level (1/mm) of the surface written and measured [default: the truth's]")
-    @click.option("--force", is_flag=True, help="replace an earlier demo's OUT/scan and OUT/recon (their clgs files "
-                                               "only; anything else there is refused)")
+    @force_option("replace an earlier demo's OUT/scan and OUT/recon (their clgs files only; anything else "
+                  "there is refused)")
     def demo(subject_id, views, method, out, iterations, seed, settings, surface_level, force):
         """Simulate a held-out subject, reconstruct it from few views, print error vs time."""
         held = _need(anatomy, "test_subjects", "pick a held-out subject")()
@@ -621,8 +654,8 @@ def _run_demo(anatomy, subject, views, method, out, seed, surface_level, opts, t
     name = anatomy.name
     scene = anatomy.scene or {}
     scan = _simulate(anatomy, subject, views, math.radians(float(scene.get("arc_deg", 180.0))), True, seed)
-    click.echo(f"{name} demo: subject {subject.id}, {views} views, method {method} "
-               f"(simulated in {time.perf_counter() - t0:.1f} s)")
+    info(f"{name} demo: subject {subject.id}, {views} views, method {method} "
+               f"(simulated in {time.perf_counter() - t0:.1f} s)", err=False)
     work = out or tempfile.mkdtemp(prefix=f"clgs-{name}-demo-")
     scan.save(os.path.join(work, "scan"), overwrite=True)  # a new folder, or one claimed (and cleared) above
     t1 = time.perf_counter()
@@ -631,19 +664,19 @@ def _run_demo(anatomy, subject, views, method, out, seed, surface_level, opts, t
     elapsed = time.perf_counter() - t1
     history = result.get("history") or (result.get("info") or {}).get("history")
     if history:
-        click.echo("  iteration   time (s)   metrics")
+        info("  iteration   time (s)   metrics", err=False)
         for row in history:
             row = dict(row)
             it, tt = row.pop("iteration", ""), row.pop("time", row.pop("seconds", float("nan")))
-            click.echo(f"  {it!s:>9} {tt:10.1f}   " + "  ".join(
-                f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
+            info(f"  {it!s:>9} {tt:10.1f}   " + "  ".join(
+                f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()), err=False)
     click.echo(f"reconstructed in {elapsed:.1f} s; final error (volume surface: the bone surface written):")
     _echo_metrics(_evaluate(anatomy, scan, result["volume"], os.path.join(work, "recon")))
     _echo_outputs(result)
     _surface_picture(anatomy, scan, result["volume"], os.path.join(work, "recon"))
     from clgs.bench.train import peak_memory_mib
 
-    click.echo(f"peak resident memory: {peak_memory_mib():.0f} MiB")
+    detail(f"peak resident memory: {peak_memory_mib():.0f} MiB")
     click.echo(f"outputs in {work}")
     exit_if_interrupted(result.get("info"))
 
@@ -674,8 +707,8 @@ def _experiment_command(anatomy) -> click.Command:
                        "minutes per subject on 2 cores; the paper: 30000, hours per run there)")
     @click.option("--ablation-views", default=5, show_default=True, type=click.IntRange(min=0),
                   help="view count of the ablation (0: none)")
-    @click.option("--out", required=True, type=click.Path(file_okay=False),
-                  help="experiment folder (an interrupted experiment resumes from it)")
+    @out_option("experiment folder (an interrupted experiment resumes from it)", required=True,
+                type=click.Path(file_okay=False))
     @click.option("--seed", type=Seed(), default=0, show_default=True, help="random seed, 0 to 2**64 - 1")
     @click.option("--log-every", default=500, show_default=True, help="evaluate every N iterations (curves)")
     @click.option("--simulation", "protocol", type=click.Choice(["fine", "same"]), default="fine", show_default=True,
@@ -714,14 +747,14 @@ def _experiment_command(anatomy) -> click.Command:
                     f"held-out subjects only: {', '.join(held) if held else '(the plugin has none)'}",
                     param_hint="--subjects")
         per_run = {"log_every": log_every, "checkpoint_every": 0}
-        shape_opts = parse_settings(shape_settings)
-        if shape_opts:  # fail now, not in every run
-            from clgs.methods.shape_guided import ShapeGuidedConfig
-
-            ShapeGuidedConfig.from_json(shape_opts)
+        raw: dict = {}
+        shape_opts = parse_settings(shape_settings, raw)
+        if shape_opts:  # fail now, not in every run; checked as every --set is
+            m, run = _get_method("shape")
+            shape_opts = check_settings("shape", m, run, shape_opts, raw)
         summary = run_experiment(anatomy, out, views=views, subjects=ids, iterations=iterations,
                                  ablation_views=ablation_views or None, seed=seed, progress=progress,
-                                 settings={"r2gs": per_run, "shape": {**per_run, **shape_opts}}, echo=click.echo,
+                                 settings={"r2gs": per_run, "shape": {**per_run, **shape_opts}}, echo=info,
                                  workers=workers or None, scheduler=scheduler, simulation=protocol, detector_mm=fov,
                                  meshes=mesh_files)
         click.echo(open(os.path.join(out, "table.md")).read())

@@ -7,7 +7,8 @@ from pathlib import Path
 import click
 
 from clgs.cli.cohort_options import check_cohort_options, cohort_options
-from clgs.cli.options import Seed
+from clgs.cli.options import Seed, out_option
+from clgs.cli.verbosity import info
 
 
 def _checked_settings(runs) -> None:
@@ -43,8 +44,8 @@ def _settings_for(method: str, pairs) -> list:
 
 @click.command()
 @click.argument("source", type=click.Path(exists=True, path_type=Path))
-@click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path),
-              help="batch folder: one folder per run, summary.csv and summary.json (a batch run again resumes)")
+@out_option(required=True, type=click.Path(file_okay=False, path_type=Path),
+            help="batch folder: one folder per run, summary.csv and summary.json (a batch run again resumes)")
 @click.option("--method", "-m", "method_names", multiple=True,
               help="with a folder of scans: method(s) to run on every scan (repeatable) [default: fdk]")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
@@ -83,7 +84,7 @@ def batch(source, out, method_names, settings, seed, progress, workers, schedule
             raise click.UsageError(f"{', '.join(given)}: with a list, each row gives its method, settings and seed")
         runs = read_list(source)
     _checked_settings(runs)
-    summary = run_batch(runs, out, workers=workers or None, scheduler=scheduler, progress=progress, echo=click.echo)
+    summary = run_batch(runs, out, workers=workers or None, scheduler=scheduler, progress=progress, echo=info)
     for r in summary["runs"]:
         figures = "" if r.get("psnr3d") is None else f", PSNR {r['psnr3d']:.2f} dB, SSIM {r['ssim3d']:.4f}"
         seconds = "" if r.get("seconds") is None else f", {r['seconds']:.1f} s"

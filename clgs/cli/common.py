@@ -25,6 +25,27 @@ def is_dicom_folder(path: Path) -> bool:
                                  for f in list(path.iterdir())[:50])
 
 
+def _looks_like_scan(path: Path) -> bool:
+    path = Path(path)
+    return path.is_dir() and ((path / "scan.json").is_file() or (path / "meta_data.json").is_file()) \
+        and not (path / "volume.npy").is_file() and not (path / "volume.nii.gz").is_file()
+
+
+def _looks_like_result(path: Path) -> bool:
+    path = Path(path)
+    return (path.is_file() and is_volume_path(path) and not path.name.lower().startswith("truth.")) or \
+        (path.is_dir() and ((path / "volume.npy").is_file() or (path / "volume.nii.gz").is_file()))
+
+
+def check_evaluate_order(result, truth, usage: str) -> None:
+    """Every ``evaluate`` takes the result first, then the truth (a volume or a scan folder): the
+    old order (a scan folder first, a reconstruction second) is refused with the right one."""
+    if result is not None and truth is not None and _looks_like_scan(Path(result)) \
+            and _looks_like_result(Path(truth)):
+        raise click.UsageError(f"{result} is a scan folder and {truth} a reconstruction: the arguments are the "
+                               f"result first, then the truth ({usage}); swap them")
+
+
 def click_error(exc: Exception, what: str = "") -> click.ClickException:
     msg = str(exc) if not what else f"{what}: {exc}"
     return click.ClickException(msg)

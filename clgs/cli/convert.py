@@ -17,7 +17,8 @@ from clgs.cli.common import (
     load_volume_file,
     parse_spacing,
 )
-from clgs.cli.options import FiniteFloat
+from clgs.cli.verbosity import info
+from clgs.cli.options import FiniteFloat, force_option, out_option
 
 #: series numbers within a scan's study: its truth and each method's reconstruction apart
 SERIES_NUMBERS = {"truth": 100, "fdk": 101, "sart": 102, "r2gs": 103, "shape": 104}
@@ -99,11 +100,13 @@ def _description(method, report, volume: Path) -> tuple:
 
 @click.command()
 @click.argument("volume", type=click.Path(path_type=Path))
-@click.argument("out", type=click.Path(path_type=Path))
-@click.option("--dicom", is_flag=True, help="write OUT as a folder holding a DICOM CT series (Hounsfield units)")
+@click.argument("out_arg", metavar="", type=click.Path(path_type=Path), required=False)
+@out_option("the volume file to write (.nii.gz, .mha, .nrrd, .npy), or with --dicom the series folder",
+            type=click.Path(path_type=Path))
+@click.option("--dicom", is_flag=True, help="write --out as a folder holding a DICOM CT series (Hounsfield units)")
 @click.option("--hu", is_flag=True, help="VOLUME holds Hounsfield units (a CT): convert them to attenuation first")
 @click.option("--to-hu", is_flag=True, help="write Hounsfield units at --kev instead of attenuation (the unit is "
-                                            "recorded in OUT's header; DICOM always holds HU)")
+                                            "recorded in the header of --out; DICOM always holds HU)")
 @click.option("--kev", type=FiniteFloat(min=40, max=150), default=70.0, show_default=True,
               help="X-ray energy of the HU <-> attenuation conversion (water's attenuation from NIST XCOM)")
 @click.option("--scan", "scan_dir", type=click.Path(exists=True, path_type=Path), default=None,
@@ -120,14 +123,14 @@ def _description(method, report, volume: Path) -> tuple:
 @click.option("--axes", type=click.Choice(["zyx", "xyz"]), default="zyx", show_default=True,
               help="axis order of a .npy volume")
 @click.option("--spacing", default=None, help="voxel size in mm for a .npy volume, 'd' or 'dZ,dY,dX'")
-@click.option("--force", is_flag=True, help="replace an existing OUT")
-def convert(volume, out, dicom, hu, to_hu, kev, scan_dir, report_path, series_number, series_description, axes,
+@force_option("replace an existing --out")
+def convert(volume, out_arg, out, dicom, hu, to_hu, kev, scan_dir, report_path, series_number, series_description, axes,
             spacing, force):
-    """Convert VOLUME (.npy, NIfTI, MetaImage, NRRD, a DICOM series) to OUT (.nii.gz, .mha,
+    """Convert VOLUME (.npy, NIfTI, MetaImage, NRRD, a DICOM series) to --out (.nii.gz, .mha,
     .nrrd, .npy, or with --dicom a DICOM series folder), keeping its spacing and position.
 
     clgs works in attenuation (1/mm); --hu reads Hounsfield units, --to-hu writes them (the unit
-    is written into OUT's header: NIfTI descrip, MetaImage/NRRD ValueUnit), and a DICOM series is
+    is written into the header of --out: NIfTI descrip, MetaImage/NRRD ValueUnit), and a DICOM series is
     always written in HU at --kev (what CT viewers expect), rounded to 1 HU. A DICOM series
     belongs to the study of the scan VOLUME was reconstructed from (docs/dicom.md).
     """
@@ -135,21 +138,26 @@ def convert(volume, out, dicom, hu, to_hu, kev, scan_dir, report_path, series_nu
 
     from clgs.io.units import hu_to_mu
 
+    if out_arg is not None and out is not None:
+        raise click.UsageError("give the output once: -o/--out OUT")
+    out = out if out is not None else out_arg  # `clgs convert VOLUME OUT`, the earlier form, still reads
+    if out is None:
+        raise click.UsageError("missing option -o/--out (the file or, with --dicom, the folder to write)")
     if not dicom and not is_volume_path(out):
         raise click.BadParameter(f"{out}: give a volume file (.nii.gz, .mha, .nrrd, .npy) or --dicom for a "
-                                 "DICOM series folder", param_hint="OUT")
+                                 "DICOM series folder", param_hint="--out")
     if dicom and to_hu:
-        click.echo("note: a DICOM series always holds HU; --to-hu changes nothing there", err=True)
+        info("note: a DICOM series always holds HU; --to-hu changes nothing there")
     if not dicom and (scan_dir or report_path or series_number is not None or series_description):
         raise click.UsageError("--scan, --report, --series-number and --series-description are for --dicom")
-    check_not_input(out, [("volume", volume, False)], param="OUT")
+    check_not_input(out, [("volume", volume, False)], param="--out")
     if scan_dir is not None:
-        check_not_input(out, [("scan", scan_dir, True)], param="OUT")
+        check_not_input(out, [("scan", scan_dir, True)], param="--out")
     if out.exists() and not force:
         raise click.ClickException(f"{out} already exists; pass --force to replace it")
     if not dicom:
-        check_output(out, force, param="OUT")
-    check_writable(out, param="OUT")
+        check_output(out, force, param="--out")
+    check_writable(out, param="--out")
     loaded = load_volume_file(volume, parse_spacing(spacing), attenuation=not hu, axes=axes)
     vol, sp, org = loaded
     if sp is None:
@@ -162,7 +170,7 @@ def convert(volume, out, dicom, hu, to_hu, kev, scan_dir, report_path, series_nu
     from clgs.io.outputs import OutputBusy, lock
 
     try:
-        with lock(out, "OUT"):  # one writer at a time (docs/output-rule.md)
+        with lock(out, "--out"):  # one writer at a time (docs/output-rule.md)
             _convert_into(volume, out, dicom, mu, sp, org, kev, to_hu, loaded, scan_dir, report_path,
                           series_number, series_description, force)
     except OutputBusy as exc:

@@ -16,7 +16,7 @@ from clgs.cli.common import (
     load_volume_file,
     parse_spacing,
 )
-from clgs.cli.options import FiniteFloat, mesh_space_option
+from clgs.cli.options import FiniteFloat, force_option, mesh_space_option, out_option
 
 
 def _truth_from(path: Path, spacing, axes: str = "zyx"):
@@ -47,8 +47,9 @@ def _in_scan_order(path: Path, vol, orientation, axes: str):
 
 @click.command()
 @click.argument("volume", type=click.Path(path_type=Path))
-@click.option("--truth", "-t", type=click.Path(path_type=Path), required=True,
-              help="the true volume (.npy/.nii/.nii.gz) or a scan folder holding it")
+@click.argument("truth_arg", metavar="TRUTH", type=click.Path(path_type=Path), required=False)
+@click.option("--truth", "-t", type=click.Path(path_type=Path), default=None,
+              help="the true volume (.npy/.nii/.nii.gz) or a scan folder holding it (the same as TRUTH)")
 @click.option("--mask", "mask_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="a label volume; metrics are also computed over its non-zero voxels")
 @click.option("--mask-level", type=FiniteFloat(), default=None,
@@ -63,17 +64,18 @@ def _in_scan_order(path: Path, vol, orientation, axes: str):
 @click.option("--spacing", default=None, help="voxel size in mm for .npy inputs, 'd' or 'dZ,dY,dX'")
 @click.option("--axes", type=click.Choice(["zyx", "xyz"]), default="zyx", show_default=True,
               help="axis order of .npy inputs: zyx (clgs) or xyz (R2-Gaussian's vol_gt.npy)")
-@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="write the figures to this JSON file (an infinite PSNR is written as null)")
+@out_option("write the figures to this JSON file (an infinite PSNR is written as null)", name="json_out",
+            aliases=("--json",), type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--figure", "figure_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="slice panel PNG (central slices of VOLUME, the truth and the error) [default: next to VOLUME, "
                    "VOLUME_vs_truth.png, or evaluation.png in a run folder]")
 @click.option("--no-figure", is_flag=True, help="draw no slice panel")
-@click.option("--force", is_flag=True, help="overwrite an existing --json or --figure")
-def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, mesh_space, spacing, axes, json_out,
-             figure_out, no_figure, force):
-    """Compare VOLUME with the truth: 3D PSNR / SSIM (as R2-Gaussian), masked variants, and the
-    surface distance in mm when --level is given. VOLUME may also be a reconstruct output folder.
+@force_option("replace an existing --out or --figure")
+def evaluate(volume, truth_arg, truth, mask_path, mask_level, dilate, level, surface_path, mesh_space, spacing, axes,
+             json_out, figure_out, no_figure, force):
+    """Compare VOLUME with TRUTH (a volume, or a scan folder holding it): 3D PSNR / SSIM (as
+    R2-Gaussian), masked variants, and the surface distance in mm when --level is given. VOLUME may
+    also be a reconstruct output folder. The result comes first, then the truth, as in every evaluate.
 
     \f
     (One function: the truth, the mask, the metrics and the optional surface distance use the
@@ -81,15 +83,24 @@ def evaluate(volume, truth, mask_path, mask_level, dilate, level, surface_path, 
     """
 
     from clgs import metrics
+    from clgs.cli.common import check_evaluate_order
     from clgs.io import atomic
+
+    if truth_arg is not None and truth is not None:
+        raise click.UsageError("give the truth once: as TRUTH or as --truth")
+    truth = truth if truth is not None else truth_arg
+    if truth is None:
+        raise click.UsageError("missing argument TRUTH (the true volume or its scan folder): "
+                               "clgs evaluate VOLUME TRUTH")
+    check_evaluate_order(volume, truth, "clgs evaluate VOLUME TRUTH")
 
     if mesh_space and surface_path is None:
         raise click.UsageError("--mesh-space is the frame of a --surface file")
     if json_out is not None:
         check_not_input(json_out, [("volume", volume, False), ("truth", truth, truth.is_dir()),
-                                    ("mask", mask_path, False), ("surface", surface_path, False)], "--json")
-        check_output(json_out, force, "--json")
-        check_writable(json_out, "--json")
+                                    ("mask", mask_path, False), ("surface", surface_path, False)], "--out")
+        check_output(json_out, force, "--out")
+        check_writable(json_out, "--out")
     if mask_path is not None and mask_level is not None:
         raise click.UsageError("give either --mask or --mask-level, not both")
     if figure_out is not None:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from clgs.cli.options import FiniteFloat, distance_options
+from clgs.cli.options import FiniteFloat, distance_options, force_option, out_option
 
 
 def _ints(value, n, what, param):
@@ -42,7 +42,7 @@ def _angles(path):
 
 @click.command("import")
 @click.argument("raw", type=click.Path(path_type=Path))
-@click.option("--out", "-o", type=click.Path(path_type=Path), required=True, help="scan folder to write")
+@out_option("scan folder to write", type=click.Path(path_type=Path), required=True)
 @click.option("--flats", type=click.Path(path_type=Path), default=None,
               help="flat fields (beam, no object): a file or folder of images, averaged")
 @click.option("--darks", type=click.Path(path_type=Path), default=None,
@@ -78,8 +78,7 @@ def _angles(path):
 @click.option("--geometry", "geometry_file", type=click.Path(path_type=Path), default=None,
               help="a geometry JSON file (TIGRE names, or per-view 'vectors'; docs/formats.md) of the detector "
                    "after crop and binning: replaces --angles, --arc, --mode, --DSO, --DSD, --pixel and --centre")
-@click.option("--force", is_flag=True, help="replace an earlier scan folder in --out (its clgs files only; anything "
-                                           "else there is refused)")
+@force_option("replace an earlier scan folder in --out (its clgs files only; anything else there is refused)")
 def import_raw(raw, out, flats, darks, air_columns, angles_file, arc, mode, DSO, DSD, pixel, centre, tilt, rings,
                zingers, crop, binning, floor, views, geometry_file, force):
     """Turn RAW detector images into a scan folder: HDF5 Data Exchange (.h5), a TIFF stack or

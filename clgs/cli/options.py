@@ -180,3 +180,43 @@ def mesh_space_option(what: str):
                         callback=lambda ctx, param, value: value.upper() if value else None,
                         help=f"frame of {what} surface files without a SPACE= tag [default: LPS, as 3D Slicer "
                              "reads them, with a warning]; a tagged file is read in its own frame")
+
+
+# ------------------------------------------------------------------------ the command-line convention
+# One name per meaning across every command (docs/commands.md, "Conventions"; tests/test_cli_convention.py):
+#   -o/--out       where the command writes its result
+#   --set K=V      a method's settings (simulate: the simulation's settings), parsed by clgs.methods.settings
+#   --views N      always a count of views; a choice of views is --angles / --view-sets
+#   --force        overwrite existing outputs (FORCE_HELP starts its help everywhere)
+#   --noise/--no-noise, --progress/--no-progress: a switch always has both forms
+FORCE_HELP = "overwrite existing outputs"
+
+
+class AliasOption(click.Option):
+    """An option that also answers to older names (``aliases``), left out of ``--help``."""
+
+    def __init__(self, param_decls, aliases=(), **kwargs):
+        self.aliases = tuple(a.strip(" /") for a in aliases)
+        super().__init__(list(param_decls) + list(aliases), **kwargs)
+
+    def get_help_record(self, ctx):
+        opts, secondary = self.opts, self.secondary_opts
+        self.opts = [o for o in opts if o not in self.aliases]
+        self.secondary_opts = [o for o in secondary if o not in self.aliases]
+        try:
+            return super().get_help_record(ctx)
+        finally:
+            self.opts, self.secondary_opts = opts, secondary
+
+
+def out_option(help: str, name: str = "out", aliases=(), **kwargs):
+    """``-o/--out``: where the command writes (``name``: the callback's parameter)."""
+    kwargs.setdefault("default", None)
+    return click.option("--out", "-o", name, cls=AliasOption, aliases=aliases, help=help, **kwargs)
+
+
+def force_option(detail: str = "", aliases=()):
+    """``--force``: overwrite existing outputs, the one meaning of the flag (``detail``: what that is here)."""
+    return click.option("--force", "force", cls=AliasOption, aliases=aliases, is_flag=True,
+                        help=FORCE_HELP + (f": {detail}" if detail else ""))
+

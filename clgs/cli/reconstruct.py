@@ -1,4 +1,4 @@
-"""``clgs reconstruct``: any registered method on a scan folder, with its options after SCAN. Heavy
+"""``clgs reconstruct``: any registered method on a scan folder, with its options before or after SCAN. Heavy
 modules load when it runs."""
 from __future__ import annotations
 
@@ -25,11 +25,73 @@ from clgs.cli.common import (
     out_of_memory,
     remove_empty,
 )
-from clgs.cli.options import FiniteFloat, check_option_values, method_params
+from clgs.cli.verbosity import detail, info, is_verbose
+from clgs.cli.options import FiniteFloat, check_option_values, force_option, method_params, out_option
+
+
+METHOD_KEY = "clgs.reconstruct.method"  # ctx.meta: (method record or None, its click options)
+
+
+def _peek_method(args) -> str | None:
+    """The ``--method``/``-m`` value among the command's words (before ``--``), if any: the
+    method's options are known only once the method is, wherever they stand."""
+    for i, word in enumerate(args):
+        if word == "--":
+            break
+        if word in ("--method", "-m") and i + 1 < len(args):
+            return args[i + 1]
+        if word.startswith("--method="):
+            return word.split("=", 1)[1]
+        if word.startswith("-m") and not word.startswith("--") and len(word) > 2:
+            return word[2:]
+    return None
 
 
 class _ReconstructCommand(click.Command):
-    """Method options are parsed in a second stage, by the chosen method's own options."""
+    """The chosen method's options are options of the command itself (before or after SCAN):
+    the method is read from the words first, then its options join the command's for parsing."""
+
+    def prepare(self, ctx, args) -> None:
+        """Make the method named in ``args`` and its options known to ``ctx``."""
+        from clgs import methods
+
+        try:
+            ctx.meta[METHOD_KEY + ".named"] = _peek_method(args) is not None
+            method = methods.get(_peek_method(args) or "fdk")
+            ctx.meta[METHOD_KEY] = (method, method_params(method))
+        except (methods.MethodError, ImportError, LookupError):  # the callback says what is wrong
+            ctx.meta[METHOD_KEY] = (None, [])
+
+    def get_params(self, ctx):
+        return super().get_params(ctx) + list(ctx.meta.get(METHOD_KEY, (None, []))[1])
+
+    def parse_args(self, ctx, args):
+        self.prepare(ctx, args)
+        try:
+            return super().parse_args(ctx, args)
+        except click.NoSuchOption as exc:
+            method, params = ctx.meta[METHOD_KEY]
+            if method is None:  # an unknown --method explains an unknown option best
+                raise click.BadParameter(f"unknown method {_peek_method(args)!r}", ctx, param_hint="--method") from None
+            known = ", ".join(o for p in params for o in p.opts + p.secondary_opts) or "none"
+            raise click.UsageError(f"{exc.format_message()} (options of --method {method.name}: {known}; "
+                                   f"see 'clgs reconstruct --method {method.name} --help')", ctx) from None
+
+    def invoke(self, ctx):
+        """The method's options go to the run (``ctx.meta``), the command's to the callback."""
+        _, params = ctx.meta.get(METHOD_KEY, (None, []))
+        ctx.meta[METHOD_KEY + ".values"] = {p.name: ctx.params.pop(p.name, None) for p in params}
+        return super().invoke(ctx)
+
+    def format_options(self, ctx, formatter):
+        method, params = ctx.meta.get(METHOD_KEY, (None, []))
+        own = [p.get_help_record(ctx) for p in super().get_params(ctx)]
+        with formatter.section("Options"):
+            formatter.write_dl([r for r in own if r])
+        if method is not None and ctx.meta.get(METHOD_KEY + ".named"):
+            records = [p.get_help_record(ctx) for p in params]
+            with formatter.section(f"Options of --method {method.name}"):
+                formatter.write_dl([r for r in records if r] or [("(none)", "")])
 
     def format_epilog(self, ctx, formatter):
         from clgs import methods
@@ -37,44 +99,25 @@ class _ReconstructCommand(click.Command):
         with formatter.section("Methods"):
             formatter.write_dl(sorted(methods.describe().items()))
         formatter.write_paragraph()
-        formatter.write_text("Method options (after SCAN): see 'clgs reconstruct --method NAME --help'.")
+        formatter.write_text("Method options (before or after SCAN): see 'clgs reconstruct --method NAME --help'.")
 
 
 def _method_command(method) -> click.Command:
+    """A command holding only the method's options (their checks; the docs' checks parse with it)."""
     return click.Command(f"reconstruct --method {method.name}", params=method_params(method),
                          help=method.help, add_help_option=False)
 
 
-def _show_method_help(ctx, method, mcmd) -> None:
-    """``clgs reconstruct --method NAME --help``: the command's help, then the method's options."""
-    click.echo(ctx.get_help())
-    mctx = click.Context(mcmd, info_name=mcmd.name, parent=ctx)
-    formatter = mctx.make_formatter()
-    formatter.write_paragraph()
-    with formatter.section(f"Options of --method {method.name}"):
-        formatter.write_dl([p.get_help_record(mctx) for p in mcmd.params if p.get_help_record(mctx)] or
-                           [("(none)", "")])
-    click.echo(formatter.getvalue().rstrip())
-    ctx.exit(0)
-
-
 def _method_options(ctx, method, mcmd) -> tuple:
-    """(options given, keyword arguments of the run) from the words after SCAN, checked."""
-    try:
-        mctx = mcmd.make_context(mcmd.name, list(ctx.args), parent=ctx)
-    except click.BadParameter as exc:  # a known option with a bad value: the message says it all
-        raise click.UsageError(exc.format_message(), ctx) from None
-    except click.UsageError as exc:
-        known = ", ".join(o for p in mcmd.params for o in p.opts) or "none"
-        raise click.UsageError(f"{exc.format_message()} (options of --method {method.name}: {known}; "
-                               "they go after SCAN)", ctx) from None
+    """(options given, keyword arguments of the run) from the method's options, checked."""
+    values = ctx.meta.get(METHOD_KEY + ".values", {})
     try:  # NaN / inf floats and impossible seeds are refused now, whatever type the method's options declared
-        check_option_values(mcmd.params, mctx.params, mctx)
+        check_option_values(mcmd.params, values, ctx)
     except click.UsageError as exc:
         raise click.UsageError(exc.format_message(), ctx) from None
-    options = {k: v for k, v in mctx.params.items() if v is not None}
+    options = {k: v for k, v in values.items() if v is not None}
     kwargs = dict(options)
-    if options.get("resume") and "iterations" in mctx.params and "iterations" not in options:
+    if options.get("resume") and "iterations" in values and "iterations" not in options:
         kwargs["iterations"] = None  # a resumed run goes on to the iterations it was started with
     return options, kwargs
 
@@ -112,18 +155,17 @@ def _prepare_outputs(scan, out, json_out, force, into_folder: bool, resuming: bo
     return created, created_json
 
 
-@click.command(cls=_ReconstructCommand, add_help_option=False,
-               context_settings={"ignore_unknown_options": True, "allow_extra_args": True})
+@click.command(cls=_ReconstructCommand, add_help_option=False)
 @click.argument("scan", type=click.Path(path_type=Path), required=False)
 @click.option("--method", "-m", "method_name", default="fdk", show_default=True, help="reconstruction method")
-@click.option("--out", "-o", "out", type=click.Path(path_type=Path), default=None,
-              help="a volume file (.nii.gz, .nii, .npy) or a folder (volume.nii.gz, volume.npy, report.json, "
+@out_option(type=click.Path(path_type=Path),
+            help="a volume file (.nii.gz, .nii, .npy) or a folder (volume.nii.gz, volume.npy, report.json, "
                    "method extras)")
 @click.option("--split", type=click.Choice(["train", "test"]), default="train", show_default=True,
               help="which views of an R2-Gaussian dataset folder to use")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="also write the report (method, options, time, metrics) to this JSON file")
-@click.option("--force", is_flag=True, help="overwrite an existing --out")
+@force_option("replace an existing --out (and --json)")
 @click.option("--to-hu", "hu", is_flag=True,
               help="write the volume in Hounsfield units, at the X-ray energy the scan records (a simulation of a "
                    "CT with `simulate --hu`) or --kev [default: attenuation, 1/mm]")
@@ -161,7 +203,8 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
         raise click.ClickException(f"method {method_name!r} could not be loaded: {exc}") from None
     mcmd = _method_command(method)
     if show_help:
-        _show_method_help(ctx, method, mcmd)
+        click.echo(ctx.get_help())
+        ctx.exit(0)
     if scan is None:
         raise click.UsageError("missing argument SCAN (a scan folder)")
     if out is None:
@@ -234,6 +277,7 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
                     report[key]["path"] = str(Path(out) / Path(report[key]["path"]).name)
             atomic.write_json(folder / "report.json", report)
 
+    t_start = time.perf_counter()
     sc = None
     report = {"method": method.name, "options": options, "scan": str(scan)}
     claimed = contextlib.ExitStack()  # the lock on --out, held until the report is written
@@ -254,8 +298,9 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
             except UnitsError as exc:
                 raise click.UsageError(str(exc)) from None
             report["volume_orientation"] = sc.geometry.orientation
-            click.echo(f"{method.name}: {sc.n_views} views, {'x'.join(map(str, sc.geometry.nVoxel))} voxels",
-                       err=True)
+            info(f"{method.name}: {sc.n_views} views, {'x'.join(map(str, sc.geometry.nVoxel))} voxels")
+            if is_verbose():
+                _say_detail(method, options, sc, time.perf_counter() - t_start)
             try:
                 run = method.callable()
             except (ImportError, AttributeError) as exc:
@@ -300,11 +345,27 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
             line += f"; metrics undefined ({m.get('metrics_undefined')}); the volume is written"
         else:
             line += f", PSNR {fmt_number(m['psnr3d'])} dB, SSIM {m['ssim3d']:.4f}"
+    detail(f"timings: {time.perf_counter() - t_start:.2f} s in all, {report['seconds']:.2f} s in the method")
     click.echo(line)
     click.echo(f"wrote {out}")
     for text in figure_lines(report):
         click.echo(text)
     exit_if_interrupted(report.get("info"))
+
+
+def _say_detail(method, options: dict, scan, seconds: float) -> None:
+    """``clgs --verbose``: the device, the settings the run uses, the time to load the scan."""
+    import json
+
+    try:
+        from clgs.runtime import device
+
+        detail(f"device: {device().name.strip()}")
+    except Exception as exc:  # noqa: BLE001 - no OpenCL device: the method says so if it needs one
+        detail(f"device: none ({exc})")
+    detail(f"settings: {json.dumps(options, sort_keys=True, default=str) if options else '(the method defaults)'}")
+    detail(f"scan loaded in {seconds:.2f} s ({scan.geometry.mode} beam, detector "
+           f"{scan.geometry.nDetector[0]} x {scan.geometry.nDetector[1]})")
 
 
 def _takes_surface_level(method) -> bool:

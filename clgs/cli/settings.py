@@ -122,8 +122,7 @@ def check_settings(method: str, m, run, opts: dict, raw: dict | None = None) -> 
     for key, value in opts.items():
         shown = f"{key}={raw.get(key, json.dumps(value))}"
         if key not in hints and not open_:
-            raise click.BadParameter(f"unknown setting {key!r} for the {method} method; valid keys: "
-                                     f"{', '.join(sorted(hints))}", param_hint="--set")
+            raise unknown_setting(key, f"the {method} method", hints)
         hint = hints.get(key)
         rule = _range_rule(key)
         if rule and isinstance(value, (int, float)) and not isinstance(value, bool) and not rule[0](value):
@@ -150,20 +149,70 @@ def check_settings(method: str, m, run, opts: dict, raw: dict | None = None) -> 
     return out
 
 
-def parse_settings(pairs, raw: dict | None = None):
-    """``KEY=VALUE`` pairs -> {key: JSON value, else the string}; ``raw`` gets the strings as typed."""
-    opts = {}
-    for p in pairs:
-        if "=" not in p:
-            raise click.BadParameter(f"expected KEY=VALUE, got {p!r}", param_hint="--set")
-        k, v = p.split("=", 1)
-        k = k.strip().replace("-", "_")
-        if not k:
-            raise click.BadParameter(f"expected KEY=VALUE, got {p!r}", param_hint="--set")
-        if raw is not None:
-            raw[k] = v
+def unknown_setting(key: str, owner: str, valid) -> click.BadParameter:
+    """The one refusal of an unknown ``--set`` key, everywhere: it names the valid keys."""
+    return click.BadParameter(f"unknown setting {key!r} for {owner}; valid keys: {', '.join(sorted(valid))}",
+                              param_hint="--set")
+
+
+def parse_settings(pairs, raw: dict | None = None) -> dict:
+    """:func:`clgs.methods.settings.parse_pairs` (the one parser) with its refusal as a ``--set``
+    usage error."""
+    from clgs.methods.settings import SettingsError, parse_pairs
+
+    try:
+        return parse_pairs(pairs, raw)
+    except SettingsError as exc:
+        raise click.BadParameter(str(exc), param_hint="--set") from None
+
+
+def setting_key(param: click.Parameter) -> str:
+    """The ``--set`` key of a command option: its long name, ``-`` as ``_`` (``--grid-spacing``: grid_spacing)."""
+    long = [o for o in param.opts if o.startswith("--")] or [param.name]
+    return long[0].lstrip("-").replace("-", "_")
+
+
+def option_settings(*names: str, owner: str):
+    """``--set KEY=VALUE`` as another spelling of some of a command's own options (``names``: their
+    ``--set`` keys, :func:`setting_key`): for a command that runs no method but has settings
+    (``clgs simulate``: the scanner and the noise). A key is read as its option reads it (same
+    type and checks); an unknown key is refused as everywhere (:func:`unknown_setting`); a
+    setting given both ways is a usage error. Place it right under ``@click.command``."""
+    import functools
+
+    def decorate(f):
+        @functools.wraps(f)
+        def wrapper(*args, settings=(), **kwargs):
+            if settings:
+                kwargs.update(options_from_settings(click.get_current_context(), settings, names, owner))
+            return f(*args, **kwargs)
+
+        wrapper.setting_keys, wrapper.setting_owner = tuple(names), owner  # read by the docs' checks
+
+        return click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
+                            help=f"a setting of {owner} by name, the same as its option (repeatable; keys: "
+                                 f"{', '.join(names)})")(wrapper)
+
+    return decorate
+
+
+def options_from_settings(ctx, pairs, names, owner) -> dict:
+    """{parameter name: value} of ``--set`` pairs naming some of the command's options (``names``)."""
+    raw: dict = {}
+    parse_settings(pairs, raw)
+    params = {setting_key(p): p for p in ctx.command.params if setting_key(p) in names}
+    lower = {k.lower(): k for k in params}
+    out = {}
+    for key, text in raw.items():
+        name = key if key in params else lower.get(key.lower())
+        if name is None:
+            raise unknown_setting(key, owner, names)
+        param = params[name]
+        if ctx.get_parameter_source(param.name) == click.core.ParameterSource.COMMANDLINE:
+            raise click.UsageError(f"{name} given both as an option and with --set; give it once")
         try:
-            opts[k] = json.loads(v)
-        except json.JSONDecodeError:
-            opts[k] = v
-    return opts
+            out[param.name] = param.type_cast_value(ctx, text.strip())
+        except click.BadParameter as exc:
+            raise click.BadParameter(f"{key}={text}: {exc.message}", param_hint="--set") from None
+        ctx.set_parameter_source(param.name, click.core.ParameterSource.COMMANDLINE)
+    return out

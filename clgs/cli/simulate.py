@@ -17,12 +17,19 @@ from clgs.cli.common import (
     out_of_memory,
     parse_spacing,
 )
-from clgs.cli.options import FiniteFloat, Seed, distance_options
+from clgs.cli.options import AliasOption, FiniteFloat, Seed, distance_options, force_option, out_option
+from clgs.cli.settings import option_settings
+from clgs.cli.verbosity import detail, info
+
+
+SIMULATION_SETTINGS = ("views", "arc", "mode", "DSO", "DSD", "detector", "pixel", "I0", "sigma", "scatter", "seed",
+                       "noise", "kev", "grid", "grid_spacing", "simulation", "surface_level")
 
 
 @click.command()
+@option_settings(*SIMULATION_SETTINGS, owner="clgs simulate")
 @click.argument("volume", type=click.Path(path_type=Path))
-@click.option("--out", "-o", "out", type=click.Path(path_type=Path), required=True, help="scan folder to write")
+@out_option("scan folder to write", type=click.Path(path_type=Path), required=True)
 @click.option("--axes", type=click.Choice(["zyx", "xyz"]), default="zyx", show_default=True,
               help="axis order of a .npy volume: zyx (clgs) or xyz (R2-Gaussian's vol_gt.npy)")
 @click.option("--hu", is_flag=True, help="the volume holds Hounsfield units (a CT, DICOM): convert them to "
@@ -50,7 +57,8 @@ from clgs.cli.options import FiniteFloat, Seed, distance_options
 @click.option("--scatter", type=FiniteFloat(min=0), default=0.0, show_default=True,
               help="scatter as a fraction of the primary signal")
 @click.option("--seed", type=Seed(), default=0, show_default=True, help="noise seed, 0 to 2**64 - 1")
-@click.option("--no-noise", is_flag=True, help="noiseless line integrals")
+@click.option("--noise/--no-noise", "noise", cls=AliasOption, aliases=(" /--noiseless",), default=True,
+              show_default=True, help="Poisson + electronic noise (--no-noise: noiseless line integrals)")
 @click.option("--surface-level", type=FiniteFloat(), default=None,
               help="also store the truth's iso-surface at this value as truth_surface.stl")
 @click.option("--grid", default=None,
@@ -67,9 +75,9 @@ from clgs.cli.options import FiniteFloat, Seed, distance_options
                    "scanner's frame; docs/formats.md) instead of --views, --arc, --mode, --DSO, --DSD, --detector "
                    "and --pixel; the volume keeps its place, centred at the file's offOrigin (default 0) in that "
                    "frame, on the reconstruction grid (--grid), which replaces the file's nVoxel and dVoxel")
-@click.option("--force", is_flag=True, help="overwrite an existing --out")
+@force_option("replace an existing scan folder --out")
 def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, pixel, spacing, I0, sigma, scatter, seed,
-             no_noise, surface_level, grid, grid_spacing, protocol, geometry_file, force):
+             noise, surface_level, grid, grid_spacing, protocol, geometry_file, force):
     """Simulate a sparse-view X-ray scan of VOLUME (attenuation in 1/mm, or Hounsfield units with
     --hu): .npy, NIfTI, MetaImage (.mha/.mhd), NRRD, or a DICOM series (its folder or a .dcm file).
 
@@ -159,13 +167,13 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
         scan = simulate_scan(
             vol, sp, org, orientation=loaded.orientation, hu=hu, kev=kev, views=views, arc_deg=arc, mode=mode,
             DSO=DSO, DSD=DSD, detector=detector, pixel=pixel, geometry=geometry_file,
-            grid=recon_shape, protocol=protocol, noise=not no_noise,
+            grid=recon_shape, protocol=protocol, noise=noise,
             I0=I0, sigma=sigma, scatter=scatter, seed=seed, surface_level=surface_level, name=str(volume),
             warn=lambda message: click.echo(f"warning: {message}", err=True), meta=meta,
-            announce=lambda geo, shape: click.echo(
+            announce=lambda geo, shape: info(
                 f"projecting {geo.n_views} {geo.mode}-beam views of a {'x'.join(map(str, shape))} volume "
                 f"({protocol} grid; reconstruction grid {'x'.join(map(str, recon_shape))}) onto "
-                f"{geo.nDetector[0]}x{geo.nDetector[1]} pixels of {geo.dDetector[0]:.3g} mm ...", err=True))
+                f"{geo.nDetector[0]}x{geo.nDetector[1]} pixels of {geo.dDetector[0]:.3g} mm ..."))
     except GeometryError as exc:
         raise click_error(exc, "invalid scanner") from None
     except MemoryError:
@@ -174,6 +182,8 @@ def simulate(volume, out, axes, hu, kev, views, arc, mode, DSD, DSO, detector, p
         raise click_error(exc) from None
     elapsed = time.perf_counter() - t0
     views = scan.n_views
+    acq = scan.meta.get("acquisition") or {}
+    detail("settings: " + ", ".join(f"{k}={acq[k]}" for k in ("noise", "I0", "sigma", "scatter", "seed") if k in acq))
     try:
         scan.save(out, overwrite=force)
     except (ScanError, FileExistsError) as exc:

@@ -29,6 +29,7 @@ import signal
 from pathlib import Path
 
 from clgs.errors import InputError
+from clgs.methods.settings import parse_pairs
 
 RECORD = "run.json"
 SUMMARY_KEYS = ["name", "scan", "method", "settings", "seed", "status", "psnr3d", "ssim3d", "seconds", "error", "out"]
@@ -44,21 +45,6 @@ def split_settings(value) -> list:
     if isinstance(value, (list, tuple)):
         return [str(v).strip() for v in value if str(v).strip()]
     return [p.strip() for p in str(value).split(";") if p.strip()]
-
-
-def parse_setting_pairs(pairs) -> dict:
-    """KEY=VALUE strings -> {key: JSON value, else the string} (as ``clgs reconstruct --set``)."""
-    out = {}
-    for p in pairs:
-        key, sep, text = str(p).partition("=")
-        key = key.strip().replace("-", "_")
-        if not sep or not key:
-            raise InputError(f"a setting must read KEY=VALUE, got {p!r}")
-        try:
-            out[key] = json.loads(text)
-        except json.JSONDecodeError:
-            out[key] = text
-    return out
 
 
 def read_list(path) -> list:
@@ -146,7 +132,7 @@ def plan(runs, out_dir) -> list:
     out_dir = Path(os.path.abspath(out_dir)).resolve()
     planned, seen = [], {}
     for i, r in enumerate(runs, 1):
-        settings = r["settings"] if isinstance(r["settings"], dict) else parse_setting_pairs(r["settings"])
+        settings = r["settings"] if isinstance(r["settings"], dict) else parse_pairs(r["settings"])
         name = r.get("out") or default_name(r["scan"], r["method"], settings, r.get("seed"))
         given = Path(os.path.expanduser(str(name)))
         folder = Path(os.path.abspath(given if given.is_absolute() else out_dir / given))
