@@ -34,8 +34,9 @@ import torch
 
 from clgs.geometry import Grid
 from clgs.metrics import tv_count
-from clgs.ops.voxelizer import GRADSTRIDE, GSTRIDE, Voxelizer, brick_cells, default_voxelizer, grid_axes, np_dtype
-from clgs.runtime import Operator, round_up
+from clgs.ops.voxelizer import (GRADSTRIDE, GSTRIDE, BrickOperator, Voxelizer, brick_cells, default_voxelizer,
+                                grid_axes, np_dtype)
+from clgs.runtime import round_up
 
 _CHUNK = 512  # Gaussians per culling work-item (at least; at most _MAX_CHUNKS chunks)
 _MAX_CHUNKS = 64
@@ -53,15 +54,14 @@ def _tv_weights(shape, dt):
     return [w if n > 1 else dt(0) for n in shape[::-1]]
 
 
-class PatchTV(Operator):
+class PatchTV(BrickOperator):
     """Runs ``cl/tv_patch.cl`` (an :class:`~clgs.runtime.Operator`): programs per (precision,
     gradient set), pooled buffers, one call at a time. ``brick``: the voxelizer's brick rows (y, z)."""
 
     SOURCE = "tv_patch.cl"
 
     def __init__(self, ctx=None, queue=None, brick=(8, 8)):
-        super().__init__(ctx, queue)
-        self.brick_y, self.brick_z = int(brick[0]), int(brick[1])
+        super().__init__(ctx, queue, brick)
         self._cap_list = 1 << 16
 
     @classmethod
@@ -71,17 +71,6 @@ class PatchTV(Operator):
         op = cls(voxelizer.ctx, voxelizer.queue, (voxelizer.brick_y, voxelizer.brick_z))
         op.io.host_memory = voxelizer.io.host_memory
         return op
-
-    def program(self, np_dtype, grads=()):
-        """The variant for this precision and set of ``WANT_*`` gradients."""
-        real = "double" if np_dtype == np.float64 else "float"
-
-        def defines():
-            d = {"REAL": real, "BRICK_Y": self.brick_y, "BRICK_Z": self.brick_z}
-            d.update({g: True for g in grads})
-            return d
-
-        return self.variant((real, tuple(grads)), defines)
 
     def _run(self, prog, name: str, n_items: int, *args):
         self.launch(prog, name, (round_up(max(n_items, 1), _LOCAL),), (_LOCAL,), *args)

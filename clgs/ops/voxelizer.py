@@ -249,17 +249,14 @@ class _PointBins:
         return (idx[:, 2] * nc[1] + idx[:, 1]) * nc[0] + idx[:, 0]
 
 
-class Voxelizer(Operator):
-    """Runs ``cl/voxelizer.cl`` (an :class:`~clgs.runtime.Operator`): programs per (precision,
-    gradient set), pooled scratch buffers, one call at a time. ``brick``: brick rows (y, z)."""
-
-    SOURCE = SOURCE
+class BrickOperator(Operator):
+    """An operator over the voxel bricks (the voxelizer, the TV patch): ``brick`` rows (y, z) and
+    one program per (precision, set of ``WANT_*`` gradients)."""
 
     def __init__(self, ctx=None, queue=None, brick=(8, 8)):
         super().__init__(ctx, queue)
         self.brick_y, self.brick_z = int(brick[0]), int(brick[1])
 
-    # ------------------------------------------------------------------------- plumbing
     def program(self, np_dtype, grads=()):
         """The variant for this precision and set of ``WANT_*`` gradients."""
         real = "double" if np_dtype == np.float64 else "float"
@@ -270,6 +267,15 @@ class Voxelizer(Operator):
             return d
 
         return self.variant((real, tuple(grads)), defines)
+
+
+class Voxelizer(BrickOperator):
+    """Runs ``cl/voxelizer.cl`` (an :class:`~clgs.runtime.Operator`): programs per (precision,
+    gradient set), pooled scratch buffers, one call at a time. ``brick``: brick rows (y, z)."""
+
+    SOURCE = SOURCE
+
+    # ------------------------------------------------------------------------- plumbing
 
     def device_input(self, arr: np.ndarray):
         """(buffer, array): a read-only buffer of ``arr`` and the array it reads, which the caller
