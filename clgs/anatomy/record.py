@@ -140,8 +140,8 @@ class Scene:
         if self.arc_deg is not None and self.arc_deg > 360:
             raise SceneError(f"scene 'arc_deg' must be in (0, 360] degrees, got {self.arc_deg!r}")
         if (self.mode or "cone") == "cone" and self.DSO is not None and self.DSD is not None and self.DSD <= self.DSO:
-            raise SceneError(f"scene: a cone-beam detector lies beyond the rotation axis: DSD ({self.DSD:g} mm) must be "
-                             f"larger than DSO ({self.DSO:g} mm)")
+            raise SceneError(f"scene: a cone-beam detector lies beyond the rotation axis: DSD ({self.DSD:g} mm) "
+                             f"must be larger than DSO ({self.DSO:g} mm)")
 
     @classmethod
     def names(cls) -> tuple:
