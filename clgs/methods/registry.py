@@ -186,7 +186,7 @@ class Registrar:
 
     def __call__(self, method) -> None:
         if not isinstance(method, Method):
-            raise TypeError(f"register() takes clgs.Method records, got {type(method).__name__}")
+            raise TypeError(f"register() takes clgs.methods.Method records, got {type(method).__name__}")
         self._check_free(method.name)
         register(method)
         PROVIDERS[method.name] = self.package
@@ -263,7 +263,7 @@ def load_deprecated_anatomy_methods() -> None:
 
     for package, m in anatomy_plugins.registry().methods():
         if not isinstance(m, Method):
-            warnings.warn(f"plugin package {package!r}: clgs_methods() must return clgs.Method records, "
+            warnings.warn(f"plugin package {package!r}: clgs_methods() must return clgs.methods.Method records, "
                           f"got {type(m).__name__}; ignored", PluginWarning, stacklevel=3)
             continue
         warnings.warn(f"plugin package {package!r}: the hook clgs_methods() in the group 'clgs.anatomies' is "
