@@ -449,11 +449,11 @@ def test_density_prior_field(template, shape_model, atlas, tissue_atlas):
         g = torch.autograd.grad(value, [free_d], allow_unused=True)[0]
         return term.fn.field, 0.0 if g is None else float(g.abs().sum())
 
-    field, g = prior_grads((template, shape_model, tissue_atlas), "all")
+    field, g = prior_grads(AnatomyParts(template, shape_model, tissue_atlas), "all")
     assert field == "all" and g > 0
-    field, g = prior_grads((template, shape_model, tissue_atlas), "shape")
+    field, g = prior_grads(AnatomyParts(template, shape_model, tissue_atlas), "shape")
     assert field == "shape" and g == 0
-    field, _ = prior_grads((template, shape_model, atlas), "all")
+    field, _ = prior_grads(AnatomyParts(template, shape_model, atlas), "all")
     assert field == "shape"
 
 
@@ -465,7 +465,7 @@ def test_bench_alternation_times_every_step_and_switches_them_back_on(template, 
     from clgs.shape.priors import DensityPrior
 
     scan = _scan(template, shape_model=shape_model)
-    t = build_trainer(scan, (template, shape_model, atlas),
+    t = build_trainer(scan, AnatomyParts(template, shape_model, atlas),
                       ShapeGuidedConfig(**{k: v for k, v in _small(iterations=40).items() if k != "progress"}))
     t.evaluate = None
     rows = alternate(t, rounds=2, block=1)

@@ -274,9 +274,9 @@ class Anatomy:
 @dataclass(frozen=True)
 class AnatomyParts:
     """What a shape-guided reconstruction uses of an anatomy: the ``template`` (required), its
-    ``shape_model`` and density ``atlas`` (each None when absent) and the ``anatomy`` record they
-    came from, if any (its scene gives the bone level). :meth:`load` reads them from an
-    :class:`Anatomy`; :meth:`of` takes either."""
+    ``shape_model`` and density ``atlas`` (each None when absent) and the anatomy they came from,
+    if any (its scene gives the bone level). :meth:`load` reads them from an :class:`Anatomy`;
+    :meth:`of` takes either."""
 
     template: "Template"
     shape_model: Optional["ShapeModel"] = None
@@ -286,9 +286,6 @@ class AnatomyParts:
     def __post_init__(self):
         if self.template is None:
             raise InputError("AnatomyParts needs a template; the shape-guided method starts from it")
-        if self.anatomy is not None and not isinstance(self.anatomy, Anatomy):
-            raise TypeError(f"AnatomyParts.anatomy must be a clgs.anatomy.Anatomy or None, got "
-                            f"{type(self.anatomy).__name__}")
 
     def __iter__(self):
         """(template, shape_model, atlas), so ``template, model, atlas = parts`` reads them."""
@@ -296,10 +293,11 @@ class AnatomyParts:
 
     @classmethod
     def load(cls, anatomy: Anatomy) -> "AnatomyParts":
-        """The parts from an Anatomy's lazy loaders (a progress phase each)."""
+        """The parts from an Anatomy's lazy loaders (a progress phase each); any object with the
+        record's ``name`` and loaders will do."""
         from clgs.progress import phase
 
-        if not isinstance(anatomy, Anatomy):
+        if not all(hasattr(anatomy, k) for k in ("name", "load_template", "load_shape_model", "load_atlas")):
             raise TypeError(f"expected a clgs.anatomy.Anatomy, got {type(anatomy).__name__}")
         if anatomy.load_template is None:
             raise InputError(f"anatomy {anatomy.name!r} provides no template; the shape-guided method needs one")
