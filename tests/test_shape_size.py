@@ -213,10 +213,11 @@ def test_the_method_entry_reports_the_fitted_size(template, shape_model, tissue_
 
     scan = _scan_at(template, 1.25)
     kw = _small(alpha_freeze=3)
-    out = run_method(scan, tmp_path / "r", 10, anatomy=(template, shape_model, tissue_atlas), fit_size="on", **kw)
+    parts = AnatomyParts(template, shape_model, tissue_atlas)
+    out = run_method(scan, tmp_path / "r", 10, anatomy=parts, fit_size="on", **kw)
     assert out["info"]["size"] == pytest.approx(1.25, abs=0.08)
     assert "bone size: 1.2" in capsys.readouterr().err
-    off = run_method(scan, tmp_path / "o", 10, anatomy=(template, shape_model, tissue_atlas), fit_size="off", **kw)
+    off = run_method(scan, tmp_path / "o", 10, anatomy=parts, fit_size="off", **kw)
     assert off["info"]["size"] is None
 
 
