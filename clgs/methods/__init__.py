@@ -11,7 +11,7 @@ one exception: a resumed run (``--resume`` given) of a method with an ``iteratio
 ``iterations=None`` when ``--iterations`` is not given, meaning "the iterations the interrupted
 run was started with", never a new-run default.
 
-Registering a method (e.g. from a plugin or another clgs module)::
+Registering a method from another clgs module or a script (a plugin uses the hook below)::
 
     from clgs.methods import Method, register
     register(Method("mine", run="mypkg.recon:run", options="mypkg.recon:OPTIONS", help="..."))
@@ -24,7 +24,7 @@ Installed plugins provide methods through their own entry-point group, ``clgs.me
 object it names implements the pluggy hook ``register_methods(register)`` (see
 :mod:`clgs.anatomy.hookspecs` and docs/plugins.md). The built-in methods come through the same
 hook, from :mod:`.builtin`, registered in-process when this package is imported; the plugins'
-are loaded when a method is first looked up (:mod:`.plugins`). The older hook ``clgs_methods()``
+are loaded when a method is first looked up (:mod:`.registry`). The older hook ``clgs_methods()``
 in the group ``clgs.anatomies`` still works (deprecated).
 
 One module per built-in method (:mod:`.fdk`, :mod:`.sart`, :mod:`.r2gs`, :mod:`.shape_guided`),
