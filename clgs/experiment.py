@@ -65,9 +65,9 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
         res = reconstruct_shape_guided(scan, anatomy, None, iterations, progress=progress, seed=seed,
                                        **flags, **settings.get("shape", {}))
         volume, history = res.volume, res.log.rows
-        model_surface = deformed_template_surface(anatomy[0], res.trainer.sets[0])
-        if model_surface is not None and anatomy[1] is not None:  # the deformation must never fold
-            jac_min = float(np.min(anatomy[1].jacobian_determinant(res.trainer.sets[0].alpha.detach())))
+        model_surface = deformed_template_surface(anatomy.template, res.trainer.sets[0])
+        if model_surface is not None and anatomy.shape_model is not None:  # the deformation must never fold
+            jac_min = float(np.min(anatomy.shape_model.jacobian_determinant(res.trainer.sets[0].alpha.detach())))
         if getattr(res.trainer.sets[0], "fits_size", False):  # the bone's fitted size (the default)
             model_size = res.trainer.sets[0].size
         split = res.displacement  # the surface's displacement: the model's part and the residual's

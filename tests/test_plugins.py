@@ -11,7 +11,7 @@ import click
 import pytest
 from click.testing import CliRunner
 
-from clgs.anatomy import Anatomy
+from clgs.anatomy import Anatomy, hookimpl
 from clgs.anatomy.plugins import DuplicateAnatomyError, PluginWarning, Registry, UnknownAnatomyError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -207,9 +207,12 @@ def toy(toy_target, tmp_path, monkeypatch):
     monkeypatch.setenv("CLGS_TOY_HOME", str(tmp_path / "home"))
     import clgs_toy
 
-    (anatomy,) = clgs_toy.clgs_anatomies()
-    anatomy.package = "clgs-toy"
-    return anatomy
+    from clgs.anatomy import plugins
+
+    reg = Registry()  # the toy plugin registered in-process, as its entry point would be
+    reg.register(clgs_toy, name="toy", package="clgs-toy", version="0.1.0")
+    monkeypatch.setattr(plugins, "_default", reg)
+    return reg.get("toy")
 
 
 def test_group_info_build_and_extra_command(toy, tmp_path, monkeypatch):
@@ -233,7 +236,8 @@ def test_group_info_build_and_extra_command(toy, tmp_path, monkeypatch):
     assert "2 modes on grid" in r.output and "8 subjects" in r.output and "density atlas (40, 40, 56)" in r.output
     r = runner.invoke(group, ["params", "08"])
     assert r.exit_code == 0 and "semi_axes_mm" in json.loads(r.output)
-    clash = Anatomy(name="clash", summary="x", commands=[click.Command("info")])
+    with pytest.warns(DeprecationWarning):  # the old way to add commands, still read
+        clash = Anatomy(name="clash", summary="x", commands=[click.Command("info")])
     with pytest.raises(click.ClickException, match="clashes"):
         make_group(clash)
 
@@ -303,43 +307,250 @@ def test_generic_build_model_without_a_plugin_builder(tmp_path):
     assert r.exit_code == 0 and "no subject had a CT volume" in r.output
 
 
-def test_methods_come_through_the_same_plugin_mechanism(monkeypatch, tmp_path):
-    """A plugin provides reconstruction methods with the pluggy hook ``clgs_methods``, beside (or
-    instead of) anatomies; ``clgs reconstruct --method NAME`` then runs it, and a name clash with a
-    built-in method is an error naming the package."""
+# --------------------------------------------------------------------------------------- the typed record
+def test_scene_checks_its_settings_and_reads_like_the_old_dict():
+    from clgs.anatomy import Scene, SceneError
+
+    s = Scene(mode="cone", DSO=1000, DSD=1500, nDetector=[96, 128], dDetector=(2, 2), n_views=40, surface_level=0.03)
+    assert s.DSO == 1000.0 and s.nDetector == (96, 128) and isinstance(s.nDetector[0], int)
+    assert s.get("n_views", 50) == 40 and s.get("arc_deg", 180.0) == 180.0 and "nVoxel" not in s
+    assert dict(s) == {"mode": "cone", "DSO": 1000.0, "DSD": 1500.0, "nDetector": (96, 128),
+                       "dDetector": (2.0, 2.0), "n_views": 40, "surface_level": 0.03}
+    assert Scene.from_dict(dict(s)) == s and Scene.from_dict(None) == Scene()
+    bad = [({"mode": "fan"}, "'cone' or 'parallel'"), ({"DSO": 1500, "DSD": 1000}, "DSD .* must be larger than DSO"),
+           ({"nDetector": (96,)}, r"'nDetector' must be 2 numbers \(V, U pixels\)"),
+           ({"nVoxel": (8, 8, 8.5)}, "whole number"), ({"n_views": 0}, "'n_views' must be positive"),
+           ({"arc_deg": 400}, r"\(0, 360\]"), ({"density": float("nan")}, "finite"),
+           ({"surface_level": "0.03"}, "must be a number"), ({"dVoxel": 2.0}, "3 numbers")]
+    for settings, match in bad:
+        with pytest.raises(SceneError, match=match):
+            Scene.from_dict(settings)
+    with pytest.raises(SceneError, match="unknown scene setting.*'n_view'.*valid: mode, DSO, DSD") as err:
+        Scene.from_dict({"n_view": 10})
+    assert isinstance(err.value, ValueError)
+
+
+def test_anatomy_record_is_checked_when_made():
+    from clgs.anatomy import AnatomyError, Scene, SceneError
+
+    a = Anatomy(name="knee", summary="k", scene={"n_views": 12, "surface_level": 0.02})  # an old dict-style plugin
+    assert isinstance(a.scene, Scene) and a.scene.n_views == 12 and Anatomy(name="x", summary="y").scene == Scene()
+    with pytest.raises(AnatomyError, match=r"load_template must be a callable \(\) -> Template or None, got str"):
+        Anatomy(name="knee", summary="k", load_template="template.npz")
+    with pytest.raises(TypeError, match=r"load_subject must be a callable \(subject_id\) -> Subject"):
+        Anatomy(name="knee", summary="k", load_subject=42)
+    with pytest.raises(SceneError, match="valid: mode"):
+        Anatomy(name="knee", summary="k", scene={"views": 5})
+    with pytest.raises(SceneError, match="must be a clgs.anatomy.Scene or a dict"):
+        Anatomy(name="knee", summary="k", scene=[("n_views", 5)])
+    with pytest.raises(AnatomyError, match="summary must be a string"):
+        Anatomy(name="knee", summary=None)
+    with pytest.warns(DeprecationWarning, match="register_anatomy_commands"):
+        Anatomy(name="knee", summary="k", commands=[click.Command("extra")])
+
+
+def test_scene_level_reaches_the_bone_level_rule():
+    from clgs.anatomy.bone_level import choose_level
+
+    level = choose_level(anatomy=Anatomy(name="knee", summary="k", scene={"surface_level": 0.025}))
+    assert level.value == 0.025 and level.source == "scene"
+    assert choose_level(anatomy=Anatomy(name="knee", summary="k")) is None
+
+
+def test_anatomy_parts_one_type_in():
     import numpy as np
-    from click.testing import CliRunner
+
+    from clgs.anatomy import AnatomyParts
+    from clgs.errors import InputError
+    from clgs.geometry import Geometry
+    from clgs.io.scan import Scan
+    from clgs.methods.shape_guided import reconstruct_shape_guided
+
+    template = object()
+    loaded = AnatomyParts.of(Anatomy(name="knee", summary="k", load_template=lambda: template))
+    assert loaded.template is template and loaded.shape_model is None and loaded.atlas is None
+    assert loaded.anatomy.name == "knee" and tuple(loaded) == (template, None, None)
+    assert AnatomyParts.of(loaded) is loaded
+    with pytest.raises(InputError, match="provides no template"):
+        AnatomyParts.of(Anatomy(name="knee", summary="k"))
+    with pytest.raises(InputError, match="needs a template"):
+        AnatomyParts(None)
+    geo = Geometry.default(n_views=2, n_voxel=8, n_detector=12, volume_mm=32.0)
+    scan = Scan(geo, np.zeros((2, 12, 12), np.float32))
+    for wrong in [(template, None, None), "femur", None]:
+        with pytest.raises(TypeError, match=r"Anatomy or clgs.anatomy.AnatomyParts, got .*AnatomyParts\(template"):
+            reconstruct_shape_guided(scan, wrong, iterations=1, progress=False)
+
+
+def test_population_anatomy_is_one_declarative_call():
+    """The built-in femur and patella are each one population_anatomy call; a setting given in the
+    scene beyond the scanner's sizing (a surface level) is kept, and wrong ids are refused."""
+    import clgs_patella
+
+    from clgs.anatomy import PopulationAnatomy, Scene, population_anatomy
+
+    assert isinstance(clgs_patella.PLUGIN, PopulationAnatomy)
+    (anatomy,) = clgs_patella.clgs_anatomies()
+    assert anatomy.name == "patella" and anatomy.population_model is clgs_patella.population_model()
+    assert anatomy.scene.nVoxel == clgs_patella.SHAPE and anatomy.scene.dDetector == (2.0, 2.0)
+    kw = dict(name="kneecap", summary="s", version="1", data_dir=clgs_patella.DATA_DIR,
+              file_pattern="patella_left_LLP26_subject{id}.npz", ids=clgs_patella.SUBJECTS[:4], test_ids=["03"],
+              shape=(16, 72, 72), spacing_mm=2.0, params=clgs_patella.params, frame_offset=clgs_patella.FRAME_OFFSET)
+    mine = population_anatomy(scene=Scene(n_views=8, arc_deg=120, surface_level=0.02), **kw).anatomy()
+    assert mine.scene.surface_level == 0.02 and mine.scene.n_views == 8 and mine.scene.nVoxel == (16, 72, 72)
+    assert mine.population() == ["00", "01", "02"]
+    with pytest.raises(ValueError, match=r"held-out ids \['99'\]"):
+        population_anatomy(**dict(kw, test_ids=["99"]))
+
+
+# --------------------------------------------------------------------------------------- commands by hook
+def test_a_plugin_adds_commands_through_the_hooks(monkeypatch):
+    """``register_commands(cli)`` adds to ``clgs``, ``register_anatomy_commands(anatomy, group)`` to
+    one anatomy's group; a name of a built-in or generic command is refused with a warning."""
+    from clgs.anatomy import hookimpl, plugins
+    from clgs.cli import main
+
+    @click.command("hello")
+    def hello():
+        """Say hello."""
+        click.echo("hello from a plugin")
+
+    @click.command("knee-stats")
+    def knee_stats():
+        click.echo("knee statistics")
+
+    class Knee:
+        @hookimpl
+        def clgs_anatomies(self):
+            return [Anatomy(name="knee", summary="a knee")]
+
+        @hookimpl
+        def register_commands(self, cli):
+            cli.add_command(hello)
+            cli.add_command(click.Command("reconstruct"))  # a built-in's name: refused
+
+        @hookimpl
+        def register_anatomy_commands(self, anatomy, group):
+            if anatomy.name == "knee":
+                group.add_command(knee_stats)
+                group.add_command(click.Command("info", help="shadows the generic one"))  # refused
+
+    class Broken:
+        @hookimpl
+        def register_commands(self, cli):
+            cli.add_command(click.Command("half-added"))
+            raise RuntimeError("no config file")
+
+    reg = Registry()
+    reg.register(Knee(), name="knee", package="pkg-knee")
+    reg.register(Broken(), name="broken", package="pkg-broken")
+    monkeypatch.setattr(plugins, "_default", reg)
+    monkeypatch.setattr(main, "commands", dict(main.commands))  # the process's root group is left as it was
+    runner = CliRunner()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = runner.invoke(main, ["hello"])
+        assert r.exit_code == 0 and r.output == "hello from a plugin\n", r.output
+        r = runner.invoke(main, ["--help"])
+        assert "  hello " in r.output and "half-added" not in r.output
+        r = runner.invoke(main, ["knee", "knee-stats"])
+        assert r.exit_code == 0 and r.output == "knee statistics\n", r.output
+        r = runner.invoke(main, ["knee", "info"])
+        assert r.exit_code == 0 and "knee: a knee" in r.output, r.output  # still the generic info
+    text = "\n".join(str(w.message) for w in caught)
+    assert "pkg-knee" in text and "'reconstruct' clashes with the command 'clgs reconstruct'" in text
+    assert "'info' clashes with the command 'clgs knee info'" in text
+    assert "pkg-broken" in text and "no config file" in text
+    assert main.get_command(click.Context(main), "reconstruct").name == "reconstruct"
+
+
+# --------------------------------------------------------------------------------------- methods
+METHOD_PLUGIN = """
+import numpy as np
+from clgs.anatomy import hookimpl
+from clgs.methods import Method
+
+def run(scan, out_dir=None):
+    return {{"volume": np.full(scan.geometry.nVoxel, 0.5, np.float32)}}
+
+@hookimpl
+def register_methods(register):
+    register(Method({name!r}, "{module}:run", help="a plugin's method"))
+"""
+
+
+@pytest.fixture
+def method_state(monkeypatch):
+    """The method registry as it is, restored after the test."""
+    from clgs.methods import registry
+
+    for attr in ("_REGISTRY", "_LAZY", "PROVIDERS"):
+        monkeypatch.setattr(registry, attr, dict(getattr(registry, attr)))
+    monkeypatch.setattr(registry, "_PLUGINS_SEEN", [False])
+    monkeypatch.setattr(registry, "_MANAGER", [])
+    return registry
+
+
+def _fake_method_dist(site: Path, dist: str, module: str, source: str):
+    (site / f"{module}.py").write_text(textwrap.dedent(source))
+    info = site / f"{dist.replace('-', '_')}-2.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {dist}\nVersion: 2.0\n")
+    (info / "entry_points.txt").write_text(f"[clgs.methods]\n{module} = {module}\n")
+
+
+def test_a_method_plugin_comes_through_its_own_group(on_path, method_state, tmp_path):
+    """A package with an entry point in ``clgs.methods`` whose module implements
+    ``register_methods(register)``: ``clgs reconstruct --method NAME`` runs it; the built-ins come
+    through the same hook (their provider is clgs)."""
+    import numpy as np
 
     from clgs import methods
-    from clgs.anatomy import hookimpl, plugins
     from clgs.cli import main
     from clgs.geometry import Geometry
     from clgs.io.scan import Scan
 
-    def zeros(scan, out_dir=None):
-        return {"volume": np.zeros(scan.geometry.nVoxel, np.float32)}
-
-    def installed(name, help_text, package):
-        """A registry holding one plugin whose clgs_methods provides ``name``, made the process's."""
-        class Provider:
-            @hookimpl
-            def clgs_methods(self):
-                return [methods.Method(name, zeros, help=help_text)]
-
-        reg = plugins.Registry()
-        reg.register(Provider(), name=package, package=package)
-        monkeypatch.setattr(plugins, "registry", lambda reload=False: reg)
-        monkeypatch.setattr(methods, "_PLUGINS_SEEN", [False])
-
-    monkeypatch.setattr(methods, "_REGISTRY", dict(methods._REGISTRY))
-    installed("t-plugin-zeros", "a plugin's method", "provider-pkg")
-    assert "t-plugin-zeros" in methods.names() and methods.describe()["t-plugin-zeros"] == "a plugin's method"
+    _fake_method_dist(on_path, "half-method", "half_method", METHOD_PLUGIN.format(name="t-half", module="half_method"))
+    assert "t-half" in methods.names() and methods.describe()["t-half"] == "a plugin's method"
+    assert method_state.PROVIDERS["t-half"] == "half-method" and method_state.PROVIDERS["fdk"] == "clgs"
     geo = Geometry.default(n_views=2, n_voxel=8, n_detector=12, volume_mm=32.0)
     Scan(geo, np.zeros((2, 12, 12), np.float32)).save(tmp_path / "scan")
-    res = CliRunner().invoke(main, ["reconstruct", str(tmp_path / "scan"), "--method", "t-plugin-zeros",
-                                    "--out", str(tmp_path / "z.nii.gz")])
-    assert res.exit_code == 0, res.output
+    r = CliRunner().invoke(main, ["reconstruct", str(tmp_path / "scan"), "--method", "t-half",
+                                  "--out", str(tmp_path / "half.npy")])
+    assert r.exit_code == 0, r.output
+    assert np.all(np.load(tmp_path / "half.npy") == 0.5)
 
-    installed("fdk", "another fdk", "clash-pkg")
-    with pytest.raises(methods.MethodError, match="clash-pkg"):
+
+def test_method_plugins_that_clash_or_break(on_path, method_state):
+    from clgs import methods
+
+    _fake_method_dist(on_path, "clash-method", "clash_method", METHOD_PLUGIN.format(name="fdk", module="clash_method"))
+    with pytest.raises(methods.MethodError, match="'fdk': package 'clgs' and plugin package 'clash-method'"):
         methods.names()
+
+    manager = method_state.MethodPlugins()
+
+    class WrongRecord:
+        @hookimpl
+        def register_methods(self, register):
+            register("not a method")
+
+    with pytest.warns(PluginWarning, match=r"pkg-wrong.*register\(\) takes clgs.methods.Method records, got str"):
+        manager.register_plugin(WrongRecord(), name="wrong", package="pkg-wrong")
+
+
+def test_the_deprecated_clgs_methods_hook_still_works(monkeypatch, method_state):
+    from clgs import methods
+    from clgs.anatomy import plugins
+
+    class Old:
+        @hookimpl
+        def clgs_methods(self):
+            return [methods.Method("t-old", lambda scan, out_dir=None: {}, help="an old plugin's method")]
+
+    reg = Registry()
+    reg.register(Old(), name="old", package="pkg-old")
+    monkeypatch.setattr(plugins, "registry", lambda reload=False: reg)
+    with pytest.warns(DeprecationWarning, match="pkg-old.*register_methods"):
+        assert "t-old" in methods.names()
+

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from clgs.anatomy import AnatomyParts
 from clgs.geometry import Geometry
 from clgs.shape.initialise import initialise, quaternion_from_z_to, sample_reference_centres
 from clgs.reference.gaussians import quaternion_to_rotation
@@ -142,8 +143,8 @@ def test_shape_guided_fits_alpha_and_beats_its_start(template, shape_model, atla
     from clgs.methods.shape_guided import reconstruct_shape_guided
 
     scan = _scan(template, alpha=(1.0, -0.8), shape_model=shape_model)
-    res0 = reconstruct_shape_guided(scan, (template, shape_model, atlas), iterations=1, **_small())
-    res = reconstruct_shape_guided(scan, (template, shape_model, atlas), iterations=250, **_small())
+    res0 = reconstruct_shape_guided(scan, AnatomyParts(template, shape_model, atlas), iterations=1, **_small())
+    res = reconstruct_shape_guided(scan, AnatomyParts(template, shape_model, atlas), iterations=250, **_small())
     assert np.all(np.isfinite(res.volume))
     assert psnr3d(res.volume, scan.truth) > psnr3d(res0.volume, scan.truth) + 2.0
     # the shape coefficients move towards the truth (both signs right)
@@ -155,7 +156,7 @@ def test_stability_extreme_alpha_few_views_noise_and_offset(template, shape_mode
     from clgs.methods.shape_guided import reconstruct_shape_guided
     from clgs.shape.gaussian_set import ShapeGuidedSet
 
-    parts = (template, shape_model, atlas)
+    parts = AnatomyParts(template, shape_model, atlas)
     for kw in (dict(n_views=1), dict(n_views=2), dict(I0=1e3), dict(shift_mm=30.0)):
         scan = _scan(template, shape_model=shape_model, **kw)
         res = reconstruct_shape_guided(scan, parts, iterations=60, **_small(alpha_freeze=5))
@@ -175,7 +176,7 @@ def test_ablation_switches_change_the_model(template, shape_model, atlas):
     from clgs.shape.gaussian_set import ShapeGuidedSet
 
     scan = _scan(template)
-    parts = (template, shape_model, atlas)
+    parts = AnatomyParts(template, shape_model, atlas)
     cfg = ShapeGuidedConfig(**{k: v for k, v in _small(iterations=5).items() if k != "progress"})
     t = build_trainer(scan, parts, cfg)
     assert isinstance(t.sets[0], ShapeGuidedSet) and {"shape", "density"} <= {x.name for x in t.losses}
@@ -185,7 +186,7 @@ def test_ablation_switches_change_the_model(template, shape_model, atlas):
     assert not isinstance(t.sets[0], ShapeGuidedSet)
     assert not ({"shape", "density"} & {x.name for x in t.losses})
     # without a shape model or atlas the terms (and their cost) are left out
-    t = build_trainer(scan, (template, None, None), ShapeGuidedConfig(**{k: v for k, v in _small(iterations=5).items()
+    t = build_trainer(scan, AnatomyParts(template), ShapeGuidedConfig(**{k: v for k, v in _small(iterations=5).items()
                                                                           if k != "progress"}))
     assert not ({"shape", "density"} & {x.name for x in t.losses})
 
@@ -198,7 +199,7 @@ def test_resume_is_bitwise(template, shape_model, atlas, tmp_path, monkeypatch, 
     monkeypatch.setattr(ShapeGuidedSet, "LINEAR_TOL", linear_tol)
 
     scan = _scan(template, shape_model=shape_model)
-    parts = (template, shape_model, atlas)
+    parts = AnatomyParts(template, shape_model, atlas)
     kw = _small(alpha_freeze=3)
     kw.pop("checkpoint_every")
     full = reconstruct_shape_guided(scan, parts, iterations=30, out_dir=tmp_path / "a", checkpoint_every=15, **kw)
@@ -399,7 +400,7 @@ def test_atlas_start_beats_the_fdk_start_at_few_views(template, shape_model, tis
     from clgs.metrics import psnr3d
 
     scan = _scan(template, n_views=3)
-    parts = (template, shape_model, tissue_atlas)
+    parts = AnatomyParts(template, shape_model, tissue_atlas)
     t_atlas, v_atlas = _start_volume(scan, parts, free_init="atlas", alpha_init_iterations=0)
     t_fdk, v_fdk = _start_volume(scan, parts, free_init="fdk", alpha_init_iterations=0)
     # (the soft-tissue cylinder is wider than this detector: its rows are truncated, and the FDK
@@ -417,7 +418,7 @@ def test_alpha_registration_moves_towards_the_subject(template, shape_model, tis
 
     truth = np.array([1.0, -0.8])
     scan = _scan(template, alpha=truth, shape_model=shape_model)
-    parts = (template, shape_model, tissue_atlas)
+    parts = AnatomyParts(template, shape_model, tissue_atlas)
     cfg = ShapeGuidedConfig(**{k: v for k, v in _small(iterations=1, alpha_init_iterations=60).items()
                                if k != "progress"})
     alpha = build_trainer(scan, parts, cfg).sets[0].alpha.detach().numpy()
@@ -448,11 +449,11 @@ def test_density_prior_field(template, shape_model, atlas, tissue_atlas):
         g = torch.autograd.grad(value, [free_d], allow_unused=True)[0]
         return term.fn.field, 0.0 if g is None else float(g.abs().sum())
 
-    field, g = prior_grads((template, shape_model, tissue_atlas), "all")
+    field, g = prior_grads(AnatomyParts(template, shape_model, tissue_atlas), "all")
     assert field == "all" and g > 0
-    field, g = prior_grads((template, shape_model, tissue_atlas), "shape")
+    field, g = prior_grads(AnatomyParts(template, shape_model, tissue_atlas), "shape")
     assert field == "shape" and g == 0
-    field, _ = prior_grads((template, shape_model, atlas), "all")
+    field, _ = prior_grads(AnatomyParts(template, shape_model, atlas), "all")
     assert field == "shape"
 
 
@@ -464,7 +465,7 @@ def test_bench_alternation_times_every_step_and_switches_them_back_on(template, 
     from clgs.shape.priors import DensityPrior
 
     scan = _scan(template, shape_model=shape_model)
-    t = build_trainer(scan, (template, shape_model, atlas),
+    t = build_trainer(scan, AnatomyParts(template, shape_model, atlas),
                       ShapeGuidedConfig(**{k: v for k, v in _small(iterations=40).items() if k != "progress"}))
     t.evaluate = None
     rows = alternate(t, rounds=2, block=1)
@@ -492,7 +493,7 @@ def test_a_rod_that_fills_the_grid_is_warned_and_the_bone_is_not(template, shape
 
     from clgs.methods.shape_guided import reconstruct_shape_guided, warn_if_it_fills_the_grid
 
-    parts = (template, shape_model, atlas)
+    parts = AnatomyParts(template, shape_model, atlas)
     kw = _small(alpha_init_iterations=1)  # the warning comes before the run
     with pytest.warns(UserWarning, match="fills the grid along z.*rod, cylinder"):
         reconstruct_shape_guided(_rod_scan(), parts, iterations=1, surface_level=0.025, **kw)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from clgs.anatomy import AnatomyParts
 import test_shape_guided as ellipsoid
 from test_shape_guided import _scan, _small, geometry
 
@@ -182,7 +183,7 @@ def _residual_after_registration(template, shape_model, tissue_atlas, scan, alph
     # the test scene is small (2 mm voxels, a 44 mm bone): a finer grid than the femur's 16 points
     # over 477 mm would be, and a prior to match
     cfg = _cfg(fit_size="off", residual_points=12, lambda_residual=1e-3)
-    s = sg.build_trainer(scan, (template, shape_model, tissue_atlas), cfg).sets[0]
+    s = sg.build_trainer(scan, AnatomyParts(template, shape_model, tissue_atlas), cfg).sets[0]
     p = sg.surface_displacement_parts(template, s)
     normals = trimesh.Trimesh(p["vertices"] - p["residual_mm"], template.faces, process=False).vertex_normals
     return p["residual_mm"], (p["residual_mm"] * normals).sum(1)
@@ -218,7 +219,7 @@ def test_a_run_with_the_residual_writes_it_into_its_surface_report_and_checkpoin
     from clgs.methods.shape_guided import reconstruct_shape_guided, surface_displacement_parts
 
     scan = _bump_scan(template)
-    parts = (template, shape_model, tissue_atlas)
+    parts = AnatomyParts(template, shape_model, tissue_atlas)
     kw = _small(alpha_freeze=3, alpha_init_iterations=10, residual="on", residual_init_iterations=20,
                 residual_points=12, lambda_residual=1e-3)
     kw.pop("checkpoint_every")

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from clgs.anatomy import AnatomyParts
 import test_shape_guided as ellipsoid
 from test_shape_guided import _small, geometry
 
@@ -122,7 +123,7 @@ def test_a_larger_bone_is_fitted_at_its_size_and_beats_the_models_own(template, 
     from clgs.shape.size import size_centre
 
     scan = _scan_at(template, 1.25)
-    parts = (template, shape_model, tissue_atlas)
+    parts = AnatomyParts(template, shape_model, tissue_atlas)
     kw = _small(alpha_freeze=5, alpha_init_iterations=40)
     sized = reconstruct_shape_guided(scan, parts, tmp_path / "a", iterations=150, **kw)
     off = reconstruct_shape_guided(scan, parts, None, iterations=150, fit_size="off", **kw)
@@ -149,7 +150,7 @@ def test_auto_leaves_a_bone_of_the_models_size_as_it_was(template, shape_model, 
     from clgs.methods.shape_guided import reconstruct_shape_guided
 
     scan = _scan_at(template, 1.0)
-    parts = (template, shape_model, tissue_atlas)
+    parts = AnatomyParts(template, shape_model, tissue_atlas)
     auto = reconstruct_shape_guided(scan, parts, None, iterations=20, fit_size="auto", **_small(alpha_freeze=5))
     off = reconstruct_shape_guided(scan, parts, None, iterations=20, fit_size="off", **_small(alpha_freeze=5))
     assert not auto.trainer.sets[0].fits_size
@@ -161,7 +162,7 @@ def test_a_sized_run_resumes_bit_for_bit_and_refuses_a_checkpoint_without_one(te
     from clgs.methods.shape_guided import reconstruct_shape_guided
 
     scan = _scan_at(template, 1.25)
-    parts = (template, shape_model, tissue_atlas)
+    parts = AnatomyParts(template, shape_model, tissue_atlas)
     kw = _small(alpha_freeze=3)
     kw.pop("checkpoint_every")
     full = reconstruct_shape_guided(scan, parts, tmp_path / "a", iterations=30, checkpoint_every=15, **kw)
@@ -212,10 +213,11 @@ def test_the_method_entry_reports_the_fitted_size(template, shape_model, tissue_
 
     scan = _scan_at(template, 1.25)
     kw = _small(alpha_freeze=3)
-    out = run_method(scan, tmp_path / "r", 10, anatomy=(template, shape_model, tissue_atlas), fit_size="on", **kw)
+    parts = AnatomyParts(template, shape_model, tissue_atlas)
+    out = run_method(scan, tmp_path / "r", 10, anatomy=parts, fit_size="on", **kw)
     assert out["info"]["size"] == pytest.approx(1.25, abs=0.08)
     assert "bone size: 1.2" in capsys.readouterr().err
-    off = run_method(scan, tmp_path / "o", 10, anatomy=(template, shape_model, tissue_atlas), fit_size="off", **kw)
+    off = run_method(scan, tmp_path / "o", 10, anatomy=parts, fit_size="off", **kw)
     assert off["info"]["size"] is None
 
 

@@ -7,7 +7,7 @@ The level is chosen, first found first (:func:`choose_level`):
 ``user``    given by the user (``--surface-level``, ``surface_level=``);
 ``scan``    the level a scan's true surface was made at (``meta['truth_surface_level']``, written by
             ``clgs simulate --surface-level``);
-``scene``   the anatomy plugin's ``scene['surface_level']``;
+``scene``   the anatomy plugin's ``scene.surface_level``;
 ``truth``   a simulated scan's true volume: the upper of its 3-class Otsu thresholds (air, soft
             tissue, bone); for a truth of two values (a surface filled with one density) Otsu's
             threshold; half way to the next density up where the truth has a gap there
@@ -25,13 +25,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from clgs.anatomy.record import Scene
+
 __all__ = ["BoneLevel", "SOURCES", "choose_level", "truth_level", "atlas_level"]
 
 #: what each source means, for reports and documentation
 SOURCES = {
     "user": "given by the user",
     "scan": "the level the scan's true surface was made at (meta truth_surface_level)",
-    "scene": "the anatomy's scene['surface_level']",
+    "scene": "the anatomy's scene.surface_level",
     "truth": "the upper 3-class Otsu threshold of the scan's true volume",
     "atlas": "half way between the density atlas's soft tissue and bone at the template's surface",
 }
@@ -112,9 +114,9 @@ def choose_level(user=None, anatomy=None, truth=None, scan_meta=None, atlas=None
     recorded = (scan_meta or {}).get("truth_surface_level")
     if recorded is not None:
         return BoneLevel(float(recorded), "scan")
-    scene = getattr(anatomy, "scene", None) or {}
-    if scene.get("surface_level") is not None:
-        return BoneLevel(float(scene["surface_level"]), "scene")
+    level = Scene.from_dict(getattr(anatomy, "scene", None)).surface_level
+    if level is not None:
+        return BoneLevel(level, "scene")
     if truth is not None:
         try:
             return BoneLevel(truth_level(truth), "truth")

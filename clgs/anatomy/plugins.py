@@ -1,8 +1,11 @@
-"""Anatomy plugins: discovery through entry points, a registry of :class:`Anatomy` objects.
+"""Anatomy plugins: discovery through entry points, a registry of :class:`Anatomy` objects and
+of the click commands plugins add.
 
 A plugin is any distribution that declares an entry point in the group ``clgs.anatomies``
-whose object (usually a module) implements the hook ``clgs_anatomies()`` (see
-:mod:`clgs.anatomy.hookspecs`). Built-in anatomies are registered the same way.
+whose object (usually a module) implements the hook ``clgs_anatomies()`` and/or
+``register_commands(cli)`` / ``register_anatomy_commands(anatomy, group)`` (see
+:mod:`clgs.anatomy.hookspecs`). Built-in anatomies are registered the same way. (Methods have
+their own group, ``clgs.methods``: :mod:`clgs.methods`.)
 
 * Discovery is cheap: reading entry-point metadata and importing the plugin modules; no
   model data is loaded and torch / pyopencl are not imported (plugins must keep their module
@@ -55,6 +58,7 @@ class Registry:
         self._package = {}  # plugin name -> (distribution name, version)
         self._anatomies: Optional[dict] = None
         self.failures = []  # (plugin name, package, reason)
+        self._commands_added = set()  # ids of the root groups already given the plugins' commands
 
     # ---- registration
     def register(self, plugin, name: Optional[str] = None, package: str = "", version: str = "") -> None:
@@ -131,10 +135,52 @@ class Registry:
     def names(self) -> list:
         return list(self.anatomies())
 
+    # ---- commands
+    def _add_from_hook(self, hook: str, target, taken, where: str, **kwargs) -> None:
+        """Call each plugin's ``hook`` (with those of ``kwargs`` it takes); a command it adds under a
+        name in ``taken`` (or one replacing a command already there) is removed with a warning, and so
+        is everything a plugin adds before its hook raises. ``target``: the click group added to."""
+        group = target
+        for impl in getattr(self.pm.hook, hook).get_hookimpls():
+            package = self._package.get(impl.plugin_name, (impl.plugin_name, ""))[0]
+            before = dict(group.commands)
+            try:
+                impl.function(*[kwargs[a] for a in impl.argnames])
+            except Exception as exc:  # noqa: BLE001 - a broken plugin must not break clgs
+                group.commands.clear()
+                group.commands.update(before)
+                self._warn(impl.plugin_name, package, f"{hook}() raised {type(exc).__name__}: {exc}")
+                continue
+            for name, cmd in list(group.commands.items()):
+                if before.get(name) is cmd:
+                    continue
+                if name in before or name in taken:
+                    self._warn(impl.plugin_name, package, f"command {name!r} clashes with the command "
+                                                          f"'{where} {name}'; left out")
+                    if name in before:
+                        group.commands[name] = before[name]
+                    else:
+                        del group.commands[name]
+
+    def add_commands(self, cli) -> None:
+        """Give the root click group ``cli`` the commands plugins add with ``register_commands(cli)``
+        (once per group; names of built-in commands and anatomies are refused)."""
+        if id(cli) in self._commands_added:
+            return
+        self._commands_added.add(id(cli))
+        self._add_from_hook("register_commands", cli, _RESERVED | set(self.names()), "clgs", cli=cli)
+
+    def add_anatomy_commands(self, anatomy: Anatomy, group) -> None:
+        """Give ``clgs <anatomy.name>`` (``group``) the commands plugins add with
+        ``register_anatomy_commands(anatomy, group)`` (the generic commands' names are refused)."""
+        self._add_from_hook("register_anatomy_commands", group, set(group.commands), f"clgs {anatomy.name}",
+                            anatomy=anatomy, group=group)
+
     def methods(self) -> list:
-        """(plugin's package, object) for every reconstruction method the plugins provide through
-        ``clgs_methods()``; :mod:`clgs.methods` checks and registers them. A plugin whose hook fails
-        is a warning, not a crash."""
+        """Deprecated path: (plugin's package, object) for every reconstruction method a plugin of
+        this group provides through ``clgs_methods()`` (methods have their own entry-point group,
+        ``clgs.methods``, now); :mod:`clgs.methods` checks and registers them. A plugin whose hook
+        fails is a warning, not a crash."""
         found = []
         for _, package, _, result in self._results("clgs_methods"):
             found.extend((package, m) for m in (result if isinstance(result, (list, tuple)) else [result]))

@@ -8,6 +8,7 @@ import os
 import numpy as np
 
 from clgs.anatomy.alignment import align_rigid
+from clgs.anatomy.record import Anatomy, Scene
 from clgs.anatomy.phantom import PHANTOM_VERSION, DensityParams, Phantom, make_phantom
 from clgs.geometry import DETECTOR_MARGIN, shadow_half_extents
 from clgs.io.mesh import check_mesh
@@ -100,10 +101,11 @@ class SurfacePopulation:
         grid = Grid(tuple(shape), tuple(-0.5 * (n - 1) * spacing_mm), (float(spacing_mm),) * 3)
         scene = scan_geometry_kwargs(grid, DSO=DSO, DSD=DSD, pixel_mm=pixel_mm)
         scene.update(n_views=n_views, arc_deg=arc_deg)
-        return cls(grid=grid, scene=scene, **kwargs)
+        return cls(grid=grid, scene=Scene.from_dict(scene), **kwargs)
 
     def __init__(self, name: str, summary: str, version: str, data_dir, file_pattern: str, ids, test_ids,
-                 grid, params: DensityParams, frame_offset, scene: dict, builder_settings: dict | None = None,
+                 grid, params: DensityParams, frame_offset, scene: Scene | dict,
+                 builder_settings: dict | None = None,
                  notice: str = "", side_of=None):
         self.name = name
         self.summary = summary
@@ -118,7 +120,7 @@ class SurfacePopulation:
         self.grid = as_grid(grid)
         self.params = params
         self.frame_offset = np.asarray(frame_offset, float)
-        self.scene = dict(scene)
+        self.scene = Scene.from_dict(scene)
         self.builder_settings = dict(builder_settings or {})
         self.notice = notice
         # side_of(vertices) -> (side, measure mm): subjects of the other side than most are mirrored
@@ -468,27 +470,22 @@ class SurfacePopulation:
         """The default scan of this anatomy (cone beam over ``arc`` radians)."""
         from clgs.geometry import Geometry
 
-        d = {k: v for k, v in self.scene.items() if k in ("mode", "DSO", "DSD", "nDetector", "dDetector", "nVoxel",
-                                                            "dVoxel", "offOrigin", "offDetector")}
+        d = self.scene.geometry_settings()
         d["angles"] = list(np.linspace(0.0, arc, int(n_views), endpoint=False))
         return Geometry.from_dict(d)
 
-    def anatomy(self, commands=()):
-        """The :class:`clgs.anatomy.Anatomy` handed to clgs (loaders stay lazy), with two extra
-        attributes: ``subject_from_mesh`` and ``population_model`` (this object)."""
-        from clgs.anatomy.record import Anatomy
-
+    def anatomy(self) -> Anatomy:
+        """The :class:`clgs.anatomy.Anatomy` handed to clgs (loaders stay lazy), with
+        ``subject_from_mesh`` (``clgs <name> simulate --mesh FILE``: align, then simulate) and
+        ``population_model`` (this object)."""
         try:
             path = self.model_path
         except OSError:
             path = None
-        anatomy = Anatomy(name=self.name, summary=self.summary, version=self.version,
-                          load_template=self.load_template, load_shape_model=self.load_shape_model,
-                          load_atlas=self.load_atlas, population=self.population,
-                          test_subjects=self.test_subjects, load_subject=self.load_subject,
-                          build_model=self.build_model, scene=dict(self.scene), commands=list(commands),
-                          model_path=path)
-        # optional extra used by ``clgs <name> simulate --mesh FILE``: align, then fill with density
-        anatomy.subject_from_mesh = self.subject_from_mesh
-        anatomy.population_model = self
-        return anatomy
+        return Anatomy(name=self.name, summary=self.summary, version=self.version,
+                       load_template=self.load_template, load_shape_model=self.load_shape_model,
+                       load_atlas=self.load_atlas, population=self.population,
+                       test_subjects=self.test_subjects, load_subject=self.load_subject,
+                       build_model=self.build_model, scene=self.scene, model_path=path,
+                       subject_from_mesh=self.subject_from_mesh, population_model=self)
+

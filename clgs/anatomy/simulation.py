@@ -4,6 +4,7 @@ from a surface file, projections with noise. Library code shared by ``clgs <anat
 from __future__ import annotations
 
 import os
+from clgs.anatomy.record import Scene
 from clgs.errors import InputError
 
 GEOMETRY_KEYS = ("mode", "DSO", "DSD", "nDetector", "dDetector", "offDetector")
@@ -76,17 +77,17 @@ def scan_geometry(anatomy, subject, n_views: int, arc: float, angles=None, detec
     angles = np.asarray(angles, float).reshape(-1)
     if angles.size == 0 or not np.all(np.isfinite(angles)):
         raise InputError(f"angles must be one or more finite numbers, got {angles!r}")
-    scene = dict(anatomy.scene or {})
+    scene = Scene.from_dict(anatomy.scene)
     d = {k: scene[k] for k in GEOMETRY_KEYS if k in scene}
     d.setdefault("DSO", 1000.0)
     d.setdefault("DSD", 1500.0)
     # the scene's detector was sized for its grid (nVoxel); a scene that names no grid keeps its
     # detector whatever the subject's
-    own_grid = "nVoxel" not in scene or (
-        tuple(int(s) for s in scene["nVoxel"]) == tuple(int(s) for s in shape)
+    own_grid = scene.nVoxel is None or (
+        tuple(scene.nVoxel) == tuple(int(s) for s in shape)
         and np.allclose(scene.get("dVoxel", spacing), spacing) and np.allclose(scene.get("offOrigin", centre), centre))
     if "nDetector" not in d or "dDetector" not in d or not own_grid:
-        d["nDetector"], d["dDetector"] = _detector_sized(shape, spacing, centre, d, int(scene.get("n_detector", 256)))
+        d["nDetector"], d["dDetector"] = _detector_sized(shape, spacing, centre, d, scene.get("n_detector", 256))
         d["offDetector"] = (0.0, 0.0)
     if detector_mm is not None:
         fov = np.asarray(detector_mm, float).reshape(-1)
@@ -104,7 +105,7 @@ def scan_geometry(anatomy, subject, n_views: int, arc: float, angles=None, detec
 
 def subject_from_mesh_file(anatomy, path, seed: int = 0, units: str = "mm", space: str | None = None):
     """A Subject (with a CT volume) from a surface file: the plugin's ``subject_from_mesh`` when it
-    has one; otherwise the surface filled with a uniform bone attenuation ``scene['density']``
+    has one; otherwise the surface filled with a uniform bone attenuation ``scene.density``
     (1/mm, default 0.04) on a grid of the template's spacing with a 10 mm margin. ``units``: the
     file's length unit ("mm", "cm", "m", "in"), rescaled to mm; ``space``: the frame ("RAS" or
     "LPS") of a file that declares none (default LPS, with a warning: :func:`clgs.io.mesh.load_mesh`)."""
@@ -135,7 +136,7 @@ def subject_from_mesh_file(anatomy, path, seed: int = 0, units: str = "mm", spac
     v = np.asarray(v, float) * factor
     spacing = float(min(anatomy.load_template().spacing)) if anatomy.load_template is not None else 2.0
     shape, sp, org = box_grid(v.min(0) - 10.0, v.max(0) + 10.0, spacing=spacing)
-    density = float((anatomy.scene or {}).get("density", 0.04))
+    density = Scene.from_dict(anatomy.scene).get("density", 0.04)
     vol = mesh_to_label(v, f, shape, sp, org).astype(np.float32) * density
     sid = os.path.splitext(os.path.basename(os.fspath(path)))[0]
     return Subject(sid, v, f, volume=vol, spacing=sp, origin=org,

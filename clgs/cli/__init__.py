@@ -59,9 +59,11 @@ class LazyGroup(click.Group):
             from clgs.anatomy import plugins
         except ImportError:
             return []
+        plugins.registry().add_commands(self)  # plugins' own commands (hook register_commands), once
         return plugins.anatomy_names()
 
     def list_commands(self, ctx):
+        self._anatomy_names()
         names = {n for n, t in COMMANDS.items() if importlib.util.find_spec(t.split(":")[0])}
         names |= set(super().list_commands(ctx))
         names |= set(self._anatomy_names())
@@ -70,6 +72,7 @@ class LazyGroup(click.Group):
     def get_command(self, ctx, name):
         if name in COMMANDS:
             return _load(COMMANDS[name])
+        self._anatomy_names()
         cmd = super().get_command(ctx, name)
         if cmd is not None:
             return cmd

@@ -873,4 +873,7 @@ def make_group(anatomy) -> click.Group:
             raise click.ClickException(f"{name} plugin ({anatomy.package}): command {cmd.name!r} clashes with a "
                                        "generic anatomy command")
         group.add_command(cmd)
+    from clgs.anatomy import plugins
+
+    plugins.registry().add_anatomy_commands(anatomy, group)  # hook register_anatomy_commands
     return group

@@ -53,7 +53,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from clgs.anatomy import plugins
+from clgs.anatomy import AnatomyParts, plugins
 from clgs.anatomy.bone_level import choose_level
 from clgs.anatomy.evaluation import bone_surface, write_bone_surface  # the outer bone surface of the outputs
 from clgs.fit import losses as L
@@ -335,8 +335,9 @@ class _Frozen:
 
 def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, progress=False, fdk=None,
                   state=None) -> Trainer:
-    """Initial sets, losses and trainer for one scan. ``anatomy_parts`` = (template, shape_model, atlas);
-    the shape model or atlas may be None, and their terms are then left out.
+    """Initial sets, losses and trainer for one scan. ``anatomy_parts``: a
+    :class:`clgs.anatomy.AnatomyParts` (or an Anatomy, loaded); the shape model or atlas may be
+    None, and their terms are then left out.
 
     Start (a new run): the shape set on the template (:func:`clgs.shape.initialise.initialise`); the free
     set on the atlas's tissue around the bone (``free_init="atlas"``, with an atlas that has some)
@@ -349,7 +350,7 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
 
     if cfg.free_init not in ("atlas", "fdk"):
         raise InputError(f"free_init must be 'atlas' or 'fdk', got {cfg.free_init!r}")
-    template, shape_model, atlas = anatomy_parts
+    template, shape_model, atlas = AnatomyParts.of(anatomy_parts)
     geo = scan.geometry
     box = volume_box(geo)
     iters = cfg.schedule_iterations or cfg.iterations
@@ -543,8 +544,9 @@ def _reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | Non
                               **settings) -> ShapeGuidedResult:
     """Reconstruct ``scan`` with the shape-guided method and the parts of ``anatomy``.
 
-    ``anatomy``: a :class:`clgs.anatomy.Anatomy` (its template, shape model and atlas are loaded)
-    or a tuple (template, shape_model, atlas). ``settings``: :class:`ShapeGuidedConfig` fields.
+    ``anatomy``: a :class:`clgs.anatomy.AnatomyParts`, or a :class:`clgs.anatomy.Anatomy` (its
+    template, shape model and atlas are loaded); anything else is a TypeError. ``settings``:
+    :class:`ShapeGuidedConfig` fields.
     ``out_dir`` receives volume.nii.gz, gaussians.npz, alpha.json, log.csv/png, summary.txt,
     surface.stl with surface.json (the reconstruction's outer bone surface and the level it was
     taken at: ``surface_level`` (1/mm) when given, else :func:`clgs.anatomy.bone_level.choose_level`'s
@@ -554,14 +556,14 @@ def _reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | Non
 
     if not isinstance(scan, Scan):
         scan = Scan.load(scan)
-    parts = anatomy if isinstance(anatomy, tuple) else load_anatomy_parts(anatomy)
+    parts = AnatomyParts.of(anatomy)
     cfg, state = run_config(ShapeGuidedConfig, iterations, settings, resume, out_dir)
-    warn_if_the_scan_cannot_hold(scan, parts[0])
-    level = choose_level(user=surface_level, anatomy=None if isinstance(anatomy, tuple) else anatomy,
-                         truth=scan.truth, scan_meta=scan.meta, atlas=parts[2], template=parts[0])
+    warn_if_the_scan_cannot_hold(scan, parts.template)
+    level = choose_level(user=surface_level, anatomy=parts.anatomy, truth=scan.truth, scan_meta=scan.meta,
+                         atlas=parts.atlas, template=parts.template)
     if level is not None:  # what the scan shows, before the shape model shapes it: its FDK
         fdk = fdk_volume(scan) if fdk is None else fdk
-        warn_if_it_fills_the_grid(fdk, level.value, parts[0], seen=scan.geometry.field_of_view())
+        warn_if_it_fills_the_grid(fdk, level.value, parts.template, seen=scan.geometry.field_of_view())
     t0 = time.perf_counter()
     trainer = build_trainer(scan, parts, cfg, out_dir, progress=progress, fdk=fdk, state=state)
     restore(trainer, state, cfg)
@@ -574,10 +576,10 @@ def _reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | Non
         warn_if_implausible(alpha, trainer.log.last("proj_psnr"))
         surface = uncertainty = None
         if out_dir is not None:
-            written = write_outputs(trainer, out_dir, cfg.value_scale, volume, parts[0], alpha, level,
+            written = write_outputs(trainer, out_dir, cfg.value_scale, volume, parts.template, alpha, level,
                                     uncertainty=cfg.uncertainty == "on")
             surface, uncertainty = written.pop("bone_surface"), written.pop("uncertainty", None)
-        displacement = displacement_report(parts[0], shape_set)
+        displacement = displacement_report(parts.template, shape_set)
     return ShapeGuidedResult(volume=volume, gaussians=gaussians_in_scan_units(trainer, cfg.value_scale),
                              alpha=alpha, log=trainer.log, trainer=trainer, value_scale=cfg.value_scale,
                              interrupted=trainer.interrupted, out_dir=None if out_dir is None else Path(out_dir),
@@ -585,20 +587,10 @@ def _reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | Non
                              displacement=displacement, uncertainty=uncertainty)
 
 
-def load_anatomy_parts(anatomy) -> tuple:
-    """(template, shape model or None, atlas or None) from an Anatomy's lazy loaders."""
-    if anatomy.load_template is None:
-        raise InputError(f"anatomy {anatomy.name!r} provides no template; the shape-guided method needs one")
-    with phase(f"loading the {anatomy.name} template"):
-        template = anatomy.load_template()
-    model = atlas = None
-    if anatomy.load_shape_model:
-        with phase(f"loading the {anatomy.name} shape model"):
-            model = anatomy.load_shape_model()
-    if anatomy.load_atlas:
-        with phase(f"loading the {anatomy.name} density atlas"):
-            atlas = anatomy.load_atlas()
-    return template, model, atlas
+def load_anatomy_parts(anatomy) -> AnatomyParts:
+    """The :class:`clgs.anatomy.AnatomyParts` (template, shape model or None, atlas or None) from an
+    Anatomy's lazy loaders."""
+    return AnatomyParts.load(anatomy)
 
 
 def write_outputs(trainer, out_dir, value_scale, volume, template, alpha, level, uncertainty: bool = False) -> dict:

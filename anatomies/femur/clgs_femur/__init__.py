@@ -23,8 +23,7 @@ from __future__ import annotations
 
 import os
 
-
-from clgs.anatomy import hookimpl
+from clgs.anatomy import Scene, population_anatomy
 
 __version__ = "0.1.0"
 
@@ -35,7 +34,6 @@ FRAME_OFFSET = (100.5, 30.5, 1010.0)  # LLP26 mm (x, y, z) -> grid centre
 SHAPE = (160, 80, 92)  # (Z, Y, X)
 SPACING_MM = 3.0
 
-_population = None
 
 #: a head closer than this (mm) to the shaft's axis tells no side
 SIDE_MIN_OFFSET_MM = 5.0
@@ -84,22 +82,10 @@ def params():
                                                 skin_mm=2.0, smooth_mm=25.0))
 
 
-def population_model():
-    """The femur's :class:`clgs.anatomy.population.SurfacePopulation` (created once)."""
-    global _population
-    if _population is None:
-        from clgs.anatomy.population import SurfacePopulation
-
-        _population = SurfacePopulation.centred(
-            shape=SHAPE, spacing_mm=SPACING_MM, pixel_mm=3.0, name="femur",
-            summary="left femur (LLP26 real surfaces: 20 model subjects, 6 held out)", version=__version__,
-            data_dir=DATA_DIR,
-            file_pattern="femur_left_LLP26_subject{id}.npz", ids=SUBJECTS, test_ids=TEST_SUBJECTS, params=params(),
-            frame_offset=FRAME_OFFSET, side_of=femur_side)
-    return _population
-
-
-@hookimpl
-def clgs_anatomies():
-    pop = population_model()
-    return [pop.anatomy()]
+PLUGIN = population_anatomy(
+    name="femur", summary="left femur (LLP26 real surfaces: 20 model subjects, 6 held out)", version=__version__,
+    data_dir=DATA_DIR, file_pattern="femur_left_LLP26_subject{id}.npz", ids=SUBJECTS, test_ids=TEST_SUBJECTS,
+    shape=SHAPE, spacing_mm=SPACING_MM, params=params, frame_offset=FRAME_OFFSET, side_of=femur_side,
+    scene=Scene(DSO=1000.0, DSD=1500.0, dDetector=(3.0, 3.0), n_views=50, arc_deg=180.0))
+population_model = PLUGIN.population_model  # the femur's SurfacePopulation (made once)
+clgs_anatomies = PLUGIN.clgs_anatomies  # the plugin's hook

@@ -19,8 +19,7 @@ from __future__ import annotations
 
 import os
 
-
-from clgs.anatomy import hookimpl
+from clgs.anatomy import Scene, population_anatomy
 
 __version__ = "0.1.0"
 
@@ -30,8 +29,6 @@ TEST_SUBJECTS = SUBJECTS[20:]
 FRAME_OFFSET = (82.0, 50.0, 830.0)  # LLP26 mm (x, y, z) -> grid centre
 SHAPE = (32, 72, 72)  # (Z, Y, X)
 SPACING_MM = 2.0
-
-_population = None
 
 
 def params():
@@ -47,22 +44,10 @@ def params():
                                                 skin_mm=2.0, offset_mm=(-15.0, 38.0), smooth_mm=10.0))
 
 
-def population_model():
-    """The patella's :class:`clgs.anatomy.population.SurfacePopulation` (created once)."""
-    global _population
-    if _population is None:
-        from clgs.anatomy.population import SurfacePopulation
-
-        _population = SurfacePopulation.centred(
-            shape=SHAPE, spacing_mm=SPACING_MM, pixel_mm=2.0, name="patella",
-            summary="left patella (LLP26 real surfaces: 20 model subjects, 6 held out)", version=__version__,
-            data_dir=DATA_DIR,
-            file_pattern="patella_left_LLP26_subject{id}.npz", ids=SUBJECTS, test_ids=TEST_SUBJECTS, params=params(),
-            frame_offset=FRAME_OFFSET)
-    return _population
-
-
-@hookimpl
-def clgs_anatomies():
-    pop = population_model()
-    return [pop.anatomy()]
+PLUGIN = population_anatomy(
+    name="patella", summary="left patella (LLP26 real surfaces: 20 model subjects, 6 held out)", version=__version__,
+    data_dir=DATA_DIR, file_pattern="patella_left_LLP26_subject{id}.npz", ids=SUBJECTS, test_ids=TEST_SUBJECTS,
+    shape=SHAPE, spacing_mm=SPACING_MM, params=params, frame_offset=FRAME_OFFSET,
+    scene=Scene(DSO=1000.0, DSD=1500.0, dDetector=(2.0, 2.0), n_views=50, arc_deg=180.0))
+population_model = PLUGIN.population_model  # the patella's SurfacePopulation (made once)
+clgs_anatomies = PLUGIN.clgs_anatomies  # the plugin's hook

@@ -7,7 +7,8 @@ seeded with ``1000 + NN``, so the plugin ships no data and ``clgs toy build-mode
 Subjects 00-07 build the model; 08 and 09 are held out.
 
 Everything a plugin gives clgs is one :class:`clgs.anatomy.Anatomy` returned by the hook
-``clgs_anatomies``; its loaders are plain functions, called only when a command needs them. This
+``clgs_anatomies`` (its loaders are plain functions, called only when a command needs them), and
+its own command ``clgs toy params`` through the hook ``register_anatomy_commands``. This
 module imports nothing heavy at import time (``clgs --help`` imports it to list the anatomy).
 """
 from __future__ import annotations
@@ -15,7 +16,7 @@ from __future__ import annotations
 import os
 import sys
 
-from clgs.anatomy import Anatomy, hookimpl
+from clgs.anatomy import Anatomy, Scene, hookimpl
 
 __version__ = "0.1.0"
 
@@ -33,8 +34,8 @@ ORIGIN = tuple(-0.5 * (n - 1) * s for n, s in zip(SHAPE, SPACING))
 BUILD_SETTINGS = {"max_cells": 24, "variance": 0.95,
                   "registration": {"levels": [12, 0], "iterations": [40, 30]}}
 
-SCENE = {"mode": "cone", "DSO": 1000.0, "DSD": 1500.0, "nDetector": (96, 128), "dDetector": (2.0, 2.0),
-         "n_views": 50, "arc_deg": 180.0, "surface_level": 0.03}
+SCENE = Scene(mode="cone", DSO=1000.0, DSD=1500.0, nDetector=(96, 128), dDetector=(2.0, 2.0), n_views=50,
+              arc_deg=180.0, surface_level=0.03)
 
 
 def model_dir() -> str:
@@ -186,4 +187,11 @@ def clgs_anatomies():
         name=NAME, summary="toy bone: a procedural ellipsoid with a hole (8 model subjects, 2 held out)",
         version=__version__, load_template=load_template, load_shape_model=load_shape_model,
         load_atlas=load_atlas, population=population, test_subjects=test_subjects, load_subject=load_subject,
-        build_model=build_model, scene=dict(SCENE), commands=[_params_command()], model_path=model_path())]
+        build_model=build_model, scene=SCENE, model_path=model_path())]
+
+
+@hookimpl
+def register_anatomy_commands(anatomy, group):
+    """``clgs toy params``: this plugin's own command, added to its anatomy's group only."""
+    if anatomy.name == NAME:
+        group.add_command(_params_command())
