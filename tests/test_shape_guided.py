@@ -457,7 +457,8 @@ def test_density_prior_field(template, shape_model, atlas, tissue_atlas):
 
 
 def test_bench_alternation_times_every_step_and_switches_them_back_on(template, shape_model, atlas):
-    from clgs.bench.switches import alternate, steps
+    from clgs.bench.switches import (alternate, grid_sample_at_ref_points, grid_sample_centres_mm, steps,
+                                     two_atlas_passes)
     from clgs.methods.shape_guided import ShapeGuidedConfig, build_trainer
     from clgs.ops import field_sampler, sorting, voxelizer
     from clgs.shape.gaussian_set import ShapeGuidedSet
@@ -472,7 +473,10 @@ def test_bench_alternation_times_every_step_and_switches_them_back_on(template, 
     assert all(before > 0 and after > 0 and ratio > 0 for _, before, after, ratio in rows)
     assert t.iteration == 2 * 2 * len(rows)
     assert field_sampler.stable_order is sorting.stable_order is voxelizer.stable_order
-    assert ShapeGuidedSet.FIXED_POINTS and DensityPrior.ONE_ATLAS_PASS
+    assert "FIXED_POINTS" not in vars(ShapeGuidedSet) and "ONE_ATLAS_PASS" not in vars(DensityPrior)
+    assert ShapeGuidedSet._at_ref_points is not grid_sample_at_ref_points
+    assert ShapeGuidedSet._model_centres_mm is not grid_sample_centres_mm
+    assert DensityPrior._atlas_at is not two_atlas_passes
     assert ShapeGuidedSet.LINEAR_TOL == 0.05 and voxelizer._SMALL_PAIRS == 1 << 19
 
 

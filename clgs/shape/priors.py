@@ -64,10 +64,6 @@ class DensityPrior:
     few views leave them undetermined (measured on the femur at 5 views and 600 iterations:
     +0.3 dB over ``"shape"``)."""
 
-    # the atlas's mean and variance from one trilinear pass (the same bits); False: two, as before
-    # (for ``clgs bench train --method shape --alternate``)
-    ONE_ATLAS_PASS = True
-
     def __init__(self, atlas, template, geometry, value_scale: float, s: float, n_points: int,
                  set_name: str = "shape", field: str = "shape"):
         if field not in ("shape", "all"):
@@ -117,6 +113,10 @@ class DensityPrior:
         keep = (in_bone | ~in_tissue_read).to(pts_mm.dtype)
         return mean, var, at, keep
 
+    def _atlas_at(self, x_t: torch.Tensor):
+        """The atlas's mean and variance at template points, from one trilinear pass."""
+        return self.atlas.mean_var_at(x_t)
+
     def __call__(self, ctx):
         trainer = ctx.trainer
         s = _set(trainer, self.set_name)
@@ -140,10 +140,8 @@ class DensityPrior:
             fitted = isinstance(s, ShapeGuidedSet) and s.fits_size
             if fitted and self.field == "all":
                 mean, var, x_t, keep = self._sized_atlas(s, pts_mm, x_t)
-            elif self.ONE_ATLAS_PASS:
-                mean, var = self.atlas.mean_var_at(x_t.double())
             else:
-                mean, var = self.atlas.mean_at(x_t.double()), self.atlas.var_at(x_t.double())
+                mean, var = self._atlas_at(x_t.double())
             mean = mean.float() * self.value_scale
             var = var.float() * self.value_scale ** 2
             w = torch.exp(-var / self.s2)
