@@ -72,6 +72,7 @@ from clgs.fit.gaussians import GaussianSet, Schedule, init_from_volume, r2gs_sch
 from clgs.fit.outputs import gaussians_in_scan_units, voxelize_volume
 from clgs.fit.outputs import write_outputs as write_common
 from clgs.fit.trainer import Backend, LossTerm, Trainer
+from clgs.fit.training_log import TrainingLog
 from clgs.io import atomic
 from clgs.io.mesh import save_mesh
 from clgs.io.scan import Scan
@@ -180,7 +181,7 @@ class ShapeGuidedResult:
     volume: np.ndarray
     gaussians: dict
     alpha: np.ndarray
-    log: object
+    log: TrainingLog
     trainer: Trainer = field(repr=False)
     value_scale: float
     interrupted: bool
@@ -290,7 +291,7 @@ def _registration(scan, shape_model, cfg, init, free, moving: dict, k: int, *, s
     for name, p in bound.params.items():  # no gradients wanted: a cheaper backward
         if name not in moving:
             p.requires_grad_(False)
-    sets = [bound]
+    sets: list = [bound]
     if free is not None and len(free) > 0:
         sets.append(_Frozen(free))
     image = L.ImageTerms(dssim=cfg.lambda_dssim > 0)
@@ -409,6 +410,7 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
         scales, dens = np.full((n, 3), 0.01), np.full(n, 0.01)
         quats, centres = np.tile([1.0, 0, 0, 0], (n, 1)), np.zeros((n, 3))
     common = dict(box=box, scale_bounds=bounds, name="shape")
+    shape_set: GaussianSet
     if bound:
         shape_set = ShapeGuidedSet(centres, scales.astype(np.float32), quats.astype(np.float32),
                                    dens.astype(np.float32), shape_model=shape_model, geometry=geo,
@@ -419,7 +421,7 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
         shape_set = GaussianSet(geo.world_to_scene(centres).astype(np.float32), scales.astype(np.float32),
                                 quats.astype(np.float32), dens.astype(np.float32), schedules=sched,
                                 densify=False, **common)
-    sets = [shape_set]
+    sets: list = [shape_set]
     if cfg.n_free > 0:
         if free is None:  # resuming: the checkpoint fills it
             e = np.zeros((0, 3), np.float32)
@@ -456,6 +458,7 @@ def choose_size(scan, cfg: ShapeGuidedConfig, init, tissue, centre_mm) -> float 
         return None
     if tissue is None:
         return 1.0
+    assert cfg.value_scale is not None  # set by build_trainer before the search
     with phase("searching the bone's size"):
         best, _ = search_size(scan, Backend(cfg.backend, cfg.projector_mode), cfg.value_scale, init, tissue,
                               centre_mm)
@@ -476,7 +479,7 @@ def write_uncertainty(trainer, shape_set, template, moved, out_dir) -> dict:
                                       "independent pixel noise) and the leave-one-out field beyond the modes"})
 
 
-def deformed_template_surface(template, shape_set) -> tuple:
+def deformed_template_surface(template, shape_set) -> tuple | None:
     """The template surface carried onto the subject by the fitted alpha (and size): (vertices mm,
     faces)."""
     if not isinstance(shape_set, ShapeGuidedSet):
@@ -501,7 +504,7 @@ def surface_displacement_parts(template, shape_set) -> dict:
     return {"vertices": moved, "model_mm": model - v64, "residual_mm": moved - model}
 
 
-def displacement_report(template, shape_set) -> dict:
+def displacement_report(template, shape_set) -> dict | None:
     """How much of the surface's displacement from the template is the shape model's and how much
     the residual's: mean and largest length (mm) of each over the template's vertices, and the
     residual's share of the mean lengths; None for a set not bound to a shape model."""

@@ -179,7 +179,7 @@ def view_params(geometry, views, dtype=np.float32) -> np.ndarray:
             s = first
             rel = det - s
             w = rel - (rel @ eu) * eu - (rel @ ev) * ev
-            D = np.linalg.norm(w)
+            D = float(np.linalg.norm(w))
             w = w / D
             fx, fy = D / gul, D / gvl
             cx = (nu - 1) / 2.0 - (rel @ eu) / gul
@@ -227,8 +227,8 @@ class GaussianProjector(Operator):
         self.LOCAL_TILE = self.LOCAL_TILE_CPU if self.cpu else self.LOCAL_TILE_GPU
         self.PER = self.PER_CPU if self.cpu else self.PER_GPU
         self._token = 0  # counts forward calls; the records in the pool belong to call _rec_token
-        self._rec_token = None
-        self.last_token = None
+        self._rec_token: int | None = None
+        self.last_token: int | None = None
         self.extra_defines: dict = {}  # tuning experiments only
         if width is None:
             self.width, self.forced = tile_width(self.device)
@@ -303,7 +303,7 @@ class GaussianProjector(Operator):
         # asks for the same few views again and again (its forward and backward, every epoch),
         # and computing a row costs about 100 us of Python. (The entry holds the geometry, so
         # its id cannot be reused by another object while cached.)
-        ent = self._vp_cache.get((id(geometry), dt.str))
+        ent: tuple | None = self._vp_cache.get((id(geometry), dt.str))
         if ent is None or ent[0] is not geometry:
             if len(self._vp_cache) >= 8:
                 self._vp_cache.pop(next(iter(self._vp_cache)))

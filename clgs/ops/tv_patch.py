@@ -189,7 +189,7 @@ class PatchTV(Operator):
             total = sum(float(sums[a]) for a, size in ((2, nz), (1, ny), (0, nx)) if size > 1)
             value = dt(total / count) if count else dt(0)
             idx = torch.from_numpy(kidx[:k].astype(np.int64))
-            rows = torch.from_numpy(grad[:k * GRADSTRIDE].reshape(k, GRADSTRIDE).copy()) if want else None
+            rows = None if grad is None else torch.from_numpy(grad[:k * GRADSTRIDE].reshape(k, GRADSTRIDE).copy())
             out_field = None
             if field:
                 fh, fh_b = io.host_block("field", fsize, _ALIGN)
@@ -219,7 +219,7 @@ class TVPatchFunction(torch.autograd.Function):
         needs = ctx.needs_input_grad[:3]
         idx, rows, n = ctx.idx, ctx.rows, ctx.n
         scaled = rows * g
-        out = []
+        out: list = []
         for need, (a, b) in zip(needs, ((0, 3), (3, 9), (9, 10))):
             if not need:
                 out.append(None)

@@ -168,7 +168,7 @@ def grid_candidates(means: torch.Tensor, half_widths: torch.Tensor, grid: Grid):
         return None if idx.numel() == n else idx
 
 
-def brick_cells(grid: Grid, brick_y: int = 8, brick_z: int = 8):
+def brick_cells(grid: Grid, brick_y: int = 8, brick_z: int = 8) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
     """Bricks (8 x ``brick_y`` x ``brick_z`` samples) of ``grid`` as binning cells: (lower corner,
     1 / brick size, bricks per axis), all (x, y, z)."""
     nz, ny, nx = (int(s) for s in grid.shape)
@@ -303,9 +303,9 @@ class Voxelizer(Operator):
                   np.int32(bool(home)), *cell_args, hist, ranges)
         self.run(prog, "bin_cell_offsets", ncells, hist, np.int32(nchunks), np.int32(ncells), total)
         self.run(prog, "bin_scan", 1, total, np.int32(ncells), start)
-        length = np.empty(1, np.int32)
-        self.io.copy(length, start, src_offset=4 * ncells)
-        length = int(length[0])
+        length_buf = np.empty(1, np.int32)
+        self.io.copy(length_buf, start, src_offset=4 * ncells)
+        length = int(length_buf[0])
         itemsize = GSTRIDE * np.dtype(real).itemsize if copy else 4
         if length < 0 or length * itemsize > self.ctx.devices[0].max_mem_alloc_size:
             raise MemoryError(
@@ -321,7 +321,7 @@ class Voxelizer(Operator):
         return start, (packed if copy else lst), length
 
     # ------------------------------------------------------------------------- grid
-    def brick_cells(self, grid: Grid):
+    def brick_cells(self, grid: Grid) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
         """Bricks as binning cells: (lower corner, 1 / brick size, bricks per axis), all (x, y, z)."""
         return brick_cells(grid, self.brick_y, self.brick_z)
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import os
 import threading
 from dataclasses import dataclass
+from typing import Any
 
 from clgs.errors import ClgsError
 
@@ -62,7 +63,7 @@ class Candidate:
     kind: str
     version: str
     error: str | None  # None: the probe passed; else its one-line reason
-    device: object = None  # the cl.Device
+    device: Any = None  # the cl.Device
 
     @property
     def index(self) -> str:
@@ -93,7 +94,7 @@ def _listed():
             platforms = cl.get_platforms()
         except cl.Error as exc:
             raise NoOpenCLDevice(f"No OpenCL platform found (pyopencl said: {exc}). {INSTALL_HINT}") from exc
-        pairs = []
+        pairs: list = []
         for p in platforms:
             try:
                 pairs.extend((p, d) for d in p.get_devices())
@@ -103,7 +104,7 @@ def _listed():
     return _devices
 
 
-def _first_line(text: str) -> str:
+def _first_line(text: object) -> str:
     """The line of a build log that says what went wrong (an ``error:`` line when there is one)."""
     lines = [ln.strip() for ln in str(text).splitlines() if ln.strip()]
     for ln in lines:
