@@ -72,9 +72,10 @@ def graph() -> tuple:
     edges, private = {}, []
     for name, path in known.items():
         out = edges.setdefault(name, set())
-        for target, names in imports(name, path, known):
-            if not target.startswith("clgs"):
+        for imported, names in imports(name, path, known):
+            if not imported.startswith("clgs"):
                 continue
+            target = imported
             while target not in known and "." in target:
                 target = target.rpartition(".")[0]
             if target != name and (name, target) not in ALLOWED_EDGES:

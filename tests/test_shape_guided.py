@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from clgs.geometry import Geometry
-from clgs.shape.initialise import initialise, quaternion_from_z_to, sample_reference_centres
 from clgs.reference.gaussians import quaternion_to_rotation
+from clgs.shape.initialise import initialise, quaternion_from_z_to, sample_reference_centres
 
 
 @pytest.fixture(scope="module")
@@ -107,8 +107,8 @@ def test_overlap_backends_agree(template, atlas):
 
 def _scan(template, n_views=8, det=48, alpha=(0.8, -0.6), shape_model=None, I0=None, shift_mm=0.0):
     """A scan of the ellipsoid deformed by ``alpha`` (truth: 0.05/mm inside, soft tissue 0.01)."""
-    from clgs.ops.ct_projector import CTProjector
     from clgs.io.scan import Scan
+    from clgs.ops.ct_projector import CTProjector
 
     geo = geometry(n_views, det)
     pts = geo.volume_grid(scene=False).points()
@@ -138,8 +138,8 @@ def _small(**kw):
 
 
 def test_shape_guided_fits_alpha_and_beats_its_start(template, shape_model, atlas):
-    from clgs.metrics import psnr3d
     from clgs.methods.shape_guided import reconstruct_shape_guided
+    from clgs.metrics import psnr3d
 
     scan = _scan(template, alpha=(1.0, -0.8), shape_model=shape_model)
     res0 = reconstruct_shape_guided(scan, (template, shape_model, atlas), iterations=1, **_small())
@@ -322,7 +322,7 @@ def test_experiment_takes_clinical_view_sets_and_a_truncating_detector(template,
         png = tmp_path / "runs" / f"a_{r['views']}_{r['method']}_surface.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         if r["method"] == "shape":  # the deformation never folds
-            assert 0 < r["jacobian_min"] and r["model_surface_hausdorff_mm"] > 0
+            assert r["jacobian_min"] > 0 and r["model_surface_hausdorff_mm"] > 0
     frac = {r["views"]: r["fov_fraction"] for r in rows}
     assert frac["ap-lat"] == frac["ap-lat-fov40"]
     table = (tmp_path / "table.md").read_text()
@@ -431,8 +431,8 @@ def test_alpha_registration_moves_towards_the_subject(template, shape_model, tis
 def test_density_prior_field(template, shape_model, atlas, tissue_atlas):
     """"all" holds the whole model to the atlas (the free set gets gradients); "shape" only the
     shape set inside the bone; an atlas of the bone alone falls back to "shape"."""
-    from clgs.methods.shape_guided import ShapeGuidedConfig, build_trainer
     from clgs.fit.trainer import Context
+    from clgs.methods.shape_guided import ShapeGuidedConfig, build_trainer
 
     scan = _scan(template)
 
@@ -457,8 +457,13 @@ def test_density_prior_field(template, shape_model, atlas, tissue_atlas):
 
 
 def test_bench_alternation_times_every_step_and_switches_them_back_on(template, shape_model, atlas):
-    from clgs.bench.switches import (alternate, grid_sample_at_ref_points, grid_sample_centres_mm, steps,
-                                     two_atlas_passes)
+    from clgs.bench.switches import (
+        alternate,
+        grid_sample_at_ref_points,
+        grid_sample_centres_mm,
+        steps,
+        two_atlas_passes,
+    )
     from clgs.methods.shape_guided import ShapeGuidedConfig, build_trainer
     from clgs.ops import field_sampler, sorting, voxelizer
     from clgs.shape.gaussian_set import ShapeGuidedSet

@@ -8,7 +8,6 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 
-
 # ---------------------------------------------------------------------- the old paths
 
 

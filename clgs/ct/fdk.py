@@ -55,10 +55,10 @@ from __future__ import annotations
 import numpy as np
 
 from clgs.ct import fdk_views
-from clgs.io.validate import check_projections
-from clgs.geometry import Geometry
-from clgs.ops.fdk import backproject, view_depths
 from clgs.errors import InputError
+from clgs.geometry import Geometry
+from clgs.io.validate import check_projections
+from clgs.ops.fdk import backproject, view_depths
 
 FILTERS = ("ram-lak", "shepp-logan", "cosine", "hamming", "hann")
 

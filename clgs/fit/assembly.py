@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 
 from clgs.ct.fdk import fdk
+from clgs.errors import InputError
 from clgs.fit import losses as L
+from clgs.fit import tv_patch
 from clgs.fit.config import CHECKPOINT
 from clgs.fit.gaussians import Densifier
 from clgs.fit.outputs import make_evaluator
 from clgs.fit.trainer import Backend, LossTerm, Trainer
-from clgs.fit import tv_patch
-from clgs.errors import InputError
 
 
 def volume_box(geometry) -> tuple:

@@ -41,8 +41,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from clgs.reference.gaussians import quaternion_to_rotation
 from clgs.errors import InputError
+from clgs.reference.gaussians import quaternion_to_rotation
 
 PARAM_NAMES = ("means", "scales", "quats", "densities")
 

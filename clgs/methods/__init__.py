@@ -34,8 +34,8 @@ layer below them. Not the experiment or the CLI.
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, Optional, Union
 
 from clgs.errors import ClgsError
 from clgs.limits import MAX_ITERATIONS
@@ -55,10 +55,10 @@ class Option:
     name: str
     kind: str = "float"
     help: str = ""
-    default: Optional[str] = None
+    default: str | None = None
     choices: tuple = ()
-    min: Optional[float] = None
-    max: Optional[float] = None
+    min: float | None = None
+    max: float | None = None
     min_open: bool = False
     max_open: bool = False
 
@@ -82,20 +82,20 @@ class Method:
     """One reconstruction method (see the module doc)."""
 
     name: str
-    run: Union[Callable, str]
-    options: Union[list, str, Callable] = field(default_factory=list)
+    run: Callable | str
+    options: list | str | Callable = field(default_factory=list)
     help: str = ""
     # True: the output folder is built in a temporary sibling and renamed when done (nothing
     # half-written). False: the method manages its folder itself (e.g. checkpoints it can resume).
     atomic_dir: bool = True
 
     # a settings dataclass (or "module:attr") whose fields named in its ``CLI`` are options too
-    config: Union[type, str, None] = None
+    config: type | str | None = None
 
     def callable(self) -> Callable:
         return _resolve(self.run)
 
-    def config_class(self) -> Optional[type]:
+    def config_class(self) -> type | None:
         return None if self.config is None else _resolve(self.config)
 
     def option_list(self) -> list:

@@ -56,6 +56,7 @@ import torch
 from clgs.anatomy import plugins
 from clgs.anatomy.bone_level import choose_level
 from clgs.anatomy.evaluation import bone_surface, write_bone_surface  # the outer bone surface of the outputs
+from clgs.errors import InputError
 from clgs.fit import losses as L
 from clgs.fit.assembly import (
     fdk_volume,
@@ -84,7 +85,6 @@ from clgs.shape.gaussian_set import ShapeGuidedSet
 from clgs.shape.initialise import initialise, initialise_surroundings, sample_surrounding_centres
 from clgs.shape.priors import DensityPrior, random_subgrid, residual_prior_term, shape_prior_term
 from clgs.shape.size import AUTO_TOLERANCE, search_size, size_centre, stretched_surroundings
-from clgs.errors import InputError
 
 
 @dataclass
@@ -428,11 +428,11 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
             free = GaussianSet(e, e, np.zeros((0, 4), np.float32), np.zeros(0, np.float32), raw=True, **free_kw)
         sets.append(free)
     prior_field = cfg.density_prior_field
-    if prior_field == "all" and cfg.density_prior and atlas is not None:
-        # an atlas of the bone alone says nothing about the tissue around it: the whole field
-        # must not be pulled to its zeros there
-        if len(sample_surrounding_centres(template, atlas, 1, threshold=cfg.init_threshold)) == 0:
-            prior_field = "shape"
+    # an atlas of the bone alone says nothing about the tissue around it: the whole field must not
+    # be pulled to its zeros there
+    if (prior_field == "all" and cfg.density_prior and atlas is not None
+            and len(sample_surrounding_centres(template, atlas, 1, threshold=cfg.init_threshold)) == 0):
+        prior_field = "shape"
     losses = projection_losses(cfg)
     if bound:
         losses.append(LossTerm("shape", cfg.lambda_shape, shape_prior_term()))

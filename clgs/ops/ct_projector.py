@@ -25,10 +25,10 @@ import warnings
 
 import numpy as np
 
+from clgs.errors import InputError
 from clgs.geometry import Geometry
 from clgs.ops.ct_upright import tilted_views, upright_stand_in
 from clgs.runtime import Operator
-from clgs.errors import InputError
 
 _VIEW_STRIDE = 16
 _ZB = 32  # z voxels per backprojector work-item (cl/ct_backprojector.cl)

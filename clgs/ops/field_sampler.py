@@ -18,14 +18,13 @@ cells it is a corner of (``sample_grad_field``). The same input gives the same b
 """
 from __future__ import annotations
 
-
 import numpy as np
 import torch
 
 from clgs import runtime
+from clgs.errors import InputError
 from clgs.ops.sorting import stable_order
 from clgs.runtime import Operator, round_up
-from clgs.errors import InputError
 
 SOURCE = "field_sampler.cl"
 MAX_CHANNELS = 4

@@ -248,10 +248,7 @@ class GaussianProjector(Operator):
     # ----------------------------------------------------------------------------- plumbing
     def widths(self, beam: str, mode: str) -> tuple[int, int]:
         """(render, backward) vector widths for this beam and mode."""
-        if self.width == 8 or self.forced:
-            w = (self.width, self.width)
-        else:
-            w = WIDE[(beam, mode)]
+        w = (self.width, self.width) if self.width == 8 or self.forced else WIDE[(beam, mode)]
         tw = self.tile[0] if self.tile is not None else w[0]
         return tw, self.backward_width or w[1]
 

@@ -33,9 +33,9 @@ stops with a ``FloatingPointError`` naming the iteration and view when the loss 
 """
 from __future__ import annotations
 
-
 import numpy as np
 import torch
+
 from clgs.errors import ClgsError, InputError
 from clgs.metrics import SSIM_C1 as C1
 from clgs.metrics import SSIM_C2 as C2
@@ -43,8 +43,6 @@ from clgs.metrics import SSIM_SIGMA as SIGMA
 from clgs.metrics import SSIM_WINDOW as WINDOW
 from clgs.metrics import gaussian_window
 from clgs.runtime import Operator, real_name, shared
-
-
 
 # ------------------------------------------------------------ the filter, in torch (targets, fallback)
 _windows: dict = {}  # (size, sigma, dtype) -> window

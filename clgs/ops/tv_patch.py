@@ -65,7 +65,7 @@ class PatchTV(Operator):
         self._cap_list = 1 << 16
 
     @classmethod
-    def like(cls, voxelizer: Voxelizer) -> "PatchTV":
+    def like(cls, voxelizer: Voxelizer) -> PatchTV:
         """A TV patch that runs where ``voxelizer`` runs, as it does: same context, queue, bricks
         and memory mode (wrapped host memory or copies)."""
         op = cls(voxelizer.ctx, voxelizer.queue, (voxelizer.brick_y, voxelizer.brick_z))
@@ -231,7 +231,7 @@ class TVPatchFunction(torch.autograd.Function):
 
 
 _lock = threading.Lock()
-_matching: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()  # Voxelizer -> its PatchTV
+_matching: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # Voxelizer -> its PatchTV
 
 
 def patch_operator(voxelizer: Voxelizer | None = None) -> PatchTV:

@@ -73,10 +73,10 @@ import numpy as np
 import torch
 
 from clgs import runtime
-from clgs.ops.sorting import stable_order
-from clgs.geometry import Grid
-from clgs.runtime import Operator, round_up
 from clgs.errors import InputError
+from clgs.geometry import Grid
+from clgs.ops.sorting import stable_order
+from clgs.runtime import Operator, round_up
 
 SOURCE = "voxelizer.cl"
 

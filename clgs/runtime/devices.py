@@ -28,7 +28,6 @@ from clgs.errors import ClgsError
 
 from . import drivers
 
-
 try:
     import pyopencl as cl
 except ImportError as exc:  # pragma: no cover - exercised only without pyopencl
@@ -79,15 +78,15 @@ class Candidate:
 
 
 _lock = threading.RLock()
-_devices: "list[tuple[cl.Platform, cl.Device]] | None" = None
+_devices: list[tuple[cl.Platform, cl.Device]] | None = None
 _probes: dict = {}  # device int_ptr -> error or None
 _contexts: dict = {}  # device int_ptr -> (context, queue)
-_current: "cl.Device | None" = None
+_current: cl.Device | None = None
 
 
 def _listed():
     """(platform, device) pairs as the ICD loader lists them; platforms that fail are skipped."""
-    global _devices
+    global _devices  # noqa: PLW0603 - the process-wide device list, read once
     if _devices is None:
         drivers.configure()  # the drivers' environment, before the ICD loader first runs
         try:
@@ -245,10 +244,10 @@ def _choose():
     raise NoOpenCLDevice("No OpenCL device can run clgs's kernels:\n" + "\n".join(failures) + "\n" + INSTALL_HINT)
 
 
-def use_device(spec=None) -> "cl.Device":
+def use_device(spec=None) -> cl.Device:
     """Make ``spec`` (a ``cl.Device``, a spec string, or None for the automatic choice) the
     process-wide device; operators made afterwards run on it. Returns the device."""
-    global _current
+    global _current  # noqa: PLW0603 - the process-wide device choice
     with _lock:
         if spec is None:
             dev = _choose()
@@ -273,7 +272,7 @@ def use_device(spec=None) -> "cl.Device":
 
 
 def _entry():
-    global _current
+    global _current  # noqa: PLW0603 - the process-wide device choice
     with _lock:
         if _current is None:
             _current = _choose()
@@ -285,17 +284,17 @@ def _entry():
         return entry
 
 
-def get_context() -> "cl.Context":
+def get_context() -> cl.Context:
     """The context of the process-wide device (chosen on first use)."""
     return _entry()[0]
 
 
-def get_queue() -> "cl.CommandQueue":
+def get_queue() -> cl.CommandQueue:
     """The in-order queue on the process-wide device."""
     return _entry()[1]
 
 
-def device() -> "cl.Device":
+def device() -> cl.Device:
     return get_context().devices[0]
 
 

@@ -56,7 +56,7 @@ class Program:
         self._program = build(ctx, source, options)
         self._kernels: dict = {}
 
-    def kernel(self, name: str) -> "cl.Kernel":
+    def kernel(self, name: str) -> cl.Kernel:
         k = self._kernels.get(name)
         if k is None:
             k = self._kernels[name] = getattr(self._program, name)

@@ -16,8 +16,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from clgs.fit.gaussians import GaussianSet
 from clgs.fit.fixed_points import FixedPointSampler
+from clgs.fit.gaussians import GaussianSet
 from clgs.shape.model import exp_velocity, squarings_for
 from clgs.shape.template import zyx_triple
 

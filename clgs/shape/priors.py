@@ -6,9 +6,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from clgs.errors import InputError
 from clgs.geometry import Grid
 from clgs.shape.gaussian_set import ShapeGuidedSet
-from clgs.errors import InputError
 
 
 def shape_prior_term(set_name: str = "shape"):
