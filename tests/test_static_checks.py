@@ -25,7 +25,7 @@ def test_ruff_finds_nothing():
         cmd = [shutil.which("ruff")]
     else:
         pytest.skip("ruff is not installed (pip install -e '.[test]')")
-    r = _run([*cmd, "check", "--no-cache", "clgs", "tests", "anatomies"])
+    r = _run([*cmd, "check", "--no-cache", "clgs", "tests", "examples", "anatomies"])
     assert r.returncode == 0, r.stdout + r.stderr
 
 
