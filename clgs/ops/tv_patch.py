@@ -8,15 +8,10 @@ precision (N, 6) and densities (N,) (the 3-sigma half-widths ``extent`` only bou
 float32 or float64 by the inputs' dtype. :class:`TVPatchFunction` is its autograd op; the
 training loss term and the fallback for large grids are :mod:`clgs.fit.tv_patch`'s.
 
-Why fused: for a random 32^3 patch of a 50k-Gaussian scene the kernels' work is small (a few
-percent of the Gaussians reach the patch) and the time went to the host: culling with torch ops
-over all N rows, gathering and scattering the kept rows through autograd, packing, two blocking
-waits, and the TV itself in torch. Here everything from the N rows to the gradient rows of the
-kept Gaussians runs on the device in one batch of launches with one wait (``patch_cull``,
-``patch_scan``, ``patch_fill``, the voxelizer's ``vox_grid``, ``patch_tv``, ``patch_grad``). The
-TV's gradient wrt the field is a closed form (signs of the neighbour differences over their
-count), so the backward to the Gaussians is computed in the forward for a unit upstream gradient
-and the autograd backward only scales the kept rows and scatters them into (N, .) zeros.
+Why fused: on a small patch few Gaussians reach it and the time goes to the host; here
+everything from the N rows to the kept Gaussians' gradient rows runs on the device in one batch
+of launches with one wait (docs/kernels.md). The backward to the Gaussians is computed in the
+forward for a unit upstream gradient; autograd only scales and scatters the kept rows.
 
 Results: the field is bitwise the voxelizer's (same brick lists in Gaussian index order, same
 kernel); the TV value and the gradients equal those of ``tv3d`` + the voxelizer's backward to

@@ -37,32 +37,8 @@ Gaussians (scale ratios near 1e-3) ``d^T P d`` cancels in float32 whatever the o
 operations (P holds 1/s^2 next to O(1) values), so the field near them is good to about 1% of
 their peak in float32 (and to ~1e-10 in float64).
 
-How (``cl/voxelizer.cl``): Gaussians are binned on the device into cells (8 x 8 x 8 voxel bricks
-for grids, a coarse cell grid over the points for point queries) by a deterministic counting sort,
-so every list is in Gaussian index order and every output is summed in the same order on every
-run; the binning also copies the Gaussians' records into list order, so the forward kernels
-stream through memory. Forward: one work-item per brick looping over its list, one ``real8`` per
-x row; or one work-item per 8 points of a cell. Backward: one work-item per Gaussian gathers the
-incoming gradient over its own box (grid samples or points inside it): no atomics, same bits
-every time; on grids the work-items take the kept Gaussians sorted by brick (the same counting
-sort, one cell per Gaussian), so neighbours read neighbouring rows from cache. Only Gaussians
-whose box meets the grid/block (or the points' bounding box) are binned or visited; for grids
-they are first selected in torch (``grid_candidates``), so a small block of a large scene packs
-and bins only the few Gaussians that reach it. Small grids (up to 512 bricks, e.g. a 32^3 TV
-patch) skip the parallel counting sort and its host round trip for the list length: one
-work-item builds the same lists in one launch, and their backward runs over the Gaussians in
-index order without sorting (the block's dL/dfield stays in cache); same bits either way. A
-forward is then 2 launches and one wait, a backward 1 launch and one wait.
-
-Compile-time variants of ``cl/voxelizer.cl`` (``-D`` options, one cached program each):
-
-* ``REAL=float`` (default) or ``REAL=double`` (chosen from the input dtype; double is for
-  gradient checks).
-* ``BRICK_Y``, ``BRICK_Z``: brick rows (default 8 x 8; bricks are 8 voxels along x).
-* ``WANT_MEAN``, ``WANT_PREC``, ``WANT_RHO``: which gradients the backward kernels compute
-  (set from which inputs need a gradient; the others come back as zeros and cost nothing).
-
-On a CPU device (PoCL) inputs and outputs wrap host memory without copies.
+How the kernels (``cl/voxelizer.cl``) bin, lay out and sum, and their compiled variants:
+docs/kernels.md.
 """
 from __future__ import annotations
 
