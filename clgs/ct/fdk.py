@@ -280,7 +280,7 @@ def fdk(projections, geometry: Geometry, filter: str = "ram-lak", short_scan="au
     (redundancy weights when the angles do not cover a full circle), ``True`` or ``False``.
     ``dtype=np.float64`` backprojects in double precision. ``truncation``: see
     :func:`filter_projections` (``"auto"``: rows of an object wider than the detector are extended
-    smoothly before filtering; untruncated scans are filtered exactly as before).
+    smoothly before filtering; untruncated scans are filtered as with ``False``).
     """
     from clgs.progress import phase
 

@@ -286,7 +286,7 @@ class Trainer:
             for name, tensor, schedule in s.parameters():
                 groups.append({"params": [tensor], "lr": schedule(0), "name": f"{s.name}.{name}"})
                 self._schedules.append(schedule)
-        try:  # the fused CPU kernel is ~3x faster than foreach on 50k Gaussians; same update
+        try:  # the fused CPU kernel is faster than foreach; same update
             self.optimizer = torch.optim.Adam(groups, eps=1e-15, fused=True)
         except (RuntimeError, TypeError, ValueError):
             self.optimizer = torch.optim.Adam(groups, eps=1e-15)

@@ -227,7 +227,7 @@ class Scan:
             from clgs.io.mesh import MeshError, load_mesh
 
             try:
-                # clgs's own file: tagged; untagged ones (earlier versions) were written in RAS
+                # clgs's own file: tagged; an untagged one is read as RAS, as clgs wrote it before the tag
                 surface = load_mesh(inside_folder(folder, files["truth_surface"], "truth surface", SCAN_JSON),
                                     space="RAS")
             except MeshError as exc:

@@ -218,11 +218,9 @@ def fit_initial_alpha(scan, shape_model, cfg: ShapeGuidedConfig, init, free=None
     one view per iteration, lr ``lr_alpha`` decaying to 10% over ``alpha_init_iterations``).
 
     Why: trained from alpha = 0 with everything else free, the densities and the free Gaussians
-    absorb the shape difference within a few dozen iterations and alpha stalls near 0 (femur,
-    subject 20, 5 views: alpha_1 -0.08 after 600 iterations where the subject's surface gives
-    -2.7; the model surface 3.5 mm from the truth). Fitting alpha first, with the atlas's
-    densities fixed, is a registration of the atlas's bone to the projections (subject 20: alpha_1
-    -1.6, model surface 1.4 mm after 100 iterations); the main run then refines alpha as before.
+    absorb the shape difference within a few dozen iterations and alpha stalls near 0. Fitting
+    alpha first, with the atlas's densities fixed, is a registration of the atlas's bone to the
+    projections; the main run then refines alpha (figures: docs/methods.md).
     The tissue around the bone is left in place: carried by the bone's deformation it made the
     fit follow the limb's outline instead (alpha_1 +0.22, model surface 4.0 mm)."""
 

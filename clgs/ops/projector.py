@@ -34,10 +34,9 @@ class ProjectorError(ClgsError, ValueError):
 WIDTH_ENV = "CLGS_TILE_WIDTH"
 WIDTHS = (8, 16)
 # (render, backward) vector widths per (beam, mode) on a device whose native float vector has 16
-# lanes, each kept at 16 only where 16 lanes measured faster than 8 side by side (50k Gaussians,
-# 256^2 detector, CPU time per launch; figures in the module docstring). The exact cone's pixel
-# loops are bound by a division and a square root per pixel, which cost the same per lane at
-# either width, so the wider rows' extra masked lanes only add work there.
+# lanes, each kept at 16 only where 16 lanes are faster than 8 (docs/kernels.md). The exact cone's
+# pixel loops are bound by a division and a square root per pixel, which cost the same per lane
+# at either width, so the wider rows' extra masked lanes only add work there.
 WIDE = {("cone", "affine"): (16, 16), ("parallel", "affine"): (16, 16),
         ("parallel", "exact"): (16, 8), ("cone", "exact"): (8, 8)}
 

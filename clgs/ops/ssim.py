@@ -47,8 +47,8 @@ def window(size: int, sigma: float, dtype) -> torch.Tensor:
 
 def shift_blur(x: torch.Tensor, w) -> torch.Tensor:
     """Zero-padded separable filter with a symmetric window ``w`` (a list), as shifted in-place
-    adds along the last two axes: 2 x 11 passes over the image, ~1.5x faster on a CPU than the
-    dense banded products for 256^2 projections."""
+    adds along the last two axes: 2 x 11 passes over the image, faster on a CPU than dense banded
+    products."""
     r = len(w) // 2
     y = x * w[r]
     for k in range(r):

@@ -73,9 +73,8 @@ _MAX_HIST = 1 << 22  # cap on (cells x chunks) histogram entries
 # small grids (a TV patch): bin by one work-item in one launch below these many bricks and
 # bricks x Gaussians (the list's room); in the backward, no sort below this many bytes of dL/dfield.
 # 2^19 pairs (8k Gaussians on 64 bricks): past about 4-8k Gaussians on a 32^3 grid the parallel
-# counting sort, round trip included, wins (measured on the shape-guided density prior's
-# sub-grid, 50k Gaussians: 8 against 10 ms at load 6, best of three; ``clgs bench train
-# --method shape --alternate``); the same bits either way
+# counting sort, round trip included, is faster (``clgs bench train --method shape --alternate``);
+# the same bits either way
 SMALL_CELLS = 512
 _SMALL_PAIRS = 1 << 19
 _UNSORTED_BYTES = 1 << 20

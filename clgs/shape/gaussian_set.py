@@ -32,10 +32,9 @@ class ShapeGuidedSet(GaussianSet):
     # of u over alpha_m = a0_m +- LINEAR_TOL, refreshed (2M + 1 forward-only exponentiations, no
     # backward) once some |alpha_m - a0_m| exceeds LINEAR_TOL. While alpha moves fast (the last
     # step over LINEAR_TOL / 4: early, when its learning rate is high) a linearisation would last
-    # a few iterations only, so there the exact path runs. Measured on the femur model at
-    # LINEAR_TOL = 0.05: the centres within 0.0006 mm (0.0002 voxel) of the exact map, d centres /
-    # d alpha within about 1 % (docs/methods.md; tests/test_fixed_points.py checks a small model). None:
-    # the exact path every iteration.
+    # a few iterations only, so there the exact path runs. How close it stays to the exact map:
+    # docs/methods.md (tests/test_fixed_points.py checks a small model). None: the exact path every
+    # iteration.
     LINEAR_TOL = 0.05
 
     def __init__(self, p_ref_mm, scales, quats, densities, *, shape_model, geometry, box, scale_bounds,

@@ -61,8 +61,7 @@ class DensityPrior:
     current deformation), as the paper writes it. ``field="all"``: the whole model's field
     everywhere on the sub-grid, against the atlas of the whole scan (bone and the tissue around
     it), with the same confidence ``w``; the free Gaussians then get the atlas's help where the
-    few views leave them undetermined (measured on the femur at 5 views and 600 iterations:
-    +0.3 dB over ``"shape"``)."""
+    few views leave them undetermined (docs/methods.md)."""
 
     def __init__(self, atlas, template, geometry, value_scale: float, s: float, n_points: int,
                  set_name: str = "shape", field: str = "shape"):
@@ -96,12 +95,7 @@ class DensityPrior:
         ``x_bone``, the similarity undone); the tissue around it takes a larger size but not a
         smaller one (a limb has a girth of its own beside its bone's). Points outside the scaled
         bone that the tissue's read would place inside the template's bone (a ring around a
-        smaller bone) are not held.
-
-        Measured on subject 22 scaled to 355 and 558 mm (2 views, 1000 iterations): the whole atlas
-        scaled with the bone held the 355 mm limb to a 0.8-times outline, its tissue 2 dB worse
-        than without a size (3D PSNR 27.68 against 28.57 dB); tissue read unscaled there 29.23 dB.
-        The 558 mm one: tissue scaled with the bone 30.37 dB, its cross-section unscaled 28.56."""
+        smaller bone) are not held (why: docs/methods.md, "The bone's size")."""
         if s.size >= 1.0:  # the tissue takes the bone's size: one read, every point held
             mean, var = self.atlas.mean_var_at(x_bone.double())
             return mean, var, x_bone, torch.ones(len(pts_mm), dtype=pts_mm.dtype)
@@ -149,8 +143,8 @@ class DensityPrior:
                 w = w * keep
             # the atlas says nothing beyond its grid (the template's): where a larger scan (a longer
             # bone) reaches past it, the field is left to the projections, not pulled to the zeros
-            # the atlas reads there (tested on the scan's points, so a scan on the atlas's grid
-            # gives the same bits as before)
+            # the atlas reads there (tested on the scan's points: on the atlas's own grid every
+            # point is inside)
             # (with a fitted size the atlas is read at x_t, in the model's frame and size: that is
             # the point tested)
             w = w * self._inside_atlas(x_t if fitted else pts_mm)
