@@ -24,14 +24,10 @@ and ``m = 1`` (the atlas holds the tissue around the bone too; an atlas of the b
 back to ``"shape"``); ``"shape"``: ``V = V_s`` the field of the shape set alone and ``m`` the
 template's bone mask at ``x'``, the paper's form.
 
-Decisions and what they gave on the femur (5 views, 600 iterations, subject 20; R2-Gaussian
-28.44 dB): as the paper 28.46 dB; free set from the atlas 29.64; + the prior on the whole field
-29.92; + alpha registered first 30.28 dB (model surface 1.65 mm instead of 3.47).
-
 The bone's size is fitted with alpha (``fit_size="on"``, :mod:`clgs.shape.size`): a search over
-sizes against the projections gives its start, the registration and training refine it (femur, 6
-held-out subjects at 5 views, 1000 iterations: +0.13 dB, model surface 1.60 -> 1.15 mm; a 558 mm
-femur from 2 views +5.5 dB). ``"off"`` is the paper's form.
+sizes against the projections gives its start, the registration and training refine it.
+``"off"`` is the paper's form. Where these choices depart from the paper, and what each gave on
+the femur: docs/methods.md.
 
 The scan's world frame is taken to be the template's frame (the anatomy's own simulator scans in
 it; a user's mesh is aligned to the template first). The ablation switches: ``shape_prior=False``
