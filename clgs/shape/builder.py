@@ -178,7 +178,7 @@ def surface_measure(template: Template, mshape, msp, morg, max_points: int = FIG
     spread; trilinear): what moves the surface, where the model's figures are measured."""
     import torch
 
-    from clgs.ops.fixed_points import FixedPointSampler
+    from clgs.fit.fixed_points import FixedPointSampler
 
     pts = np.asarray(template.vertices, np.float64)
     pts = pts[np.linspace(0, len(pts) - 1, min(len(pts), max_points)).astype(int)]
