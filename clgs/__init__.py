@@ -27,7 +27,6 @@ Errors
 import importlib as _importlib
 from typing import TYPE_CHECKING as _TYPE_CHECKING
 
-
 __version__ = "0.1.0"
 
 # public name -> "module" (the name is an attribute of it), "module:" (the name is the module) or
@@ -58,7 +57,7 @@ _HOMES = {
     "ClgsError": "clgs.errors",
 }
 
-__all__ = sorted(_HOMES)
+__all__ = sorted(_HOMES)  # noqa: PLE0605 - a list, built from the table above
 
 if _TYPE_CHECKING:  # what the lazy loading below gives, spelled out for type checkers and editors
     from clgs import metrics, plugins  # noqa: F401

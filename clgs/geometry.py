@@ -32,8 +32,8 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 
@@ -385,7 +385,7 @@ class Geometry:
         """scene units -> mm (x, y, z)."""
         return np.asarray(points_xyz, float) / self.scale + self.centre_xyz
 
-    def volume_grid(self, scene: bool = True) -> "Grid":
+    def volume_grid(self, scene: bool = True) -> Grid:
         """The reconstruction grid, in scene units (default) or mm."""
         spacing = np.asarray(self.dVoxel[::-1], float)
         shape = np.asarray(self.nVoxel, int)
@@ -500,7 +500,7 @@ class Geometry:
 
     @classmethod
     def from_vectors(cls, vectors, nDetector, nVoxel, dVoxel, offOrigin=(0.0, 0.0, 0.0),
-                     mode: str = "cone", isocentre=(0.0, 0.0, 0.0), orientation: str = "RAS") -> "Geometry":
+                     mode: str = "cone", isocentre=(0.0, 0.0, 0.0), orientation: str = "RAS") -> Geometry:
         """A per-view geometry: ``vectors`` (n_views, 12) in mm, (x, y, z), ASTRA's order per view:
         source (cone) or ray direction (parallel), detector centre, one pixel along u (columns), one
         pixel along v (rows). They share the frame of ``offOrigin`` (the volume's centre); the
@@ -514,12 +514,12 @@ class Geometry:
                    angles=np.zeros(len(vec)), offOrigin=offOrigin, mode=mode, isocentre=isocentre, vectors=vec,
                    orientation=orientation)
 
-    def as_vectors(self) -> "Geometry":
+    def as_vectors(self) -> Geometry:
         """The same scan as a per-view geometry (the circular description written as vectors)."""
         return Geometry.from_vectors(self.frame_vectors(), self.nDetector, self.nVoxel, self.dVoxel,
                                      self.offOrigin, self.mode, self.isocentre, self.orientation)
 
-    def select(self, views) -> "Geometry":
+    def select(self, views) -> Geometry:
         """The geometry of the views ``views`` (indices, in that order)."""
         idx = np.asarray(views, int).reshape(-1)
         if self.vectors is not None:
@@ -528,7 +528,7 @@ class Geometry:
         return self.with_angles(self.angles[idx])
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Geometry":
+    def from_dict(cls, d: dict) -> Geometry:
         if not isinstance(d, dict):
             raise GeometryError(f"a geometry must be a JSON object, got {type(d).__name__}")
         if "vectors" in d:
@@ -565,7 +565,7 @@ class Geometry:
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=1)
 
-    def with_angles(self, angles) -> "Geometry":
+    def with_angles(self, angles) -> Geometry:
         if self.vectors is not None:
             raise GeometryError("a per-view (vector) geometry has no angles to replace; use select(views)")
         d = self.to_dict()
@@ -574,7 +574,7 @@ class Geometry:
 
     @classmethod
     def default(cls, n_views: int = 50, arc: float = np.pi, mode: str = "cone", n_voxel: int = 128,
-                n_detector: int = 256, volume_mm: float = 256.0) -> "Geometry":
+                n_detector: int = 256, volume_mm: float = 256.0) -> Geometry:
         """A scanner sized for a ``volume_mm`` cube, whose detector sees it whole at DSD/DSO = 1.5."""
         DSO, DSD = 1000.0, 1500.0
         mag = DSD / DSO if mode == "cone" else 1.0
@@ -594,7 +594,7 @@ class Grid:
     origin: tuple
     spacing: tuple
 
-    def block(self, start_zyx, size_zyx) -> "Grid":
+    def block(self, start_zyx, size_zyx) -> Grid:
         """The axis-aligned sub-block starting at voxel ``start_zyx`` with ``size_zyx`` voxels."""
         start = np.asarray(start_zyx, int)
         size = np.asarray(size_zyx, int)

@@ -6,6 +6,7 @@ count once each; editable installs count their metadata only.
 """
 from __future__ import annotations
 
+import contextlib
 import importlib.metadata as md
 import os
 import sys
@@ -18,10 +19,8 @@ def distribution_sizes() -> dict:
         name = dist.metadata["Name"] or "?"
         total = 0
         for f in dist.files or ():
-            try:
+            with contextlib.suppress(OSError):
                 total += os.path.getsize(dist.locate_file(f))
-            except OSError:
-                pass
         sizes[name] = max(sizes.get(name, 0), total)
     return sizes
 

@@ -72,7 +72,7 @@ _ENABLED = contextvars.ContextVar("clgs_progress_enabled", default=True)
 
 def set_quiet(quiet: bool = True) -> None:
     """Silence (or restore) every bar, phase line and note of this process (``clgs --quiet``)."""
-    global _QUIET
+    global _QUIET  # noqa: PLW0603 - one process-wide switch
     _QUIET = bool(quiet)
 
 

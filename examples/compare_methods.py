@@ -17,7 +17,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from reconstruct_r2gs import phantom_scan
 
 

@@ -97,7 +97,7 @@ def main():
     subsets = max(1, a.views // 4)  # the Gaussian methods' former start on per-view scans
     start_sart, sec_sart = None, 0.0
     for it in a.sart_iterations:
-        vol, sec = _best(lambda: sart(p, g, n_iter=it, subsets=subsets, seed=0), a.repeat)
+        vol, sec = _best(lambda it=it: sart(p, g, n_iter=it, subsets=subsets, seed=0), a.repeat)
         add(f"OS-SART, {it} iterations, {subsets} subsets", vol, sec)
         if it == 10:
             start_sart, sec_sart = vol, sec

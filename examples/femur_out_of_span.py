@@ -22,9 +22,9 @@ Each line printed names the file and how far its surface moved (mean / largest, 
 import argparse
 from pathlib import Path
 
+import clgs_femur
 import numpy as np
 
-import clgs_femur
 from clgs.io.mesh import save_mesh
 
 

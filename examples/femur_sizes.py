@@ -10,6 +10,7 @@ import argparse
 from pathlib import Path
 
 import clgs_femur
+
 from clgs.anatomy.population import surface_length
 from clgs.io.mesh import save_mesh
 

@@ -299,7 +299,8 @@ def main():
         sart_curve = []
         t0 = time.perf_counter()
         vol = sart(scan.projections, scan.geometry, n_iter=args.sart_iterations, subsets=5,
-                   callback=lambda it, v: sart_curve.append((time.perf_counter() - t0, float(metrics.psnr3d(v, ref)))))
+                   callback=lambda it, v, curve=sart_curve, t0=t0: curve.append((time.perf_counter() - t0,
+                                                                               float(metrics.psnr3d(v, ref)))))
         runs.append(("SART", vol, time.perf_counter() - t0, sart_curve))
         t0 = time.perf_counter()
         res = reconstruct_r2gs(scan, out_dir=out / f"r2gs_{nv}", iterations=args.iterations,
@@ -308,9 +309,9 @@ def main():
         curve = [(r["wall"], r["psnr3d"]) for r in res.log.rows if r.get("psnr3d") is not None]
         runs.append(("R2-Gaussian", res.volume, sec, curve))
         if astra_turn is not None:
-            for name, v, s in _astra_runs(scan.projections, scan.geometry.angles, column, ref,
-                                          args.sart_iterations):
-                v = _orient(v, astra_turn)
+            for name, raw, s in _astra_runs(scan.projections, scan.geometry.angles, column, ref,
+                                            args.sart_iterations):
+                v = _orient(raw, astra_turn)
                 runs.append((name, v, s, [(s, float(metrics.psnr3d(v, ref)))]))
         if full_rtk is not None:
             for name, v, s in _rtk_runs(scan.projections, scan.geometry.angles, column, args.sart_iterations):

@@ -4,9 +4,10 @@ import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before anything imports torch
 
-import clgs  # noqa: E402,F401
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+
+import clgs  # noqa: E402,F401
 
 #: Test modules whose every test runs on each working device: the OpenCL operators, their
 #: torch ops and the training loop built on them. The rest run on the automatic choice.

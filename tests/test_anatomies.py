@@ -1,5 +1,6 @@
 """The built-in anatomy plugins (femur, patella): real LLP26 surfaces -> subjects, template, model."""
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -8,9 +9,9 @@ import trimesh
 clgs_femur = pytest.importorskip("clgs_femur", reason="install with: pip install -e anatomies/femur")
 clgs_patella = pytest.importorskip("clgs_patella", reason="install with: pip install -e anatomies/patella")
 
-from clgs.mesh import voxels as mv  # noqa: E402
 from clgs.anatomy import phantom as ph  # noqa: E402
 from clgs.anatomy.alignment import align_rigid  # noqa: E402
+from clgs.mesh import voxels as mv  # noqa: E402
 
 HELD_OUT = [f"{i:02d}" for i in range(20, 26)]
 MODEL_IDS = [f"{i:02d}" for i in range(20)]
@@ -51,9 +52,9 @@ def test_data_ships_with_its_licence(femur, patella):
     for pop, n_files in ((femur, 27), (patella, 26)):
         files = os.listdir(pop.data_dir)
         assert sum(f.endswith(".npz") for f in files) == n_files
-        licence = open(os.path.join(pop.data_dir, "LICENSE-MPL-2.0.txt")).read()
+        licence = Path(pop.data_dir, "LICENSE-MPL-2.0.txt").read_text()
         assert licence.startswith("Mozilla Public License Version 2.0") and "Exhibit B" in licence
-        notice = open(os.path.join(pop.data_dir, "LLP26_README.md")).read()
+        notice = Path(pop.data_dir, "LLP26_README.md").read_text()
         assert "musculoskeletal-models" in notice and "MPL-2.0" in notice
 
 

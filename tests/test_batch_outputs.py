@@ -53,7 +53,7 @@ def write_list(path, rows):
 def snapshot(root, skip) -> dict:
     """{path: (size, mtime, bytes of small files)} of everything under ``root`` but ``skip``."""
     out = {}
-    for dirpath, dirs, files in os.walk(root):
+    for dirpath, _dirs, files in os.walk(root):
         if Path(dirpath) == skip or skip in Path(dirpath).parents:
             continue
         out[dirpath] = "dir"

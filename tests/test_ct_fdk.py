@@ -5,8 +5,8 @@ import pytest
 
 from clgs.ct import phantoms as ph
 from clgs.ct.fdk import FILTERS, fdk, ramp_filter, view_weights
-from clgs.ops.fdk import backproject
 from clgs.geometry import Geometry
+from clgs.ops.fdk import backproject
 from clgs.reference.detector import bilinear_zero_outside
 
 BALL = [ph.ball((2.0, -1.0, 1.0), 12.0, 0.02)]

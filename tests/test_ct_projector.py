@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from clgs.ct import phantoms as ph
-from clgs.ops.ct_projector import CTProjector
 from clgs.geometry import Geometry
+from clgs.ops.ct_projector import CTProjector
 
 
 def small_geometry(mode, n_views=3, **kw):

@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 
 from clgs.ct import phantoms as ph
-from clgs.ops.ct_projector import CTProjector
 from clgs.ct.sart import sart, subsets_of
 from clgs.geometry import Geometry
+from clgs.ops.ct_projector import CTProjector
 
 OBJ = [ph.ball((2.0, -1.0, 1.0), 9.0, 0.02), ph.ball((-3.0, 2.0, 0.0), 4.0, 0.01)]
 

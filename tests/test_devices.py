@@ -212,8 +212,8 @@ def test_installed_intel_runtime_is_found_where_pip_put_it():
 # ------------------------------------------------------------------ agreement across drivers
 def _kernels_on(dev):
     """Every operator's float32 results on ``dev`` for one fixed scene."""
-    from clgs.ops.ct_projector import CTProjector
     from clgs.geometry import Geometry
+    from clgs.ops.ct_projector import CTProjector
     from clgs.ops.projector import project
     from clgs.ops.ssim import default_image_loss, l1_dssim
     from clgs.ops.voxelizer import voxelize

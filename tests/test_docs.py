@@ -18,7 +18,6 @@ from pathlib import Path
 
 import click
 import pytest
-
 from cli_helpers import run
 
 ROOT = Path(__file__).resolve().parents[1]

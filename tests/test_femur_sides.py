@@ -45,7 +45,8 @@ def test_decide_sides_mirrors_the_minority_into_the_majoritys_side():
 
     table = {"a": ("left", -20.0), "b": ("right", 21.0), "c": ("left", -19.0), "d": ("undecided", 1.0),
              "e": ("right", 22.0)}
-    out = decide_sides({k: np.zeros((1, 3)) for k in table}, lambda v, it=iter(table.values()): next(it),
+    answers = iter(table.values())
+    out = decide_sides({k: np.zeros((1, 3)) for k in table}, lambda v: next(answers),
                        ["a", "b", "c", "d"])
     assert out["template_side"] == "left"
     assert {k: r["mirrored"] for k, r in out["subjects"].items()} == {"a": False, "b": True, "c": False, "d": False,

@@ -4,8 +4,15 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from clgs.fit.gaussians import (Densifier, GaussianSet, Schedule, init_from_volume, init_random, inverse_softplus,
-                            r2gs_schedules)
+from clgs.fit.gaussians import (
+    Densifier,
+    GaussianSet,
+    Schedule,
+    init_from_volume,
+    init_random,
+    inverse_softplus,
+    r2gs_schedules,
+)
 from clgs.geometry import Geometry, Grid
 
 BOX = (1.0, 1.0, 1.0)
@@ -207,8 +214,8 @@ def test_view_space_gradient_matches_the_detector_coordinate_gradient(mode):
 
 def test_training_covariances_match_gaussian_math_values_and_gradients():
     """What training feeds the kernels (the OpenCL cov_prec) against the torch reference."""
-    from clgs.reference import gaussians as gm
     from clgs.ops.voxelizer import cov_prec
+    from clgs.reference import gaussians as gm
 
     g = torch.Generator().manual_seed(0)
     s = (torch.rand(50, 3, generator=g, dtype=torch.float64) * 0.3 + 1e-3).requires_grad_(True)

@@ -77,9 +77,9 @@ def test_a_scan_may_name_only_files_inside_its_folder(tmp_path, name):
 
 
 def test_an_r2gaussian_folder_may_name_only_files_inside_it(tmp_path):
+    from clgs.geometry import Geometry
     from clgs.io.r2gaussian import to_r2gaussian_folder
     from clgs.io.scan import Scan, ScanError
-    from clgs.geometry import Geometry
 
     geo = Geometry.from_dict(GOOD)
     folder = to_r2gaussian_folder(Scan(geo, np.ones((3, 16, 16), np.float32)), tmp_path / "r2")

@@ -35,10 +35,9 @@ def leftovers(folder):
 def test_atomic_file_failure_leaves_old_content(tmp_path):
     target = tmp_path / "a.json"
     atomic.write_json(target, {"x": 1})
-    with pytest.raises(RuntimeError):
-        with atomic.atomic_path(target) as tmp:
-            tmp.write_text("half")
-            raise RuntimeError("interrupted")
+    with pytest.raises(RuntimeError), atomic.atomic_path(target) as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("interrupted")
     assert json.loads(target.read_text()) == {"x": 1}
     assert leftovers(tmp_path) == []
     with pytest.raises(FileExistsError):
@@ -63,13 +62,11 @@ def test_atomic_dir_all_or_nothing(tmp_path):
     with atomic.atomic_dir(target) as d:
         (d / "one").write_text("1")
     assert (target / "one").read_text() == "1"
-    with pytest.raises(FileExistsError):
-        with atomic.atomic_dir(target):
-            pass
-    with pytest.raises(KeyboardInterrupt):
-        with atomic.atomic_dir(target, overwrite=True) as d:
-            (d / "two").write_text("2")
-            raise KeyboardInterrupt
+    with pytest.raises(FileExistsError), atomic.atomic_dir(target):
+        pass
+    with pytest.raises(KeyboardInterrupt), atomic.atomic_dir(target, overwrite=True) as d:
+        (d / "two").write_text("2")
+        raise KeyboardInterrupt
     assert sorted(os.listdir(target)) == ["one"]
     with atomic.atomic_dir(target, overwrite=True) as d:
         (d / "two").write_text("2")
@@ -284,14 +281,13 @@ def test_a_full_disk_names_the_file_and_leaves_nothing_behind(tmp_path, monkeypa
     def full(*args, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    with pytest.raises(atomic.DiskFullError, match=r"disk is full while writing .*volume\.npy.*nothing was replaced"):
-        with atomic.atomic_path(target) as tmp:
-            tmp.write_bytes(b"new")
-            full()
+    with pytest.raises(atomic.DiskFullError, match=r"disk is full while writing .*volume\.npy.*nothing was replaced"), \
+            atomic.atomic_path(target) as tmp:
+        tmp.write_bytes(b"new")
+        full()
     assert target.read_bytes() == b"old"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["volume.npy"]
-    with pytest.raises(atomic.DiskFullError, match="run"):
-        with atomic.atomic_dir(tmp_path / "run") as tmp:
-            (tmp / "a.txt").write_text("x")
-            full()
+    with pytest.raises(atomic.DiskFullError, match="run"), atomic.atomic_dir(tmp_path / "run") as tmp:
+        (tmp / "a.txt").write_text("x")
+        full()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["volume.npy"]

@@ -7,8 +7,7 @@ import pytest
 
 from clgs.geometry import Geometry
 from clgs.io.r2gaussian import geometry_from_scanner, to_r2gaussian_folder
-from clgs.io.scan import read_r2gaussian
-from clgs.io.scan import Scan, ScanError
+from clgs.io.scan import Scan, ScanError, read_r2gaussian
 
 
 def handcrafted(folder, rng, n_train=3, n_test=2, vol_key="vol", dvoxel=False):

@@ -227,8 +227,8 @@ def test_r2gs_with_dssim_off_builds_l1_only_terms():
 def test_trainer_stops_on_a_nan_render():
     """A non-finite render makes the loss NaN and the trainer raises a clear FloatingPointError."""
     from clgs.geometry import Geometry
-    from clgs.methods.r2gs import R2GSConfig, build_trainer
     from clgs.io.scan import Scan
+    from clgs.methods.r2gs import R2GSConfig, build_trainer
 
     geo = Geometry.default(n_views=4, n_voxel=8, n_detector=12, volume_mm=64.0)
     proj = np.random.default_rng(0).uniform(0, 1, (4, 12, 12)).astype(np.float32)

@@ -7,9 +7,14 @@ import pytest
 import torch
 
 from clgs import metrics
+from clgs.mesh.surface import (
+    SurfaceError,
+    point_to_mesh_distance,
+    sample_surface,
+    surface_distance,
+    surface_from_volume,
+)
 from clgs.metrics import MetricError
-from clgs.mesh.surface import (SurfaceError, point_to_mesh_distance, sample_surface, surface_distance,
-                          surface_from_volume)
 
 
 def ssim2d_reference(a, b):

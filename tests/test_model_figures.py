@@ -115,7 +115,7 @@ def test_build_model_decides_its_modes_stores_the_figures_and_info_reads_them(tm
 
     # a bad rule is refused before any registration
     calls = []
-    anatomy.load_subject = lambda sid: calls.append(sid)
+    anatomy.load_subject = calls.append
     r = CliRunner().invoke(make_group(anatomy), ["build-model", "--max-cells", "6", "--force",
                                                  "--generalisation-tol", "-1"])
     assert r.exit_code != 0 and "tolerance must be >= 0" in r.output and not calls

@@ -3,11 +3,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from clgs.mesh import voxels as mv
 from clgs.anatomy import phantom as ph
 from clgs.anatomy.alignment import align_rigid
 from clgs.anatomy.population import scan_geometry_kwargs
 from clgs.geometry import Grid
+from clgs.mesh import voxels as mv
 
 
 def centred_grid(shape, spacing):

@@ -4,8 +4,8 @@ import time
 
 import pytest
 
-from clgs.progress import LogLines, log_seconds, on_terminal, progress_bar
 from clgs.fit.training_log import Progress
+from clgs.progress import LogLines, log_seconds, on_terminal, progress_bar
 
 
 class _Terminal(io.StringIO):

@@ -54,9 +54,8 @@ def test_a_line_written_during_a_phase_ends_its_open_line_first():
 def test_inner_phases_and_phases_under_a_bar_stay_off_the_screen_but_reach_listeners():
     out = io.StringIO()
     with listen() as events:
-        with phase("outer", stream=out, clock=_Clock()):
-            with phase("inner", stream=out, clock=_Clock()):
-                pass
+        with phase("outer", stream=out, clock=_Clock()), phase("inner", stream=out, clock=_Clock()):
+            pass
         bar = progress_bar(total=2, desc="subjects", file=out)
         with phase("under the bar", stream=out, clock=_Clock()):
             bar.update(2)

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from clgs.reference.gaussians import covariance, precision
 from clgs.geometry import Geometry
 from clgs.ops.projector import WIDE, WIDTH_ENV, GaussianProjector, ProjectorError, project, project_packed, tile_width
+from clgs.reference.gaussians import covariance, precision
 from clgs.reference.projection import exact_quadrature, project_dense, ray_min_q
 
 BEAMS = ("cone", "parallel")

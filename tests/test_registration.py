@@ -3,11 +3,18 @@ import numpy as np
 import pytest
 import torch
 
-from clgs.shape.registration import RegistrationSettings, register
 from clgs.shape.model import exp_velocity, sample_field
-from clgs.shape.template import (Subject, Template, box_grid, grid_points, mesh_from_sdf, mesh_to_label, mesh_to_sdf,
-                           vertex_normals)
-
+from clgs.shape.registration import RegistrationSettings, register
+from clgs.shape.template import (
+    Subject,
+    Template,
+    box_grid,
+    grid_points,
+    mesh_from_sdf,
+    mesh_to_label,
+    mesh_to_sdf,
+    vertex_normals,
+)
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -7,8 +7,8 @@ import torch
 
 from clgs.anatomy import AnatomyParts
 from clgs.geometry import Geometry
-from clgs.shape.initialise import initialise, quaternion_from_z_to, sample_reference_centres
 from clgs.reference.gaussians import quaternion_to_rotation
+from clgs.shape.initialise import initialise, quaternion_from_z_to, sample_reference_centres
 
 
 @pytest.fixture(scope="module")
@@ -108,8 +108,8 @@ def test_overlap_backends_agree(template, atlas):
 
 def _scan(template, n_views=8, det=48, alpha=(0.8, -0.6), shape_model=None, I0=None, shift_mm=0.0):
     """A scan of the ellipsoid deformed by ``alpha`` (truth: 0.05/mm inside, soft tissue 0.01)."""
-    from clgs.ops.ct_projector import CTProjector
     from clgs.io.scan import Scan
+    from clgs.ops.ct_projector import CTProjector
 
     geo = geometry(n_views, det)
     pts = geo.volume_grid(scene=False).points()
@@ -139,8 +139,8 @@ def _small(**kw):
 
 
 def test_shape_guided_fits_alpha_and_beats_its_start(template, shape_model, atlas):
-    from clgs.metrics import psnr3d
     from clgs.methods.shape_guided import reconstruct_shape_guided
+    from clgs.metrics import psnr3d
 
     scan = _scan(template, alpha=(1.0, -0.8), shape_model=shape_model)
     res0 = reconstruct_shape_guided(scan, AnatomyParts(template, shape_model, atlas), iterations=1, **_small())
@@ -323,7 +323,7 @@ def test_experiment_takes_clinical_view_sets_and_a_truncating_detector(template,
         png = tmp_path / "runs" / f"a_{r['views']}_{r['method']}_surface.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         if r["method"] == "shape":  # the deformation never folds
-            assert 0 < r["jacobian_min"] and r["model_surface_hausdorff_mm"] > 0
+            assert r["jacobian_min"] > 0 and r["model_surface_hausdorff_mm"] > 0
     frac = {r["views"]: r["fov_fraction"] for r in rows}
     assert frac["ap-lat"] == frac["ap-lat-fov40"]
     table = (tmp_path / "table.md").read_text()
@@ -432,8 +432,8 @@ def test_alpha_registration_moves_towards_the_subject(template, shape_model, tis
 def test_density_prior_field(template, shape_model, atlas, tissue_atlas):
     """"all" holds the whole model to the atlas (the free set gets gradients); "shape" only the
     shape set inside the bone; an atlas of the bone alone falls back to "shape"."""
-    from clgs.methods.shape_guided import ShapeGuidedConfig, build_trainer
     from clgs.fit.trainer import Context
+    from clgs.methods.shape_guided import ShapeGuidedConfig, build_trainer
 
     scan = _scan(template)
 
@@ -458,7 +458,13 @@ def test_density_prior_field(template, shape_model, atlas, tissue_atlas):
 
 
 def test_bench_alternation_times_every_step_and_switches_them_back_on(template, shape_model, atlas):
-    from clgs.bench.switches import alternate, steps
+    from clgs.bench.switches import (
+        alternate,
+        grid_sample_at_ref_points,
+        grid_sample_centres_mm,
+        steps,
+        two_atlas_passes,
+    )
     from clgs.methods.shape_guided import ShapeGuidedConfig, build_trainer
     from clgs.ops import field_sampler, sorting, voxelizer
     from clgs.shape.gaussian_set import ShapeGuidedSet
@@ -473,7 +479,10 @@ def test_bench_alternation_times_every_step_and_switches_them_back_on(template, 
     assert all(before > 0 and after > 0 and ratio > 0 for _, before, after, ratio in rows)
     assert t.iteration == 2 * 2 * len(rows)
     assert field_sampler.stable_order is sorting.stable_order is voxelizer.stable_order
-    assert ShapeGuidedSet.FIXED_POINTS and DensityPrior.ONE_ATLAS_PASS
+    assert "FIXED_POINTS" not in vars(ShapeGuidedSet) and "ONE_ATLAS_PASS" not in vars(DensityPrior)
+    assert ShapeGuidedSet._at_ref_points is not grid_sample_at_ref_points
+    assert ShapeGuidedSet._model_centres_mm is not grid_sample_centres_mm
+    assert DensityPrior._atlas_at is not two_atlas_passes
     assert ShapeGuidedSet.LINEAR_TOL == 0.05 and voxelizer._SMALL_PAIRS == 1 << 19
 
 

@@ -6,9 +6,19 @@ import pytest
 import torch
 from scipy.ndimage import map_coordinates
 
-from clgs.shape.model import (MIN_SQUARINGS, DensityAtlas, ModelFileError, ShapeModel, exp_velocity,
-                              jacobian_determinant, load_model, read_metadata, sample_field, save_model,
-                              squarings_for)
+from clgs.shape.model import (
+    MIN_SQUARINGS,
+    DensityAtlas,
+    ModelFileError,
+    ShapeModel,
+    exp_velocity,
+    jacobian_determinant,
+    load_model,
+    read_metadata,
+    sample_field,
+    save_model,
+    squarings_for,
+)
 from clgs.shape.template import grid_points
 
 SHAPE, SP, ORG = (20, 22, 24), (2.0, 2.0, 2.0), (-19.0, -21.0, -23.0)

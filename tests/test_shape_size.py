@@ -5,11 +5,11 @@ import json
 
 import numpy as np
 import pytest
+import test_shape_guided as ellipsoid
 import torch
+from test_shape_guided import _small, geometry
 
 from clgs.anatomy import AnatomyParts
-import test_shape_guided as ellipsoid
-from test_shape_guided import _small, geometry
 
 # the ellipsoid's fixtures, shared with test_shape_guided
 template, shape_model, tissue_atlas = ellipsoid.template, ellipsoid.shape_model, ellipsoid.tissue_atlas
@@ -118,8 +118,8 @@ def test_a_larger_bone_is_fitted_at_its_size_and_beats_the_models_own(template, 
     model's first mode stretches z, which trades a little with the size: measured 1.195 with alpha_1
     0.02 after 150 iterations; the model surface 0.85 mm against 2.44 mm without a size, 3D PSNR
     22.29 against 21.41 dB.)"""
-    from clgs.metrics import psnr3d
     from clgs.methods.shape_guided import deformed_template_surface, reconstruct_shape_guided
+    from clgs.metrics import psnr3d
     from clgs.shape.size import size_centre
 
     scan = _scan_at(template, 1.25)

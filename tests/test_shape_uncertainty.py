@@ -2,6 +2,7 @@
 of known covariance, the Laplace covariance of a linear-Gaussian problem, the files read back by
 trimesh and meshio, and a shape-guided run that writes them and reports their summary."""
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -133,7 +134,7 @@ def test_the_files_open_in_trimesh_and_meshio_with_the_values(tmp_path):
     np.testing.assert_allclose(np.asarray(m.point_data[FIELD]).reshape(-1), values, rtol=1e-5)
     np.testing.assert_allclose(m.points, v * [-1, -1, 1], atol=1e-4)
     # the legacy VTK polydata, section by section (meshio reads no POLYDATA; VTK's own reader below)
-    text = open(paths["vtk"]).read().split("\n")
+    text = Path(paths["vtk"]).read_text().split("\n")
     assert text[0] == "# vtk DataFile Version 3.0" and "SPACE=LPS" in text[1] and text[3] == "DATASET POLYDATA"
     n = len(v)
     assert text[4] == f"POINTS {n} float"

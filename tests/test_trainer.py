@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from clgs.fit import checkpoint as ckpt
+from clgs.fit.assembly import value_scale_from
+from clgs.fit.trainer import LossTerm
 from clgs.geometry import Geometry
 from clgs.io.scan import Scan
-from clgs.fit.assembly import value_scale_from
 from clgs.methods.r2gs import R2GSConfig, build_trainer, reconstruct_r2gs
-from clgs.fit.trainer import LossTerm
 
 
 @pytest.fixture(scope="module")
@@ -345,8 +345,8 @@ def test_cl_backend_voxelizes_only_the_gaussians_that_reach_a_block():
     """The OpenCL backend culls Gaussians by a 3 max(scale) cube before building precisions: a
     block is bitwise the same region of the full grid, and field and gradients match the op fed
     every Gaussian (float64)."""
-    from clgs.geometry import Grid
     from clgs.fit.trainer import Backend
+    from clgs.geometry import Grid
     from clgs.ops.voxelizer import _GridField, cov_prec, default_voxelizer
 
     g = torch.Generator().manual_seed(3)
@@ -379,8 +379,8 @@ def test_cl_backend_shares_the_projections_matrices_with_the_tv_patch():
     Gaussian in one kernel and the patch reuses them (same tensors): the field is bitwise the one
     built from scratch, the gradients through both paths agree (float64), and the kept matrices
     are dropped by ``forget`` (or ignored once the tensors change)."""
-    from clgs.geometry import Geometry
     from clgs.fit.trainer import Backend
+    from clgs.geometry import Geometry
 
     geo = Geometry.default(n_views=4, n_voxel=24, n_detector=32, volume_mm=64.0)
     g = torch.Generator().manual_seed(5)

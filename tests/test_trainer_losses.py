@@ -9,9 +9,9 @@ import torch.nn.functional as F
 
 from clgs.fit import checkpoint as ckpt
 from clgs.fit import losses as L
-from clgs.ops import ssim as ssim_op
-from clgs.geometry import Grid
 from clgs.fit.training_log import TrainingLog
+from clgs.geometry import Grid
+from clgs.ops import ssim as ssim_op
 
 
 def _ssim_direct(a, b):

@@ -2,14 +2,14 @@
 field (the unfused path), the plain torch reference, finite differences, and itself."""
 import pytest
 import torch
+from test_voxelizer import scene as voxelizer_scene
 
 import clgs.fit.tv_patch as tp
 from clgs.fit import losses as L
-from clgs.geometry import Grid
-from clgs.reference import voxelization as ref
 from clgs.fit.tv_patch import patch_field, patch_tv, tv_patch
+from clgs.geometry import Grid
 from clgs.ops.voxelizer import cov_prec, voxelize_precision
-from test_voxelizer import scene as voxelizer_scene
+from clgs.reference import voxelization as ref
 
 GRID = Grid((40, 37, 45), (-0.98, -0.96, -0.99), (0.05, 0.052, 0.045))
 NEEDS = ("means", "prec", "densities")
@@ -194,7 +194,7 @@ def test_loss_term_entry_on_both_backends():
     cl._matrices(params[1], params[2])  # what the step's projection leaves behind
     assert cl._kept(params[1], params[2]) is not None
     results = []
-    for backend, keep in ((cl, True), (Backend("cl"), False), (Backend("torch"), False)):
+    for backend, _keep in ((cl, True), (Backend("cl"), False), (Backend("torch"), False)):
         v = patch_tv(backend, params, block)
         results.append([v.detach(), *torch.autograd.grad(v, params)])
     assert float(results[0][0]) > 0

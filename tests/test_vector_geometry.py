@@ -64,7 +64,7 @@ def test_circular_written_as_vectors_is_the_same_scan(mode, tmp_path):
     np.testing.assert_allclose(v.source_detector_distance(), g.source_detector_distance(), rtol=1e-12)
     np.testing.assert_allclose(np.mod(v.angles, 2 * np.pi), np.mod(g.angles, 2 * np.pi), atol=1e-12)
     if mode == "cone":
-        assert (v.DSO, v.DSD) == (pytest.approx(np.hypot(80.0, 0)), pytest.approx(120.0))
+        assert (pytest.approx(np.hypot(80.0, 0)), pytest.approx(120.0)) == (v.DSO, v.DSD)
     # JSON: TIGRE's names for the circular scan, a vectors key (and no angles) for the per-view one
     d = v.to_dict()
     assert "vectors" in d and "angles" not in d and "DSO" not in d
@@ -329,8 +329,8 @@ def test_gaussian_projector_gives_the_same_bits_on_circular_vectors(beam, mode):
 def test_gaussian_projection_on_a_tilted_detector_matches_the_references(beam):
     """Exact mode against trapezoid integration along every pixel's own ray (geometry.rays), and
     both modes against the dense reference, on a detector turned about all three of its axes."""
-    from clgs.reference.gaussians import covariance, precision
     from clgs.ops.projector import project_packed
+    from clgs.reference.gaussians import covariance, precision
     from clgs.reference.projection import exact_quadrature, project_dense, ray_min_q
 
     # parallel beam: rays perpendicular to the detector, so it turns in its own plane only

@@ -11,8 +11,6 @@ from clgs.io.scan import Scan
 from clgs.io.volume import save_volume
 
 
-
-
 def c_arm_vectors(n_views=5, arc_deg=120.0, dso=300.0, dsd=450.0, pixel=1.5, offset=(6.0, -4.0), yaw_deg=5.0,
                   centre=(0.0, 0.0, 0.0)):
     """A C-arm-like orbit about ``centre``: views over ``arc_deg``, the source distance and height

@@ -3,10 +3,10 @@ and itself (blocks vs full grid, points vs grid, float32 vs float64, run vs run)
 import pytest
 import torch
 
-from clgs.reference.gaussians import axis_extent, precision
 from clgs.geometry import Grid
-from clgs.reference import voxelization as ref
 from clgs.ops.voxelizer import Voxelizer, voxelize, voxelize_points, voxelize_precision
+from clgs.reference import voxelization as ref
+from clgs.reference.gaussians import axis_extent, precision
 
 GRID = Grid((17, 19, 23), (-0.93, -0.97, -1.01), (0.085, 0.1, 0.09))
 
@@ -348,8 +348,8 @@ def test_cov_prec_matches_gaussian_math_and_differentiates():
     """The OpenCL covariance / precision / half-widths kernel against clgs.reference.gaussians (float32,
     N not a multiple of 8 so the last group has idle lanes), gradcheck of its closed-form backward
     (float64) for each output alone and for both together."""
-    from clgs.reference.gaussians import covariance
     from clgs.ops.voxelizer import cov_prec
+    from clgs.reference.gaussians import covariance
 
     _, scales, quats, _ = scene(1003, seed=6)
     quats[5] *= 1e-3  # any norm

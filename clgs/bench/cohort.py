@@ -84,10 +84,10 @@ def _per_task(anatomy, subject, views, methods, iterations, registration: bool) 
 
 
 def _throughput(anatomy, subject, view, method, runs, iterations, counts) -> None:
+    import math
+
     from clgs.anatomy.simulation import simulate_subject
     from clgs.cohort.batch import run_batch
-
-    import math
 
     click.echo(f"\nthroughput: the same {runs} {method} runs ({anatomy.name} subject {subject}, {view} views, "
                f"seeds 0-{runs - 1}" + (f", {iterations} iterations" if method != "fdk" else "") + "):")
@@ -103,7 +103,10 @@ def _throughput(anatomy, subject, view, method, runs, iterations, counts) -> Non
             summary = run_batch(batch, os.path.join(tmp, f"w{n}"), workers=n, progress=False, echo=lambda *_: None)
             wall = time.perf_counter() - t0
             done = [r for r in summary["runs"] if r["status"] == "done"]
-            peaks = [json.load(open(os.path.join(r["out"], "run.json"))).get("process_peak_mib") for r in done]
+            peaks = []
+            for r in done:
+                with open(os.path.join(r["out"], "run.json")) as f:
+                    peaks.append(json.load(f).get("process_peak_mib"))
             figures[n] = (wall, len(done), sum(r["seconds"] for r in done) / max(1, len(done)),
                           max((p for p in peaks if p), default=float("nan")))
         click.echo(f"  {'workers':>7s} {'wall s':>8s} {'runs/min':>9s} {'s per run':>10s} {'worker peak MiB':>16s}")

@@ -61,9 +61,9 @@ def bench_3d(size, views_list, sart_iters, arc_deg, noise, seed, repeat, echo):
     from clgs.ct import phantoms as ph
     from clgs.ct.fdk import fdk
     from clgs.ct.noise import add_noise
-    from clgs.ops.ct_projector import CTProjector
     from clgs.ct.sart import sart
     from clgs.geometry import Geometry
+    from clgs.ops.ct_projector import CTProjector
 
     n_det = int(round(1.5 * size))
     base = Geometry.default(n_views=max(views_list), arc=np.deg2rad(arc_deg), mode="cone", n_voxel=size,
@@ -127,9 +127,9 @@ def bench_2d(size, views_list, sart_iters, noise, seed, repeat, echo):
     from clgs.ct import phantoms as ph
     from clgs.ct.fdk import fdk
     from clgs.ct.noise import add_noise
-    from clgs.ops.ct_projector import CTProjector
     from clgs.ct.sart import sart
     from clgs.geometry import Geometry
+    from clgs.ops.ct_projector import CTProjector
 
     make = _skimage_mapping(size)
     # phantom: the 3-D head phantom's middle slice, as a one-slice volume

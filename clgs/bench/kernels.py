@@ -330,9 +330,9 @@ def _bench(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt,
     """One device's run of :func:`main`; returns {case: (forward ms, backward ms)}."""
     import torch
 
-    from clgs.reference.gaussians import covariance, precision
     from clgs.geometry import Geometry
     from clgs.ops.projector import GaussianProjector
+    from clgs.reference.gaussians import covariance, precision
 
     torch.manual_seed(0)
     watch = HostWatch()
@@ -407,7 +407,7 @@ def _bench(quick, repeat, torch_n, stages, fastest, widths, sizes_opt, dets_opt,
                             parts = ", ".join(f"{k} {v:.2f}" for k, v in ms[ph].items())
                             click.echo(f"    {ph}: {launches[ph]} kernel launch(es); device ms: {parts} "
                                        f"(sum {sum(ms[ph].values()):.2f}); outside the kernels {outside[ph]:.2f}")
-    scaled = " (torch on the first %d Gaussians, time scaled by N/%d)" % (torch_n, torch_n)
+    scaled = f" (torch on the first {torch_n} Gaussians, time scaled by N/{torch_n})"
     click.echo(f"useful evaluations: pixels within 3 sigma, summed over Gaussians; torch = fwd + autograd bwd{scaled}")
     if vectors:
         for line in ct_vector_rows(repeat):

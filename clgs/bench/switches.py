@@ -1,13 +1,39 @@
 """Side by side in one process: each speed step of the shape-guided iteration against the code
 before it, on the same trainer, in alternating blocks of iterations (``clgs bench train --method
 shape --alternate N``). The machine's load drifts; alternating blocks share it, so the ratios
-hold where absolute times from different runs would not. Steps whose old path is a plain
-function are switched here, by putting that function back where the library calls the new one;
-the others keep their old path behind a class switch for this, and only this, comparison."""
+hold where absolute times from different runs would not. Each step is switched here, by putting
+the old path back where the library calls the new one; the library itself has no switch for it."""
 from __future__ import annotations
 
 import time
 from contextlib import contextmanager
+
+# ---------------------------------------------------------------------- the old paths
+
+
+def grid_sample_at_ref_points(self, field):
+    """``ShapeGuidedSet._at_ref_points`` before the fixed-point sampler: grid_sample every time."""
+    return self.shape_model.sample(field, self.p_ref)
+
+
+def grid_sample_centres_mm(self, u=None):
+    """``ShapeGuidedSet._model_centres_mm`` before the fixed-point sampler: exact every iteration
+    (no linearisation in alpha), through grid_sample."""
+    u = self.displacement() if u is None else u
+    return self.p_ref + self.shape_model.sample(u, self.p_ref)
+
+
+def two_atlas_passes(self, x_t):
+    """``DensityPrior._atlas_at`` before the one-pass read: the mean and the variance apart."""
+    return self.atlas.mean_at(x_t), self.atlas.var_at(x_t)
+
+
+_LIBRARY: dict = {}  # (class, attribute) -> the library's own, taken before the first switch
+
+
+def _put(cls, name: str, old, on: bool) -> None:
+    new = _LIBRARY.setdefault((cls, name), cls.__dict__[name])
+    setattr(cls, name, new if on else old)
 
 
 def steps() -> dict:
@@ -25,7 +51,8 @@ def steps() -> dict:
         field_sampler.stable_order = voxelizer.stable_order = sorting.stable_order if on else numpy_order
 
     def fixed_points(on):
-        ShapeGuidedSet.FIXED_POINTS = on
+        _put(ShapeGuidedSet, "_at_ref_points", grid_sample_at_ref_points, on)
+        _put(ShapeGuidedSet, "_model_centres_mm", grid_sample_centres_mm, on)
 
     tol = ShapeGuidedSet.LINEAR_TOL if ShapeGuidedSet.LINEAR_TOL is not None else 0.05
 
@@ -33,7 +60,7 @@ def steps() -> dict:
         voxelizer._SMALL_PAIRS = (1 << 19) if on else (1 << 22)
 
     def atlas(on):
-        DensityPrior.ONE_ATLAS_PASS = on
+        _put(DensityPrior, "_atlas_at", two_atlas_passes, on)
 
     def linear(on):
         ShapeGuidedSet.LINEAR_TOL = tol if on else None

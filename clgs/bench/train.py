@@ -92,10 +92,10 @@ def _breakdown(trainer, n: int = 10) -> dict:
     import torch
 
     from clgs.fit import losses as L
-    from clgs.ops import ssim as ssim_cl
-    from clgs.ops.projector import project_packed
     from clgs.fit.trainer import Context
     from clgs.fit.tv_patch import tv_patch
+    from clgs.ops import ssim as ssim_cl
+    from clgs.ops.projector import project_packed
     from clgs.ops.voxelizer import cov_prec
 
     geo = trainer.geometry
@@ -124,7 +124,7 @@ def _breakdown(trainer, n: int = 10) -> dict:
     densifier = next((h for h in trainer.hooks if hasattr(h, "after_backward")), None)
     ctx = Context(trainer, view)
     for s in trainer.sets:  # gradients for the densifier's statistics
-        for k, p in s.params.items():
+        for p in s.params.values():
             p.grad = torch.randn_like(p)
 
     def image_terms():  # the trainer's OpenCL path (clgs.fit.losses.ImageTerms): one fused op, both terms

@@ -62,8 +62,8 @@ def rows(quick: bool) -> list[dict]:
     import torch
 
     from clgs.geometry import Grid
-    from clgs.reference import voxelization as ref
     from clgs.ops.voxelizer import voxelize, voxelize_points
+    from clgs.reference import voxelization as ref
 
     repeat = 3 if quick else 7
     grid = Grid((128,) * 3, (-1 + 1 / 128,) * 3, (2 / 128,) * 3)

@@ -219,8 +219,8 @@ def batch_run(scan: str, method: str, settings: dict, seed, out: str) -> dict:
     from clgs.fit.checkpoint import CheckpointError
     from clgs.fit.config import CHECKPOINT
     from clgs.io import atomic, outputs
-    from clgs.io.scan import Scan
     from clgs.io.reconstruction import save_reconstruction
+    from clgs.io.scan import Scan
 
     m = methods.get(method)
     fn = m.callable()

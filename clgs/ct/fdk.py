@@ -1,64 +1,17 @@
-"""FDK (cone beam) and FBP (parallel beam) reconstruction.
-
-Steps, for view ``i`` at angle ``b_i``:
-
-1. cone beam only: cosine pre-weighting ``DSD / sqrt(DSD^2 + U^2 + V^2)`` with ``(U, V)`` the
-   pixel's position on the detector in mm (offsets included);
-2. redundancy weights ``w_i(u)`` (below);
-3. ramp filtering along u: the band-limited ramp built in the spatial domain (no DC bias),
-   zero-padded to at least twice the row length, applied by FFT, times the chosen window
-   (``ram-lak``, ``shepp-logan``, ``cosine``, ``hamming``, ``hann``); the sample spacing is the
-   pixel size scaled to the rotation axis (``dU DSO / DSD`` for cone);
-4. times the view's angular step ``db_i`` (half the distance to its neighbours, so non-uniform
-   angles are integrated correctly);
-5. voxel-driven backprojection in OpenCL with bilinear interpolation and, for cone beam, the
-   distance weight ``(DSO / depth)^2``.
-
-Redundancy weights. A full circle (no gap in the angles larger than 1.5 median steps) measures
-every line twice: ``w = 1/2``. Otherwise the arc is short and the weights are *normalised
-redundancy weights*, a generalisation of Parker's: every view gets a smooth taper
-``h = sin^2`` near the two ends of the arc, and the weight of a measured line is
-``h(b) / (h(b) + h(b_c))`` where ``b_c = b + pi - 2 gamma`` is the angle at which the same line
-is measured from the other side (``gamma = atan(U / DSD)`` the fan angle of column U, 0 for
-parallel beam), with ``h(b_c) = 0`` when ``b_c`` lies outside the arc. So the weights of the two
-measurements of a line always sum to one, and a line measured once gets weight one. For an arc of
-``pi + fan`` or more this is a valid short-scan weighting like Parker's (taper width
-``arc - pi``). For shorter arcs (the 0-180 degree arcs of sparse-view studies are shorter than
-``pi + fan``) some lines are measured once near the arc ends and a few not at all: they get
-weight one or are missing, which gives the usual limited-angle artefacts but no bias in the
-density of the lines that were measured. ``short_scan=False`` turns the weighting off and scales
-every view by ``pi / arc`` instead (right mean density, more artefacts); ``True`` forces it even
-for a full circle. A single view is backprojected with ``db = pi`` and weight one.
-
-Per-view (vector) scans: the same steps, each view on its own geometry, as RTK does for circular
-orbits with offsets and tilts. :mod:`clgs.ct.fdk_views` reads the orbit off the views (the mean
-rotation axis, each view's angle ``b_i`` about it and its source's distance ``R_i`` from it);
-then, per view, the cosine weight is ``D_i / |pixel - source|`` (``D_i`` the source-detector
-distance along the detector normal), the fan angle ``gamma`` of each pixel is its ray's angle
-from the source-to-axis direction seen along the axis (so a rolled detector's columns have
-their own), the redundancy weights above use ``b_i`` and those fan angles, the ramp runs along the
-detector's rows (u) at the view's own pixel pitch, the view's factor is ``db_i R_i D_i / ref_i^2``
-(the circular ``db DSO/DSD`` over ``(DSO/ref)^2``), and the backprojection follows each view's
-own projection matrix (:func:`clgs.ops.fdk.projection_matrices`) with the distance weight
-``(ref_i / depth)^2``, ``depth`` along the view's detector normal. A circular scan written as
-vectors gives the circular FDK to rounding. A non-circular orbit (a C-arm's sagging, wobbling
-source, a detector that moves and turns from view to view) is backprojected exactly along its
-own rays; only the weights treat it as the circular orbit about the mean axis (the source
-distance and height that change from view to view enter through ``R_i``, ``D_i`` and ``depth``,
-not through a trajectory-aware redundancy), so FDK's usual approximations grow with the
-departure from a circle. Views that do not turn about any axis (a straight source path) get the
-repeated-angle rule or a short arc of nearly equal angles: a blurry laminogram, not a
-reconstruction.
-"""
+"""FDK (cone beam) and FBP (parallel beam) reconstruction: cosine pre-weighting (cone), redundancy
+weights for short arcs, ramp filtering along the detector rows, the view's angular step, and a
+voxel-driven backprojection in OpenCL (:mod:`clgs.ops.fdk`). A per-view (vector) scan takes the
+same steps on each view's own geometry (:mod:`clgs.ct.fdk_views`). The steps and the weights, and
+what is done for a per-view scan: docs/fdk.md."""
 from __future__ import annotations
 
 import numpy as np
 
 from clgs.ct import fdk_views
-from clgs.io.validate import check_projections
-from clgs.geometry import Geometry
-from clgs.ops.fdk import backproject, view_depths
 from clgs.errors import InputError
+from clgs.geometry import Geometry
+from clgs.io.validate import check_projections
+from clgs.ops.fdk import backproject, view_depths
 
 FILTERS = ("ram-lak", "shepp-logan", "cosine", "hamming", "hann")
 
@@ -107,7 +60,7 @@ def _sorted_arc(angles):
 
 
 class Redundancy:
-    """The angular steps and redundancy weights of a set of view angles (module doc): ``step``
+    """The angular steps and redundancy weights of a set of view angles (docs/fdk.md, "The steps"): ``step``
     (n,) and :meth:`weights` of one view's rays, given their fan angles."""
 
     def __init__(self, angles, short_scan="auto"):
@@ -167,7 +120,7 @@ def view_weights(geometry: Geometry, short_scan="auto"):
     for a circular scan, (n_views, V, U) per pixel for a per-view one (the fan angles of a turned
     detector change along its columns).
 
-    See the module docstring for the rules.
+    The rules: docs/fdk.md, "The steps".
     """
     if not geometry.is_circular:
         orb = fdk_views.orbit(geometry)
@@ -212,7 +165,7 @@ def extrapolate_rows(p, width: int) -> np.ndarray:
 
 def filter_projections(projections, geometry: Geometry, filter="ram-lak", short_scan="auto",
                        truncation="auto") -> np.ndarray:
-    """Steps 1-4 of the module docstring: weighted, ramp-filtered projections (n, V, U), float64.
+    """Steps 1-4 of docs/fdk.md, "The steps": weighted, ramp-filtered projections (n, V, U), float64.
 
     ``truncation``: ``"auto"`` extends truncated rows (:func:`is_truncated`) past the detector's
     sides before filtering (:func:`extrapolate_rows`, half a row on each side), ``True`` always,
@@ -280,7 +233,7 @@ def fdk(projections, geometry: Geometry, filter: str = "ram-lak", short_scan="au
     (redundancy weights when the angles do not cover a full circle), ``True`` or ``False``.
     ``dtype=np.float64`` backprojects in double precision. ``truncation``: see
     :func:`filter_projections` (``"auto"``: rows of an object wider than the detector are extended
-    smoothly before filtering; untruncated scans are filtered exactly as before).
+    smoothly before filtering; untruncated scans are filtered as with ``False``).
     """
     from clgs.progress import phase
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 import numbers
 
 import numpy as np
+
 from clgs.errors import InputError
 
 

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from clgs.geometry import Geometry
 from clgs.errors import InputError
+from clgs.geometry import Geometry
 
 
 def _rotation(angles_zyz):

@@ -20,10 +20,9 @@ import contextlib
 
 import numpy as np
 
-from clgs.io.validate import check_projections
-
-from clgs.geometry import Geometry
 from clgs.errors import InputError
+from clgs.geometry import Geometry
+from clgs.io.validate import check_projections
 
 _COLUMN_SUM_BUDGET = 1 << 30  # bytes of cached A_S^T 1 volumes; beyond it they are recomputed
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import numpy as np
 
@@ -24,7 +24,7 @@ class SimulationWarning(UserWarning):
     than a detector row)."""
 
 
-def _warner(warn: Optional[Callable[[str], None]]) -> Callable[[str], None]:
+def _warner(warn: Callable[[str], None] | None) -> Callable[[str], None]:
     if warn is not None:
         return warn
     return lambda message: warnings.warn(message, SimulationWarning, stacklevel=3)
@@ -52,7 +52,7 @@ def scanner_geometry(shape, spacing, views: int, arc_deg: float = 180.0, mode: s
 def project_with_noise(volume, geometry: Geometry, *, protocol: str = "fine", noise: bool = True,
                        I0: float = 1e5, sigma: float = 10.0, scatter: float = 0.0, seed: int = 0,
                        clamp_negative: bool = True, progress: bool = True,
-                       warn: Optional[Callable[[str], None]] = None, announce: Optional[Callable] = None) -> tuple:
+                       warn: Callable[[str], None] | None = None, announce: Callable | None = None) -> tuple:
     """(projections float32 (views, V, U), acquisition record) of ``volume`` ((Z, Y, X) 1/mm on any
     grid over ``geometry``'s field of view) seen by ``geometry``.
 
@@ -114,7 +114,7 @@ def project_with_noise(volume, geometry: Geometry, *, protocol: str = "fine", no
     return proj, acquisition
 
 
-def _thinner_than_a_row(name, shape, spacing, geometry: Geometry) -> Optional[str]:
+def _thinner_than_a_row(name, shape, spacing, geometry: Geometry) -> str | None:
     """A volume less than one detector row high (at the rotation axis) projects between rows and
     mostly vanishes from the scan: the message saying so, or None."""
     height = shape[0] * float(spacing[0])
@@ -127,13 +127,13 @@ def _thinner_than_a_row(name, shape, spacing, geometry: Geometry) -> Optional[st
             "a thicker volume")
 
 
-def simulate_scan(volume, spacing=None, origin=None, *, orientation: Optional[str] = None, hu: bool = False,
+def simulate_scan(volume, spacing=None, origin=None, *, orientation: str | None = None, hu: bool = False,
                   kev: float = 70.0, views: int = 50, arc_deg: float = 180.0, mode: str = "cone", DSO=None, DSD=None,
                   detector: int = 256, pixel=None, geometry=None, grid=None, grid_spacing=None,
                   protocol: str = "fine", noise: bool = True, I0: float = 1e5, sigma: float = 10.0,
                   scatter: float = 0.0, seed: int = 0, surface_level=None, progress: bool = True,
-                  name: str = "the volume", warn: Optional[Callable[[str], None]] = None,
-                  announce: Optional[Callable] = None, meta: Optional[dict] = None):
+                  name: str = "the volume", warn: Callable[[str], None] | None = None,
+                  announce: Callable | None = None, meta: dict | None = None):
     """Simulate a sparse-view scan of ``volume``: a :class:`clgs.io.scan.Scan` (projections,
     geometry, the truth on the reconstruction grid, the acquisition in ``meta``).
 

@@ -41,8 +41,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from clgs.reference.gaussians import quaternion_to_rotation
 from clgs.errors import InputError
+from clgs.reference.gaussians import quaternion_to_rotation
 
 PARAM_NAMES = ("means", "scales", "quats", "densities")
 
@@ -90,8 +90,8 @@ def r2gs_schedules(iterations: int) -> dict:
 
 def _transposed(x: torch.Tensor) -> torch.Tensor:
     """A contiguous copy of the (K, N) <-> (N, K) transpose of a 2D tensor, made by writing through
-    a transposed view of the destination: 3-4x faster on a CPU than ``x.t().contiguous()`` for
-    K = 3..6 columns (the copy then reads ``x`` in order). No autograd."""
+    a transposed view of the destination: faster on a CPU than ``x.t().contiguous()`` for K = 3..6
+    columns (the copy then reads ``x`` in order). No autograd."""
     out = x.new_empty((x.shape[1], x.shape[0]))
     out.t().copy_(x)
     return out
@@ -307,7 +307,7 @@ class Densifier:
 
     # The statistics run every iteration on all N Gaussians: they work on (3, N) columns (a
     # small matrix product, reductions over the short axis) because torch's norms and broadcasts
-    # along a length-3 inner axis are 5-10x slower on a CPU.
+    # along a length-3 inner axis are much slower on a CPU.
     def _view_space_grad(self, means: torch.Tensor, grad_t: torch.Tensor, view: int) -> torch.Tensor:
         axes = self._axes.get((view, grad_t.dtype))
         if axes is None:  # (2, 3): unit detector axes times the detector's half-widths

@@ -16,11 +16,11 @@ import weakref
 
 import torch
 
+from clgs.errors import InputError
 from clgs.metrics import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW, tv_count
 from clgs.ops import ssim as ssim_cl
 from clgs.ops.ssim import Blur, shift_blur, target_maps
 from clgs.ops.ssim import window as window_tensor
-from clgs.errors import InputError
 
 
 def _ssim_terms(a, b, mu_b, bb, wl, c1, c2):

@@ -52,7 +52,7 @@ class TrainingLog:
         return atomic.write_text(path, self.to_csv())
 
     @staticmethod
-    def read_csv(path) -> "TrainingLog":
+    def read_csv(path) -> TrainingLog:
         rows = []
         with open(path, newline="") as fh:
             for r in csv.DictReader(fh):

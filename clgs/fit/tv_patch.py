@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from clgs.errors import InputError
 from clgs.fit.losses import tv3d
 from clgs.geometry import Grid
 from clgs.ops.tv_patch import PatchTV, TVPatchFunction, patch_operator
@@ -31,7 +32,6 @@ from clgs.ops.voxelizer import (
     np_dtype,
     voxelize_precision,
 )
-from clgs.errors import InputError
 
 
 def _runner(voxelizer: Voxelizer | None) -> PatchTV:

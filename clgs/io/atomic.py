@@ -98,9 +98,8 @@ def atomic_path(path, overwrite: bool = True):
 
 def write_bytes(path, data: bytes, overwrite: bool = True) -> Path:
     """Write ``data`` to ``path`` atomically."""
-    with atomic_path(path, overwrite) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
+    with atomic_path(path, overwrite) as tmp, open(tmp, "wb") as fh:
+        fh.write(data)
     return Path(path)
 
 

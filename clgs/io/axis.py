@@ -155,8 +155,8 @@ def _fit_pair(A_full, B_full, fit_roll: bool, max_rows: int = 48):
         one = A_full[r:r + 1].astype(np.float64)
         if not np.any(one):
             continue
-        rr = optimize.minimize_scalar(lambda c: _row_cost(one[0], B_full[r], c), bounds=(c1 - 3.0, c1 + 3.0),
-                                      method="bounded", options={"xatol": 1e-4})
+        rr = optimize.minimize_scalar(lambda c, one=one, r=r: _row_cost(one[0], B_full[r], c),
+                                      bounds=(c1 - 3.0, c1 + 3.0), method="bounded", options={"xatol": 1e-4})
         per_row.append((r, float(rr.x)))
         weight.append(float(np.sum(one ** 2)))
     if len(per_row) >= 2:

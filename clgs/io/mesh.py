@@ -101,8 +101,8 @@ def save_mesh(path, vertices, faces=None, overwrite: bool = True, scalars: dict 
 
     tm = trimesh.Trimesh(vertices=mesh.vertices * RAS_TO_LPS, faces=mesh.faces, process=False)
     if scalars:
-        for name, values in scalars.items():
-            values = np.asarray(values, np.float64)
+        for name, given in scalars.items():
+            values = np.asarray(given, np.float64)
             if values.shape != (len(mesh.vertices),) or not np.isfinite(values).all():
                 raise MeshError(f"{name}: need one finite value per vertex ({len(mesh.vertices)}), got {values.shape}")
             tm.vertex_attributes[name] = values.astype(np.float32)

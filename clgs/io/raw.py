@@ -94,7 +94,7 @@ def read_images(path) -> np.ndarray:
             images = [_read_tiff(p)[0] for p in tiffs]
             return _stack(images, str(path), [p.name for p in tiffs])
         if dicoms:
-            from clgs.io.dicom_series import several_series_message, series_in
+            from clgs.io.dicom_series import series_in, several_series_message
 
             series = series_in(path)
             if len(series) > 1:

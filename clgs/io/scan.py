@@ -37,16 +37,23 @@ renamed, so a reader never sees a half-written scan.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence
 
 import numpy as np
 
 from clgs.geometry import Geometry, GeometryError
 from clgs.io import atomic, r2gaussian
-from clgs.io.validate import (NEG_TOLERANCE, ScanError, ScanWarning, check_projections,  # noqa: F401 - public here
-                              inside_folder, read_json, read_npy)
+from clgs.io.validate import (  # noqa: F401 - public here
+    NEG_TOLERANCE,
+    ScanError,
+    ScanWarning,
+    check_projections,
+    inside_folder,
+    read_json,
+    read_npy,
+)
 
 __all__ = ["Scan", "ScanError", "ScanWarning", "FORMAT", "VERSION", "UNITS", "NEG_TOLERANCE",
            "check_projections", "is_scan_folder"]
@@ -62,7 +69,7 @@ TRUTH_NIFTI = "truth.nii.gz"
 TRUTH_SURFACE = "truth_surface.stl"
 
 
-def _check_truth(truth, geometry: Geometry, source: str = "truth") -> Optional[np.ndarray]:
+def _check_truth(truth, geometry: Geometry, source: str = "truth") -> np.ndarray | None:
     if truth is None:
         return None
     t = np.asarray(truth)
@@ -86,9 +93,9 @@ class Scan:
 
     geometry: Geometry
     projections: np.ndarray
-    truth: Optional[np.ndarray] = None
+    truth: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
-    surface: Optional[tuple] = None
+    surface: tuple | None = None
 
     def __post_init__(self):
         if not isinstance(self.geometry, Geometry):
@@ -106,7 +113,7 @@ class Scan:
     def n_views(self) -> int:
         return int(self.projections.shape[0])
 
-    def subset(self, views: Sequence[int]) -> "Scan":
+    def subset(self, views: Sequence[int]) -> Scan:
         """The scan restricted to some views (e.g. every 10th for a sparse-view experiment)."""
         idx = np.asarray(views, dtype=int).reshape(-1)
         if idx.size == 0:
@@ -162,7 +169,7 @@ class Scan:
 
     # ------------------------------------------------------------------------------ reading
     @classmethod
-    def load(cls, folder, split: str = "train", neg_tolerance: float = NEG_TOLERANCE) -> "Scan":
+    def load(cls, folder, split: str = "train", neg_tolerance: float = NEG_TOLERANCE) -> Scan:
         """Read a clgs scan folder, or an R2-Gaussian dataset folder (``split`` "train" or "test").
 
         ``folder`` may also be the path of its ``scan.json`` / ``meta_data.json``.
@@ -182,7 +189,7 @@ class Scan:
                         "(R2-Gaussian)")
 
     @classmethod
-    def _load_clgs(cls, folder: Path, neg_tolerance: float) -> "Scan":
+    def _load_clgs(cls, folder: Path, neg_tolerance: float) -> Scan:
         doc = read_json(folder / SCAN_JSON)
         if not isinstance(doc, dict) or doc.get("format") != FORMAT:
             raise ScanError(f"{folder / SCAN_JSON}: not a clgs scan description (format should be {FORMAT!r})")
@@ -220,7 +227,7 @@ class Scan:
             from clgs.io.mesh import MeshError, load_mesh
 
             try:
-                # clgs's own file: tagged; untagged ones (earlier versions) were written in RAS
+                # clgs's own file: tagged; an untagged one is read as RAS, as clgs wrote it before the tag
                 surface = load_mesh(inside_folder(folder, files["truth_surface"], "truth surface", SCAN_JSON),
                                     space="RAS")
             except MeshError as exc:

@@ -76,7 +76,7 @@ def check_projections(projections, geometry: Geometry, neg_tolerance: float | No
 def read_json(path: Path):
     """A JSON file, or a ScanError saying it is missing or unreadable."""
     try:
-        with open(path, "r", encoding="utf-8") as fh:
+        with open(path, encoding="utf-8") as fh:
             return json.load(fh)
     except FileNotFoundError:
         raise ScanError(f"{path}: missing") from None

@@ -37,20 +37,21 @@ from __future__ import annotations
 import os
 import warnings
 from pathlib import Path
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import numpy as np
 
 from clgs.errors import ClgsError, InputError
 from clgs.geometry import GeometryError, check_orientation
 from clgs.io import atomic
-from clgs.io.dicom_series import several_series_message, series_in, slice_gap, slice_thickness
+from clgs.io.dicom_series import series_in, several_series_message, slice_gap, slice_thickness
 from clgs.io.orientation import WORKING, axis_codes, file_affine, to_file
 
 __all__ = ["VolumeError", "LoadedVolume", "save_volume", "load_volume", "volume_affine",
            "grid_spacing_origin", "VOLUME_SUFFIXES"]
 
 from clgs.io.suffixes import ITK_SUFFIXES, VOLUME_SUFFIXES  # noqa: E402
+
 LPS = np.array([-1.0, -1.0, 1.0])  # RAS <-> LPS (its own inverse)
 
 
@@ -60,8 +61,8 @@ class VolumeError(ClgsError, ValueError):
 
 class _Loaded(NamedTuple):
     volume: np.ndarray
-    spacing: Optional[tuple]
-    origin: Optional[tuple]
+    spacing: tuple | None
+    origin: tuple | None
 
 
 class LoadedVolume(_Loaded):
@@ -146,8 +147,8 @@ def _storage_array(volume: np.ndarray) -> np.ndarray:
                       "give real attenuation values or integer labels")
 
 
-def save_volume(path, volume, geometry=None, *, spacing=None, origin=None, orientation: Optional[str] = None,
-                units: Optional[str] = None, kev: Optional[float] = None, overwrite: bool = True) -> Path:
+def save_volume(path, volume, geometry=None, *, spacing=None, origin=None, orientation: str | None = None,
+                units: str | None = None, kev: float | None = None, overwrite: bool = True) -> Path:
     """Write a (Z, Y, X) working-order volume to ``.npy``, NIfTI, MetaImage or NRRD atomically.
 
     Position: a :class:`~clgs.geometry.Geometry` or :class:`~clgs.geometry.Grid` (``geometry``), or

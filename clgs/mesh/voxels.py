@@ -13,8 +13,8 @@ import warnings
 
 import numpy as np
 
-from clgs.io.mesh import check_mesh
 from clgs.errors import InputError
+from clgs.io.mesh import check_mesh
 
 __all__ = ["mesh_volume", "mesh_to_label", "point_mesh_distance", "signed_distance", "grid_axes"]
 
@@ -114,7 +114,7 @@ def mesh_to_label(vertices, faces, grid) -> np.ndarray:
     odd = int(np.count_nonzero(toggles.sum(0) % 2))
     if odd:
         warnings.warn(f"mesh_to_label: {odd} voxel columns cross the surface an odd number of times "
-                      "(self-intersecting mesh?); their inside test may be wrong", RuntimeWarning)
+                      "(self-intersecting mesh?); their inside test may be wrong", RuntimeWarning, stacklevel=2)
     return (np.cumsum(toggles, axis=0)[:nz] % 2).astype(bool)
 
 

@@ -35,8 +35,19 @@ May import: :mod:`clgs.fit`, :mod:`clgs.shape`, :mod:`clgs.anatomy`, :mod:`clgs.
 layer below them. Not the experiment or the CLI.
 """
 from clgs.methods import builtin, registry
-from clgs.methods.registry import (GROUP, Method, MethodError, Option, Registrar, describe, get, manager, names,
-                                   register, register_lazy)
+from clgs.methods.registry import (
+                                   GROUP,
+                                   Method,
+                                   MethodError,
+                                   Option,
+                                   Registrar,
+                                   describe,
+                                   get,
+                                   manager,
+                                   names,
+                                   register,
+                                   register_lazy,
+)
 
 __all__ = ["Method", "Option", "register", "register_lazy", "get", "names", "describe", "MethodError", "GROUP",
            "Registrar", "manager"]

@@ -35,8 +35,16 @@ from pathlib import Path
 
 import numpy as np
 
-from clgs.fit.assembly import (fdk_volume, make_trainer, projection_losses, restore, scale_bounds_for,
-                               value_scale_from, volume_box)
+from clgs.errors import InputError
+from clgs.fit.assembly import (
+    fdk_volume,
+    make_trainer,
+    projection_losses,
+    restore,
+    scale_bounds_for,
+    value_scale_from,
+    volume_box,
+)
 from clgs.fit.config import CHECKPOINT, GaussianFitConfig, run_config, run_folder, setting
 from clgs.fit.estimate import run_clock
 from clgs.fit.gaussians import GaussianSet, init_from_volume, init_random, r2gs_schedules
@@ -46,7 +54,6 @@ from clgs.fit.training_log import TrainingLog
 from clgs.io.scan import Scan
 from clgs.methods import Method
 from clgs.methods.gaussian import RUN_OPTIONS, method_output
-from clgs.errors import InputError
 from clgs.progress import enabled, phase
 
 

@@ -11,14 +11,13 @@ from __future__ import annotations
 import importlib
 import importlib.metadata
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, Optional, Union
 
 import pluggy
 
 from clgs.anatomy import hookspecs
 from clgs.anatomy.plugins import PluginWarning
-
 from clgs.errors import ClgsError
 
 __all__ = ["Method", "Option", "register", "register_lazy", "get", "names", "describe", "MethodError", "GROUP",
@@ -37,10 +36,10 @@ class Option:
     name: str
     kind: str = "float"
     help: str = ""
-    default: Optional[str] = None
+    default: str | None = None
     choices: tuple = ()
-    min: Optional[float] = None
-    max: Optional[float] = None
+    min: float | None = None
+    max: float | None = None
     min_open: bool = False
     max_open: bool = False
 
@@ -64,20 +63,20 @@ class Method:
     """One reconstruction method (see the module doc)."""
 
     name: str
-    run: Union[Callable, str]
-    options: Union[list, str, Callable] = field(default_factory=list)
+    run: Callable | str
+    options: list | str | Callable = field(default_factory=list)
     help: str = ""
     # True: the output folder is built in a temporary sibling and renamed when done (nothing
     # half-written). False: the method manages its folder itself (e.g. checkpoints it can resume).
     atomic_dir: bool = True
 
     # a settings dataclass (or "module:attr") whose fields named in its ``CLI`` are options too
-    config: Union[type, str, None] = None
+    config: type | str | None = None
 
     def callable(self) -> Callable:
         return _resolve(self.run)
 
-    def config_class(self) -> Optional[type]:
+    def config_class(self) -> type | None:
         return None if self.config is None else _resolve(self.config)
 
     def option_list(self) -> list:
@@ -212,11 +211,11 @@ class MethodPlugins:
         warnings.warn(f"clgs: skipping method plugin {name!r} from package {package!r}: {reason}", PluginWarning,
                       stacklevel=4)
 
-    def register_plugin(self, plugin, name: Optional[str] = None, package: str = "") -> None:
+    def register_plugin(self, plugin, name: str | None = None, package: str = "") -> None:
         """Register ``plugin`` (a module or object implementing ``register_methods``) and register
         its methods now. A hook that raises is a warning; a name clash is a MethodError."""
-        name = self.pm.register(plugin, name=name)
-        package = package or name
+        registered = self.pm.register(plugin, name=name)
+        package = package or registered or ""
         for impl in self.pm.hook.register_methods.get_hookimpls():
             if impl.plugin is not plugin:
                 continue
@@ -225,7 +224,7 @@ class MethodPlugins:
             except MethodError:
                 raise
             except Exception as exc:  # noqa: BLE001 - a broken plugin must not break clgs
-                self._warn(name, package, f"register_methods() raised {type(exc).__name__}: {exc}")
+                self._warn(registered, package, f"register_methods() raised {type(exc).__name__}: {exc}")
 
     def load_entry_points(self, group: str = GROUP) -> None:
         """Import and register every entry point of ``group`` (a failed import is a warning)."""

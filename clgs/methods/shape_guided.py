@@ -24,14 +24,10 @@ and ``m = 1`` (the atlas holds the tissue around the bone too; an atlas of the b
 back to ``"shape"``); ``"shape"``: ``V = V_s`` the field of the shape set alone and ``m`` the
 template's bone mask at ``x'``, the paper's form.
 
-Decisions and what they gave on the femur (5 views, 600 iterations, subject 20; R2-Gaussian
-28.44 dB): as the paper 28.46 dB; free set from the atlas 29.64; + the prior on the whole field
-29.92; + alpha registered first 30.28 dB (model surface 1.65 mm instead of 3.47).
-
 The bone's size is fitted with alpha (``fit_size="on"``, :mod:`clgs.shape.size`): a search over
-sizes against the projections gives its start, the registration and training refine it (femur, 6
-held-out subjects at 5 views, 1000 iterations: +0.13 dB, model surface 1.60 -> 1.15 mm; a 558 mm
-femur from 2 views +5.5 dB). ``"off"`` is the paper's form.
+sizes against the projections gives its start, the registration and training refine it.
+``"off"`` is the paper's form. Where these choices depart from the paper, and what each gave on
+the femur: docs/methods.md.
 
 The scan's world frame is taken to be the template's frame (the anatomy's own simulator scans in
 it; a user's mesh is aligned to the template first). The ablation switches: ``shape_prior=False``
@@ -56,6 +52,7 @@ import torch
 from clgs.anatomy import AnatomyParts, plugins
 from clgs.anatomy.bone_level import choose_level
 from clgs.anatomy.evaluation import bone_surface, write_bone_surface  # the outer bone surface of the outputs
+from clgs.errors import InputError
 from clgs.fit import losses as L
 from clgs.fit.assembly import (
     fdk_volume,
@@ -72,6 +69,7 @@ from clgs.fit.gaussians import GaussianSet, Schedule, init_from_volume, r2gs_sch
 from clgs.fit.outputs import gaussians_in_scan_units, voxelize_volume
 from clgs.fit.outputs import write_outputs as write_common
 from clgs.fit.trainer import Backend, LossTerm, Trainer
+from clgs.fit.training_log import TrainingLog
 from clgs.io import atomic
 from clgs.io.mesh import save_mesh
 from clgs.io.scan import Scan
@@ -83,7 +81,6 @@ from clgs.shape.gaussian_set import ShapeGuidedSet
 from clgs.shape.initialise import initialise, initialise_surroundings, sample_surrounding_centres
 from clgs.shape.priors import DensityPrior, random_subgrid, residual_prior_term, shape_prior_term
 from clgs.shape.size import AUTO_TOLERANCE, search_size, size_centre, stretched_surroundings
-from clgs.errors import InputError
 
 
 @dataclass
@@ -180,7 +177,7 @@ class ShapeGuidedResult:
     volume: np.ndarray
     gaussians: dict
     alpha: np.ndarray
-    log: object
+    log: TrainingLog
     trainer: Trainer = field(repr=False)
     value_scale: float
     interrupted: bool
@@ -217,11 +214,9 @@ def fit_initial_alpha(scan, shape_model, cfg: ShapeGuidedConfig, init, free=None
     one view per iteration, lr ``lr_alpha`` decaying to 10% over ``alpha_init_iterations``).
 
     Why: trained from alpha = 0 with everything else free, the densities and the free Gaussians
-    absorb the shape difference within a few dozen iterations and alpha stalls near 0 (femur,
-    subject 20, 5 views: alpha_1 -0.08 after 600 iterations where the subject's surface gives
-    -2.7; the model surface 3.5 mm from the truth). Fitting alpha first, with the atlas's
-    densities fixed, is a registration of the atlas's bone to the projections (subject 20: alpha_1
-    -1.6, model surface 1.4 mm after 100 iterations); the main run then refines alpha as before.
+    absorb the shape difference within a few dozen iterations and alpha stalls near 0. Fitting
+    alpha first, with the atlas's densities fixed, is a registration of the atlas's bone to the
+    projections; the main run then refines alpha (figures: docs/methods.md).
     The tissue around the bone is left in place: carried by the bone's deformation it made the
     fit follow the limb's outline instead (alpha_1 +0.22, model surface 4.0 mm)."""
 
@@ -290,7 +285,7 @@ def _registration(scan, shape_model, cfg, init, free, moving: dict, k: int, *, s
     for name, p in bound.params.items():  # no gradients wanted: a cheaper backward
         if name not in moving:
             p.requires_grad_(False)
-    sets = [bound]
+    sets: list = [bound]
     if free is not None and len(free) > 0:
         sets.append(_Frozen(free))
     image = L.ImageTerms(dssim=cfg.lambda_dssim > 0)
@@ -410,6 +405,7 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
         scales, dens = np.full((n, 3), 0.01), np.full(n, 0.01)
         quats, centres = np.tile([1.0, 0, 0, 0], (n, 1)), np.zeros((n, 3))
     common = dict(box=box, scale_bounds=bounds, name="shape")
+    shape_set: GaussianSet
     if bound:
         shape_set = ShapeGuidedSet(centres, scales.astype(np.float32), quats.astype(np.float32),
                                    dens.astype(np.float32), shape_model=shape_model, geometry=geo,
@@ -420,18 +416,18 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
         shape_set = GaussianSet(geo.world_to_scene(centres).astype(np.float32), scales.astype(np.float32),
                                 quats.astype(np.float32), dens.astype(np.float32), schedules=sched,
                                 densify=False, **common)
-    sets = [shape_set]
+    sets: list = [shape_set]
     if cfg.n_free > 0:
         if free is None:  # resuming: the checkpoint fills it
             e = np.zeros((0, 3), np.float32)
             free = GaussianSet(e, e, np.zeros((0, 4), np.float32), np.zeros(0, np.float32), raw=True, **free_kw)
         sets.append(free)
     prior_field = cfg.density_prior_field
-    if prior_field == "all" and cfg.density_prior and atlas is not None:
-        # an atlas of the bone alone says nothing about the tissue around it: the whole field
-        # must not be pulled to its zeros there
-        if len(sample_surrounding_centres(template, atlas, 1, threshold=cfg.init_threshold)) == 0:
-            prior_field = "shape"
+    # an atlas of the bone alone says nothing about the tissue around it: the whole field must not
+    # be pulled to its zeros there
+    if (prior_field == "all" and cfg.density_prior and atlas is not None
+            and len(sample_surrounding_centres(template, atlas, 1, threshold=cfg.init_threshold)) == 0):
+        prior_field = "shape"
     losses = projection_losses(cfg)
     if bound:
         losses.append(LossTerm("shape", cfg.lambda_shape, shape_prior_term()))
@@ -457,6 +453,7 @@ def choose_size(scan, cfg: ShapeGuidedConfig, init, tissue, centre_mm) -> float 
         return None
     if tissue is None:
         return 1.0
+    assert cfg.value_scale is not None  # set by build_trainer before the search
     with phase("searching the bone's size"):
         best, _ = search_size(scan, Backend(cfg.backend, cfg.projector_mode), cfg.value_scale, init, tissue,
                               centre_mm)
@@ -477,7 +474,7 @@ def write_uncertainty(trainer, shape_set, template, moved, out_dir) -> dict:
                                       "independent pixel noise) and the leave-one-out field beyond the modes"})
 
 
-def deformed_template_surface(template, shape_set) -> tuple:
+def deformed_template_surface(template, shape_set) -> tuple | None:
     """The template surface carried onto the subject by the fitted alpha (and size): (vertices mm,
     faces)."""
     if not isinstance(shape_set, ShapeGuidedSet):
@@ -502,7 +499,7 @@ def surface_displacement_parts(template, shape_set) -> dict:
     return {"vertices": moved, "model_mm": model - v64, "residual_mm": moved - model}
 
 
-def displacement_report(template, shape_set) -> dict:
+def displacement_report(template, shape_set) -> dict | None:
     """How much of the surface's displacement from the template is the shape model's and how much
     the residual's: mean and largest length (mm) of each over the template's vertices, and the
     residual's share of the mean lengths; None for a set not bound to a shape model."""

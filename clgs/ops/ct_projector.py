@@ -25,10 +25,10 @@ import warnings
 
 import numpy as np
 
+from clgs.errors import InputError
 from clgs.geometry import Geometry
 from clgs.ops.ct_upright import tilted_views, upright_stand_in
 from clgs.runtime import Operator
-from clgs.errors import InputError
 
 _VIEW_STRIDE = 16
 _ZB = 32  # z voxels per backprojector work-item (cl/ct_backprojector.cl)
@@ -64,6 +64,7 @@ class CTProjector(Operator):
     """
 
     SOURCE = "ct_projector.cl"
+    _views_all: np.ndarray  # (n_views, 16) view records (see _index_views)
 
     def __init__(self, geometry: Geometry, ctx=None, queue=None):
         if not isinstance(geometry, Geometry):
@@ -181,7 +182,7 @@ class CTProjector(Operator):
 
     def _views(self, views, dtype):
         if views is None:
-            key = (None, np.dtype(dtype).str)
+            key: tuple = (None, np.dtype(dtype).str)
             idx = None
         else:
             idx = np.asarray(views, dtype=np.int64).reshape(-1)

@@ -7,9 +7,8 @@ is clamped to the border and its derivative is 0 there: the values and gradients
 compare them). float32 or float64, by the field's dtype.
 
 Why: the shape-guided method exponentiates its velocity field every iteration, forward and
-backward (scaling and squaring: each squaring samples the displacement at displaced grid points).
-With torch's CPU 3D ``grid_sample`` that took about 40 % of a shape-guided iteration in a profile
-on a busy host (``clgs bench kernels`` prints both paths side by side).
+backward (scaling and squaring: each squaring samples the displacement at displaced grid points),
+and torch's CPU 3D ``grid_sample`` is slow at it (docs/kernels.md).
 
 The gradient wrt the field is a gather, not a scatter with atomics: the points are sorted by the
 cell they fall in (a stable sort on the host), each cell sums its points' eight corner weights
@@ -18,14 +17,13 @@ cells it is a corner of (``sample_grad_field``). The same input gives the same b
 """
 from __future__ import annotations
 
-
 import numpy as np
 import torch
 
 from clgs import runtime
+from clgs.errors import InputError
 from clgs.ops.sorting import stable_order
 from clgs.runtime import Operator, round_up
-from clgs.errors import InputError
 
 SOURCE = "field_sampler.cl"
 MAX_CHANNELS = 4

@@ -2,115 +2,13 @@
 
 ``project(means, scales, quats, densities, geometry, views, mode)`` returns the projections
 (len(views), V, U) in mm-based units: the scene-unit line integral divided by
-``geometry.scale``, so a Gaussian's density has the units of voxel values (1/mm).
+``geometry.scale``, so a Gaussian's density has the units of voxel values (1/mm). ``mode``:
+``"affine"`` (R2-Gaussian's local affine splat, exact in parallel beam) or ``"exact"`` (the
+closed-form integral along every pixel's own ray). Each Gaussian reaches the pixels whose ray
+passes within 3 sigma of its centre. Forward and backward are gathers: same input, same bits.
 
-Two ways to integrate (``mode``):
-
-* ``"affine"`` (R2-Gaussian): each Gaussian is mapped to ray space with the local affine
-  Jacobian of the cone-beam projection at its centre and splatted as a 2D Gaussian, scaled by the
-  integration-bias factor ``mu = sqrt(2 pi det S3 / det S2)``. Exact for parallel beam. In cone
-  beam, Gaussians whose centre is closer than ``NEAR_PLANE`` (0.2 scene units) to the source
-  plane, or whose 3-sigma extent along the axis reaches it, are culled (R2-Gaussian culls by a
-  near plane too); they never produce NaN or Inf.
-* ``"exact"``: the closed-form integral of the Gaussian along every pixel's own ray,
-  ``rho sqrt(2 pi / a) exp(-q / 2)`` with ``q`` the squared Mahalanobis distance from the centre
-  to the ray, computed in a cancellation-free, pixel-centred form. In cone beam rays start at
-  the source: a Gaussian whose 6-sigma extent (10 in double builds) along the axis reaches the
-  source plane is integrated over ``t > 0`` with the factor ``erfc(b / sqrt(2 a)) / 2``, over the
-  whole detector; one wholly behind the source is culled.
-
-Both modes keep a Gaussian's contribution to the pixels whose ray passes within 3 sigma of its
-centre (q <= 9). The footprint box is the exact bounding box of that region: 3 sigma of the
-projected covariance (affine, exact parallel), the bounding box of the perspective image of
-the 3-sigma ellipsoid (exact cone), each with a rounding margin of 0.01 pixel + 1e-4 of its
-radius; pixels in the box with q > 9 are masked, so the box only decides the work, never the
-result.
-
-Compiled variants (``-D`` options of ``cl/projector.cl``; one program per set, compiled
-on first use in a process and cached by ``clgs.runtime``):
-
-* ``CONE`` when ``geometry.mode == "cone"``, absent for parallel beam;
-* ``EXACT`` for ``mode="exact"`` (kernels take the packed precision), absent for affine (packed
-  covariance);
-* ``REAL=double`` for float64 inputs (tests, gradcheck), else float;
-* ``NO_GRAD_MEAN`` / ``NO_GRAD_COV`` / ``NO_GRAD_DENSITY`` in the backward's program when the
-  means / the covariance-or-precision / the densities need no gradient (the forward kernels are
-  the same in every gradient variant; in practice the forward program is the all-gradients one);
-* ``TW`` (8 or 16) and ``TH`` (256 on CPUs; on GPUs 16 at ``TW=8``, 8 at ``TW=16``): the
-  forward's tile, ``TW`` pixels = one ``realW`` vector per tile row;
-* ``BW`` (8 or 16): the backward's pixel segment, one ``realB`` vector.
-
-Vector width (``TW``, ``BW``): 16 lanes fill an AVX-512 register, 8 an AVX2 one. By default
-the projector follows the device: where its native float vector width is 16 (PoCL on AVX-512
-CPUs) each kernel gets the width that measured faster there (``WIDE``: affine render and
-backward 16; exact parallel render 16, backward 8; exact cone 8 and 8, its pixel loops being
-bound by a division and a square root per pixel, no cheaper per lane at 16), everywhere else 8.
-The environment variable ``CLGS_TILE_WIDTH=8`` or ``16`` (or ``GaussianProjector(width=...)``)
-forces one width on every kernel (any OpenCL device runs either; 16 on an AVX2 CPU is just
-slower). Images are the same bits at either width; gradients agree to rounding (the backward
-adds a box's pixels in another order), and each width is bitwise reproducible.
-Measured side by side in one process on a 2-core AVX-512 Xeon (50k Gaussians, 256^2 detector,
-each kernel relaunched alone, 8 and 16 lanes alternating, CPU-time medians, several runs), 16
-lanes against 8: affine render 1.12-1.21x faster, affine backward 1.11-1.16x; exact parallel
-render 1.12-1.15x, its backward 0.90-0.93x (slower: kept at 8); exact cone render 0.83-0.95x and
-backward 0.82-0.89x (kept at 8). Per call (``clgs bench kernels --widths``: set-up and tile
-lists included, which do not depend on the width) the affine cone forward gained about 1.08x and
-its backward 1.12x. The exp probe runs about 1.5x faster per CPU-second at 16 lanes; the pixel
-loops gain less because 16-wide tile rows and segments cover more pixels outside each footprint
-(28% of the render's lanes are useful at 16, 42% at 8, for Gaussians 4-16 pixels across).
-
-The splat loops use ``splat_exp2_8`` / ``splat_exp2_16`` (``cl/project_setup.h``, one
-definition made at both widths): 2^t as 2^n 2^f with n = t rounded to nearest even (by adding
-and taking away 1.5 2^23, or by ``vreduceps`` / ``vcvtps2dq`` on AVX-512 CPUs, the same bits), a
-degree-5 fitted polynomial for 2^f and no range handling at all (the loops fold ``log2(e)`` into
-their coefficients and select zero wherever ``q > 9``, the only lanes where the result is not
-valid).
-
-Pipeline of one forward call: two launches and a single wait, at the end.
-``preprocess`` (a work-item per chunk of consecutive Gaussians and view: centre, conic or
-exact-cone polynomials, amplitude, footprint box, culling, 8 Gaussians per ``real8``
-(``setup_affine8``, ``setup_exact_cone8``; exact parallel one at a time); then, while the
-chunk's records and boxes are in cache, its own tile lists: a counting sort of its Gaussians by
-tile into a region of the lists that it takes with one integer atomic add, each entry a copy of
-the Gaussian's record so that the render streams them) -> ``render`` (a work-item per tile,
-``realW`` rows, walking the tile's segment of every chunk's region, chunks in order: each pixel
-adds its Gaussians in index order, so the image does not depend on where the regions landed,
-on the chunking or on the tile). The number of (tile, Gaussian) pairs is only known on the
-device: the lists get a capacity from the last call's pairs per Gaussian and view (plus 25%, at
-least what the pooled buffers hold), a region that does not fit is not written (nor read), and
-the pair count comes back with the image; a call that needed more runs again with larger lists
-(the first call, or a scene that grew a lot). CPUs get few chunks (8 per compute unit, at
-least 32): the render reads a tile's entries region by region, and longer runs stream better.
-
-Per call, the host sets the kernel arguments through the runtime's one launch helper (all of
-them packed in one call once the kernel's scalar types are declared, about 6 us for twenty, where
-pyopencl's own setter spends 10-15 us on each NumPy scalar), keeps each geometry's view parameters, and
-waits once per call (every read-back mapped without blocking, then one wait). An earlier
-version (separate offsets and list-filling kernels, four launches, every argument set on every
-call) was measured side by side in one process against this one, 50k Gaussians, 256^2 detector,
-affine cone beam, one view per call, alternating, medians, on a loaded 2-core AVX-512 machine:
-forward 1.41-1.48x faster in wall time and 1.19x in CPU time (set-up and lists 0.91 -> 0.70 ms
-of device time, render unchanged; Python before the first launch 0.28 -> 0.11 ms), backward
-1.03-1.12x wall and 1.05-1.08x CPU (host side only: 0.53 -> 0.14 ms before its launch, mostly
-zero-filled gradient arrays that the kernel overwrites anyway), a whole autograd step
-1.07-1.19x; images and gradients the same bits.
-
-The backward is one kernel, a work-item per run of Gaussians (16 on CPUs) gathering over each
-Gaussian's own box in every view. Affine: 8 Gaussians at a time, the set-up recomputed by the
-forward's own ``setup_affine8`` (same bits, about the cost of reading the records back) and the
-chain rule done for all 8 in ``real8``. Exact: one Gaussian at a time; when the backward
-directly follows the forward of the same inputs (the autograd op passes the forward's token) it
-reuses the forward's per-(view, Gaussian) set-up instead of recomputing it. The pixels of a
-box are walked in ``BW``-pixel segments from its left edge, rows inner; the exact-cone loop keeps
-only 8 moment sums per row (the rest is applied once per segment).
-
-Kernels avoid OpenCL builtins that PoCL compiles to calls (``select``, ``vload8``, vector
-``sqrt``, ``min``) inside loops: a call there also makes the compiler spill every live vector
-register around it. ``cl/project_setup.h`` has the call-free replacements.
-
-Conventions: the detector's u and v axes are perpendicular to each other and to the central
-ray (as every ``clgs.geometry.Geometry`` is). Forward and backward are gathers: every output is
-written by one work-item, so same input gives the same bits.
+The kernels (``cl/projector.cl``), their layout, compiled variants and vector widths, and what a
+kernel author may change: docs/kernels.md.
 """
 from __future__ import annotations
 
@@ -136,10 +34,9 @@ class ProjectorError(ClgsError, ValueError):
 WIDTH_ENV = "CLGS_TILE_WIDTH"
 WIDTHS = (8, 16)
 # (render, backward) vector widths per (beam, mode) on a device whose native float vector has 16
-# lanes, each kept at 16 only where 16 lanes measured faster than 8 side by side (50k Gaussians,
-# 256^2 detector, CPU time per launch; figures in the module docstring). The exact cone's pixel
-# loops are bound by a division and a square root per pixel, which cost the same per lane at
-# either width, so the wider rows' extra masked lanes only add work there.
+# lanes, each kept at 16 only where 16 lanes are faster than 8 (docs/kernels.md). The exact cone's
+# pixel loops are bound by a division and a square root per pixel, which cost the same per lane
+# at either width, so the wider rows' extra masked lanes only add work there.
 WIDE = {("cone", "affine"): (16, 16), ("parallel", "affine"): (16, 16),
         ("parallel", "exact"): (16, 8), ("cone", "exact"): (8, 8)}
 
@@ -179,7 +76,7 @@ def view_params(geometry, views, dtype=np.float32) -> np.ndarray:
             s = first
             rel = det - s
             w = rel - (rel @ eu) * eu - (rel @ ev) * ev
-            D = np.linalg.norm(w)
+            D = float(np.linalg.norm(w))
             w = w / D
             fx, fy = D / gul, D / gvl
             cx = (nu - 1) / 2.0 - (rel @ eu) / gul
@@ -227,8 +124,8 @@ class GaussianProjector(Operator):
         self.LOCAL_TILE = self.LOCAL_TILE_CPU if self.cpu else self.LOCAL_TILE_GPU
         self.PER = self.PER_CPU if self.cpu else self.PER_GPU
         self._token = 0  # counts forward calls; the records in the pool belong to call _rec_token
-        self._rec_token = None
-        self.last_token = None
+        self._rec_token: int | None = None
+        self.last_token: int | None = None
         self.extra_defines: dict = {}  # tuning experiments only
         if width is None:
             self.width, self.forced = tile_width(self.device)
@@ -248,10 +145,7 @@ class GaussianProjector(Operator):
     # ----------------------------------------------------------------------------- plumbing
     def widths(self, beam: str, mode: str) -> tuple[int, int]:
         """(render, backward) vector widths for this beam and mode."""
-        if self.width == 8 or self.forced:
-            w = (self.width, self.width)
-        else:
-            w = WIDE[(beam, mode)]
+        w = (self.width, self.width) if self.width == 8 or self.forced else WIDE[(beam, mode)]
         tw = self.tile[0] if self.tile is not None else w[0]
         return tw, self.backward_width or w[1]
 
@@ -303,7 +197,7 @@ class GaussianProjector(Operator):
         # asks for the same few views again and again (its forward and backward, every epoch),
         # and computing a row costs about 100 us of Python. (The entry holds the geometry, so
         # its id cannot be reused by another object while cached.)
-        ent = self._vp_cache.get((id(geometry), dt.str))
+        ent: tuple | None = self._vp_cache.get((id(geometry), dt.str))
         if ent is None or ent[0] is not geometry:
             if len(self._vp_cache) >= 8:
                 self._vp_cache.pop(next(iter(self._vp_cache)))

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+
 def stable_order(keys: np.ndarray) -> np.ndarray:
     """int64 indices that sort ``keys`` (1-D, integers >= 0) stably."""
     keys = np.asarray(keys)

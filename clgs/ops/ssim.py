@@ -14,28 +14,16 @@ From Python::
     l1, dssim = l1_dssim(a, target)        # a like b, requires_grad; two scalar tensors
     (l1 + 0.25 * dssim).backward()         # a.grad
 
-Forward: a horizontal pass of ``(a, a*a, a*b)`` with the row sums of ``|a - b|``, then a
-vertical pass giving the SSIM map's row sums and (when ``a`` needs a gradient) the map's
-derivatives with respect to the three blurred maps, already filtered along rows. Backward: one
-vertical pass combines them with ``a``, ``b`` and the two terms' incoming gradients (the window
-is symmetric and zero-padded, so the filter is its own adjoint). Training weighs the terms the
-same way every iteration, so the forward already enqueues that pass with the last backward's
-weights, to run while the caller goes on; the backward then only collects it (other weights: it
-runs again). The means are sums of per-row sums taken on the host in float64 in a fixed order:
-same input, same bits.
-
-Cost, 256 x 256 view, PoCL on 2 cores: about 0.2 ms of kernels (profiled), 0.5-0.9 ms per
-forward + backward through autograd, where the torch version takes 3-4 ms in the same process
-(``clgs bench train`` reports the trainer's figure under "L1 + D-SSIM").
+Same input, same bits. The three passes, their layout and their cost: docs/kernels.md.
 
 Non-finite renders: NaN or Inf in ``a`` propagate to the terms (as in torch), and the trainer
 stops with a ``FloatingPointError`` naming the iteration and view when the loss is not finite.
 """
 from __future__ import annotations
 
-
 import numpy as np
 import torch
+
 from clgs.errors import ClgsError, InputError
 from clgs.metrics import SSIM_C1 as C1
 from clgs.metrics import SSIM_C2 as C2
@@ -43,8 +31,6 @@ from clgs.metrics import SSIM_SIGMA as SIGMA
 from clgs.metrics import SSIM_WINDOW as WINDOW
 from clgs.metrics import gaussian_window
 from clgs.runtime import Operator, real_name, shared
-
-
 
 # ------------------------------------------------------------ the filter, in torch (targets, fallback)
 _windows: dict = {}  # (size, sigma, dtype) -> window
@@ -61,8 +47,8 @@ def window(size: int, sigma: float, dtype) -> torch.Tensor:
 
 def shift_blur(x: torch.Tensor, w) -> torch.Tensor:
     """Zero-padded separable filter with a symmetric window ``w`` (a list), as shifted in-place
-    adds along the last two axes: 2 x 11 passes over the image, ~1.5x faster on a CPU than the
-    dense banded products for 256^2 projections."""
+    adds along the last two axes: 2 x 11 passes over the image, faster on a CPU than dense banded
+    products."""
     r = len(w) // 2
     y = x * w[r]
     for k in range(r):

@@ -8,15 +8,10 @@ precision (N, 6) and densities (N,) (the 3-sigma half-widths ``extent`` only bou
 float32 or float64 by the inputs' dtype. :class:`TVPatchFunction` is its autograd op; the
 training loss term and the fallback for large grids are :mod:`clgs.fit.tv_patch`'s.
 
-Why fused: for a random 32^3 patch of a 50k-Gaussian scene the kernels' work is small (a few
-percent of the Gaussians reach the patch) and the time went to the host: culling with torch ops
-over all N rows, gathering and scattering the kept rows through autograd, packing, two blocking
-waits, and the TV itself in torch. Here everything from the N rows to the gradient rows of the
-kept Gaussians runs on the device in one batch of launches with one wait (``patch_cull``,
-``patch_scan``, ``patch_fill``, the voxelizer's ``vox_grid``, ``patch_tv``, ``patch_grad``). The
-TV's gradient wrt the field is a closed form (signs of the neighbour differences over their
-count), so the backward to the Gaussians is computed in the forward for a unit upstream gradient
-and the autograd backward only scales the kept rows and scatters them into (N, .) zeros.
+Why fused: on a small patch few Gaussians reach it and the time goes to the host; here
+everything from the N rows to the kept Gaussians' gradient rows runs on the device in one batch
+of launches with one wait (docs/kernels.md). The backward to the Gaussians is computed in the
+forward for a unit upstream gradient; autograd only scales and scatters the kept rows.
 
 Results: the field is bitwise the voxelizer's (same brick lists in Gaussian index order, same
 kernel); the TV value and the gradients equal those of ``tv3d`` + the voxelizer's backward to
@@ -34,8 +29,16 @@ import torch
 
 from clgs.geometry import Grid
 from clgs.metrics import tv_count
-from clgs.ops.voxelizer import (GRADSTRIDE, GSTRIDE, BrickOperator, Voxelizer, brick_cells, default_voxelizer,
-                                grid_axes, np_dtype)
+from clgs.ops.voxelizer import (
+    GRADSTRIDE,
+    GSTRIDE,
+    BrickOperator,
+    Voxelizer,
+    brick_cells,
+    default_voxelizer,
+    grid_axes,
+    np_dtype,
+)
 from clgs.runtime import round_up
 
 _CHUNK = 512  # Gaussians per culling work-item (at least; at most _MAX_CHUNKS chunks)
@@ -65,7 +68,7 @@ class PatchTV(BrickOperator):
         self._cap_list = 1 << 16
 
     @classmethod
-    def like(cls, voxelizer: Voxelizer) -> "PatchTV":
+    def like(cls, voxelizer: Voxelizer) -> PatchTV:
         """A TV patch that runs where ``voxelizer`` runs, as it does: same context, queue, bricks
         and memory mode (wrapped host memory or copies)."""
         op = cls(voxelizer.ctx, voxelizer.queue, (voxelizer.brick_y, voxelizer.brick_z))
@@ -178,7 +181,7 @@ class PatchTV(BrickOperator):
             total = sum(float(sums[a]) for a, size in ((2, nz), (1, ny), (0, nx)) if size > 1)
             value = dt(total / count) if count else dt(0)
             idx = torch.from_numpy(kidx[:k].astype(np.int64))
-            rows = torch.from_numpy(grad[:k * GRADSTRIDE].reshape(k, GRADSTRIDE).copy()) if want else None
+            rows = None if grad is None else torch.from_numpy(grad[:k * GRADSTRIDE].reshape(k, GRADSTRIDE).copy())
             out_field = None
             if field:
                 fh, fh_b = io.host_block("field", fsize, _ALIGN)
@@ -208,7 +211,7 @@ class TVPatchFunction(torch.autograd.Function):
         needs = ctx.needs_input_grad[:3]
         idx, rows, n = ctx.idx, ctx.rows, ctx.n
         scaled = rows * g
-        out = []
+        out: list = []
         for need, (a, b) in zip(needs, ((0, 3), (3, 9), (9, 10))):
             if not need:
                 out.append(None)
@@ -220,7 +223,7 @@ class TVPatchFunction(torch.autograd.Function):
 
 
 _lock = threading.Lock()
-_matching: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()  # Voxelizer -> its PatchTV
+_matching: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # Voxelizer -> its PatchTV
 
 
 def patch_operator(voxelizer: Voxelizer | None = None) -> PatchTV:

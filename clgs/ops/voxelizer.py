@@ -37,32 +37,8 @@ Gaussians (scale ratios near 1e-3) ``d^T P d`` cancels in float32 whatever the o
 operations (P holds 1/s^2 next to O(1) values), so the field near them is good to about 1% of
 their peak in float32 (and to ~1e-10 in float64).
 
-How (``cl/voxelizer.cl``): Gaussians are binned on the device into cells (8 x 8 x 8 voxel bricks
-for grids, a coarse cell grid over the points for point queries) by a deterministic counting sort,
-so every list is in Gaussian index order and every output is summed in the same order on every
-run; the binning also copies the Gaussians' records into list order, so the forward kernels
-stream through memory. Forward: one work-item per brick looping over its list, one ``real8`` per
-x row; or one work-item per 8 points of a cell. Backward: one work-item per Gaussian gathers the
-incoming gradient over its own box (grid samples or points inside it): no atomics, same bits
-every time; on grids the work-items take the kept Gaussians sorted by brick (the same counting
-sort, one cell per Gaussian), so neighbours read neighbouring rows from cache. Only Gaussians
-whose box meets the grid/block (or the points' bounding box) are binned or visited; for grids
-they are first selected in torch (``grid_candidates``), so a small block of a large scene packs
-and bins only the few Gaussians that reach it. Small grids (up to 512 bricks, e.g. a 32^3 TV
-patch) skip the parallel counting sort and its host round trip for the list length: one
-work-item builds the same lists in one launch, and their backward runs over the Gaussians in
-index order without sorting (the block's dL/dfield stays in cache); same bits either way. A
-forward is then 2 launches and one wait, a backward 1 launch and one wait.
-
-Compile-time variants of ``cl/voxelizer.cl`` (``-D`` options, one cached program each):
-
-* ``REAL=float`` (default) or ``REAL=double`` (chosen from the input dtype; double is for
-  gradient checks).
-* ``BRICK_Y``, ``BRICK_Z``: brick rows (default 8 x 8; bricks are 8 voxels along x).
-* ``WANT_MEAN``, ``WANT_PREC``, ``WANT_RHO``: which gradients the backward kernels compute
-  (set from which inputs need a gradient; the others come back as zeros and cost nothing).
-
-On a CPU device (PoCL) inputs and outputs wrap host memory without copies.
+How the kernels (``cl/voxelizer.cl``) bin, lay out and sum, and their compiled variants:
+docs/kernels.md.
 """
 from __future__ import annotations
 
@@ -73,10 +49,10 @@ import numpy as np
 import torch
 
 from clgs import runtime
-from clgs.ops.sorting import stable_order
-from clgs.geometry import Grid
-from clgs.runtime import Operator, round_up
 from clgs.errors import InputError
+from clgs.geometry import Grid
+from clgs.ops.sorting import stable_order
+from clgs.runtime import Operator, round_up
 
 SOURCE = "voxelizer.cl"
 
@@ -97,9 +73,8 @@ _MAX_HIST = 1 << 22  # cap on (cells x chunks) histogram entries
 # small grids (a TV patch): bin by one work-item in one launch below these many bricks and
 # bricks x Gaussians (the list's room); in the backward, no sort below this many bytes of dL/dfield.
 # 2^19 pairs (8k Gaussians on 64 bricks): past about 4-8k Gaussians on a 32^3 grid the parallel
-# counting sort, round trip included, wins (measured on the shape-guided density prior's
-# sub-grid, 50k Gaussians: 8 against 10 ms at load 6, best of three; ``clgs bench train
-# --method shape --alternate``); the same bits either way
+# counting sort, round trip included, is faster (``clgs bench train --method shape --alternate``);
+# the same bits either way
 SMALL_CELLS = 512
 _SMALL_PAIRS = 1 << 19
 _UNSORTED_BYTES = 1 << 20
@@ -168,7 +143,7 @@ def grid_candidates(means: torch.Tensor, half_widths: torch.Tensor, grid: Grid):
         return None if idx.numel() == n else idx
 
 
-def brick_cells(grid: Grid, brick_y: int = 8, brick_z: int = 8):
+def brick_cells(grid: Grid, brick_y: int = 8, brick_z: int = 8) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
     """Bricks (8 x ``brick_y`` x ``brick_z`` samples) of ``grid`` as binning cells: (lower corner,
     1 / brick size, bricks per axis), all (x, y, z)."""
     nz, ny, nx = (int(s) for s in grid.shape)
@@ -309,9 +284,9 @@ class Voxelizer(BrickOperator):
                   np.int32(bool(home)), *cell_args, hist, ranges)
         self.run(prog, "bin_cell_offsets", ncells, hist, np.int32(nchunks), np.int32(ncells), total)
         self.run(prog, "bin_scan", 1, total, np.int32(ncells), start)
-        length = np.empty(1, np.int32)
-        self.io.copy(length, start, src_offset=4 * ncells)
-        length = int(length[0])
+        length_buf = np.empty(1, np.int32)
+        self.io.copy(length_buf, start, src_offset=4 * ncells)
+        length = int(length_buf[0])
         itemsize = GSTRIDE * np.dtype(real).itemsize if copy else 4
         if length < 0 or length * itemsize > self.ctx.devices[0].max_mem_alloc_size:
             raise MemoryError(
@@ -327,7 +302,7 @@ class Voxelizer(BrickOperator):
         return start, (packed if copy else lst), length
 
     # ------------------------------------------------------------------------- grid
-    def brick_cells(self, grid: Grid):
+    def brick_cells(self, grid: Grid) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
         """Bricks as binning cells: (lower corner, 1 / brick size, bricks per axis), all (x, y, z)."""
         return brick_cells(grid, self.brick_y, self.brick_z)
 

@@ -10,7 +10,7 @@ operator of :mod:`clgs.ops` follows.
 """
 import pyopencl as cl  # noqa: F401  (operators reach pyopencl through the runtime)
 
-from .drivers import configure  # noqa: F401
+from .compiler import cl_source_dir  # noqa: F401
 from .devices import (  # noqa: F401
     NoOpenCLDevice,
     candidates,
@@ -23,7 +23,7 @@ from .devices import (  # noqa: F401
     use_device,
     working_devices,
 )
-from .compiler import cl_source_dir  # noqa: F401
-from .programs import get_program, launch, real_name, round_up, shared, synchronous  # noqa: F401
+from .drivers import configure  # noqa: F401
 from .operator import Operator, context_and_queue  # noqa: F401
+from .programs import get_program, launch, real_name, round_up, shared, synchronous  # noqa: F401
 from .report import describe  # noqa: F401

@@ -21,7 +21,7 @@ def cl_source_dir() -> Path:
     )
 
 
-def build(ctx, source: str, options) -> "cl.Program":
+def build(ctx, source: str, options) -> cl.Program:
     """``source`` built for ``ctx`` with the project's headers on the include path. Drivers that
     print remarks on success (Intel's runtime does, for every program) stay quiet; set
     ``PYOPENCL_COMPILER_OUTPUT=1`` to see them."""

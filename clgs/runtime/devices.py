@@ -22,11 +22,11 @@ from __future__ import annotations
 import os
 import threading
 from dataclasses import dataclass
+from typing import Any
 
 from clgs.errors import ClgsError
 
 from . import drivers
-
 
 try:
     import pyopencl as cl
@@ -62,7 +62,7 @@ class Candidate:
     kind: str
     version: str
     error: str | None  # None: the probe passed; else its one-line reason
-    device: object = None  # the cl.Device
+    device: Any = None  # the cl.Device
 
     @property
     def index(self) -> str:
@@ -78,22 +78,22 @@ class Candidate:
 
 
 _lock = threading.RLock()
-_devices: "list[tuple[cl.Platform, cl.Device]] | None" = None
+_devices: list[tuple[cl.Platform, cl.Device]] | None = None
 _probes: dict = {}  # device int_ptr -> error or None
 _contexts: dict = {}  # device int_ptr -> (context, queue)
-_current: "cl.Device | None" = None
+_current: cl.Device | None = None
 
 
 def _listed():
     """(platform, device) pairs as the ICD loader lists them; platforms that fail are skipped."""
-    global _devices
+    global _devices  # noqa: PLW0603 - the process-wide device list, read once
     if _devices is None:
         drivers.configure()  # the drivers' environment, before the ICD loader first runs
         try:
             platforms = cl.get_platforms()
         except cl.Error as exc:
             raise NoOpenCLDevice(f"No OpenCL platform found (pyopencl said: {exc}). {INSTALL_HINT}") from exc
-        pairs = []
+        pairs: list = []
         for p in platforms:
             try:
                 pairs.extend((p, d) for d in p.get_devices())
@@ -103,7 +103,7 @@ def _listed():
     return _devices
 
 
-def _first_line(text: str) -> str:
+def _first_line(text: object) -> str:
     """The line of a build log that says what went wrong (an ``error:`` line when there is one)."""
     lines = [ln.strip() for ln in str(text).splitlines() if ln.strip()]
     for ln in lines:
@@ -244,10 +244,10 @@ def _choose():
     raise NoOpenCLDevice("No OpenCL device can run clgs's kernels:\n" + "\n".join(failures) + "\n" + INSTALL_HINT)
 
 
-def use_device(spec=None) -> "cl.Device":
+def use_device(spec=None) -> cl.Device:
     """Make ``spec`` (a ``cl.Device``, a spec string, or None for the automatic choice) the
     process-wide device; operators made afterwards run on it. Returns the device."""
-    global _current
+    global _current  # noqa: PLW0603 - the process-wide device choice
     with _lock:
         if spec is None:
             dev = _choose()
@@ -272,7 +272,7 @@ def use_device(spec=None) -> "cl.Device":
 
 
 def _entry():
-    global _current
+    global _current  # noqa: PLW0603 - the process-wide device choice
     with _lock:
         if _current is None:
             _current = _choose()
@@ -284,17 +284,17 @@ def _entry():
         return entry
 
 
-def get_context() -> "cl.Context":
+def get_context() -> cl.Context:
     """The context of the process-wide device (chosen on first use)."""
     return _entry()[0]
 
 
-def get_queue() -> "cl.CommandQueue":
+def get_queue() -> cl.CommandQueue:
     """The in-order queue on the process-wide device."""
     return _entry()[1]
 
 
-def device() -> "cl.Device":
+def device() -> cl.Device:
     return get_context().devices[0]
 
 

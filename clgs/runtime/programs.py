@@ -35,7 +35,8 @@ def real_name(dtype, what: str, error=ValueError) -> str:
 
 def _format_options(defines: dict | None) -> tuple:
     opts = []
-    for key in sorted(defines or {}):
+    defines = defines or {}
+    for key in sorted(defines):
         value = defines[key]
         if value is True:
             opts.append(f"-D{key}")
@@ -55,7 +56,7 @@ class Program:
         self._program = build(ctx, source, options)
         self._kernels: dict = {}
 
-    def kernel(self, name: str) -> "cl.Kernel":
+    def kernel(self, name: str) -> cl.Kernel:
         k = self._kernels.get(name)
         if k is None:
             k = self._kernels[name] = getattr(self._program, name)
@@ -97,7 +98,7 @@ def _declare_scalars(kernel, args) -> bool:
     launch): its argument setter then packs all of them at once, about 6 us for twenty arguments
     where setting one NumPy scalar alone costs 10-15 us. False (nothing declared) when an
     argument is a plain Python number, whose type the kernel cannot be told from it."""
-    dtypes = []
+    dtypes: list = []
     for a in args:
         if isinstance(a, cl.MemoryObjectHolder):
             dtypes.append(None)

@@ -25,7 +25,7 @@ def describe() -> str:
         return "\n".join(lines)
     try:
         chosen = devices.device()
-        chosen_error = None
+        chosen_error = ""
     except devices.NoOpenCLDevice as exc:
         chosen, chosen_error = None, str(exc)
     platform = None

@@ -27,14 +27,21 @@ import hashlib
 import json
 import os
 import shutil
-from collections.abc import Mapping
-from typing import Callable, Iterable, Optional, Union
+from collections.abc import Callable, Iterable, Mapping
 
 import numpy as np
 
-from clgs.shape.template import (Subject, Template, save_npz_atomic, json_array, json_from_array, box_grid, grid_points,
-                           mesh_to_sdf)
 from clgs.errors import InputError
+from clgs.shape.template import (
+    Subject,
+    Template,
+    box_grid,
+    grid_points,
+    json_array,
+    json_from_array,
+    mesh_to_sdf,
+    save_npz_atomic,
+)
 
 # 2: the atlas samples a CT with its border value past its grid (was air)
 # 3: the mode count from the population's figures (clgs.shape.modes), the figures stored
@@ -73,7 +80,7 @@ def template_distance(template: Template, max_cells: int) -> np.ndarray:
     return mesh_to_sdf(template.vertices, template.faces, mshape, msp, morg)
 
 
-def read_cache_entry(path, sid: str, mshape) -> Optional[dict]:
+def read_cache_entry(path, sid: str, mshape) -> dict | None:
     """A subject's cached registration (arrays by name), or None when absent, damaged or stale."""
     if not os.path.exists(path):
         return None
@@ -89,7 +96,7 @@ def read_cache_entry(path, sid: str, mshape) -> Optional[dict]:
 
 
 def register_subject(template: Template, subject: Subject, sid: str, path, max_cells: int, reg, atlas: bool,
-                     threads: Optional[int] = 1, fixed: Optional[np.ndarray] = None) -> dict:
+                     threads: int | None = 1, fixed: np.ndarray | None = None) -> dict:
     """Register one subject to the template and write its cache entry ``path`` atomically (velocity,
     the CT pulled back into template space when ``atlas``, metadata); returns the entry. The same
     wherever it runs: a build's worker processes call it with the build's settings."""
@@ -127,7 +134,7 @@ def register_subject(template: Template, subject: Subject, sid: str, path, max_c
     return record
 
 
-def population_pca(velocities: np.ndarray, variance: Optional[float] = 0.95, n_modes: Optional[int] = None):
+def population_pca(velocities: np.ndarray, variance: float | None = 0.95, n_modes: int | None = None):
     """PCA of flattened fields (n, D): (mean (D,), modes (M, D) orthonormal, sigma (M,), explained
     fraction of the total variance kept, all singular variances).
 
@@ -209,7 +216,7 @@ def model_figures(V, template, mshape, msp, morg, variance, tolerance_mm, n_mode
     return figures, choice, all_var
 
 
-def beyond_span_covariance(V, n_modes: int, mshape) -> Optional[np.ndarray]:
+def beyond_span_covariance(V, n_modes: int, mshape) -> np.ndarray | None:
     """(6, Z, Y, X) float32 mm^2: per grid point, the covariance (xx, yy, zz, xy, xz, yz) of the
     part of a left-out subject's velocity field that the ``n_modes``-mode PCA of the others does
     not reach (leave-one-out over the rows of V (N, 3 * Z * Y * X)): what lies beyond the model's
@@ -238,23 +245,22 @@ def build_model(template, subjects, out_path, *args, **kwargs) -> str:
     from clgs.io.outputs import lock
 
     with contextlib.ExitStack() as held:
-        try:
+        # a folder that takes no lock file (read-only): an up-to-date model is still read
+        with contextlib.suppress(OSError):
             held.enter_context(lock(out_path, "the model file", wait=True))
-        except OSError:  # a folder that takes no lock file (read-only): an up-to-date model is still read
-            pass
         from clgs.progress import enabled
 
         held.enter_context(enabled(kwargs.get("progress", True)))  # progress=False: no phase lines either
         return _build_model(template, subjects, out_path, *args, **kwargs)
 
 
-def _build_model(template: Template, subjects: Union[Iterable[Subject], Mapping], out_path,
-                variance: float = 0.95, n_modes: Optional[int] = None, max_cells: int = 64,
-                generalisation_tol_mm: Optional[float] = 0.05,
-                registration: Optional[dict] = None, atlas: bool = True, force: bool = False,
-                keep_cache: bool = False, progress: bool = True, extra_meta: Optional[dict] = None,
-                on_subject: Optional[Callable] = None, threads: Optional[int] = 1,
-                run_registrations: Optional[Callable] = None) -> str:
+def _build_model(template: Template, subjects: Iterable[Subject] | Mapping, out_path,
+                variance: float = 0.95, n_modes: int | None = None, max_cells: int = 64,
+                generalisation_tol_mm: float | None = 0.05,
+                registration: dict | None = None, atlas: bool = True, force: bool = False,
+                keep_cache: bool = False, progress: bool = True, extra_meta: dict | None = None,
+                on_subject: Callable | None = None, threads: int | None = 1,
+                run_registrations: Callable | None = None) -> str:
     """Register every subject to the template, PCA the velocities, average the CTs; write one file.
 
     template: the reference :class:`Template`. subjects: Subjects, or a mapping id -> Subject or
@@ -276,10 +282,8 @@ def _build_model(template: Template, subjects: Union[Iterable[Subject], Mapping]
     PCA, atlas and metadata, each a call to a helper, with progress and caching around them.
     """
     from clgs.progress import progress_bar
-
+    from clgs.shape.model import DensityAtlas, ModelFileError, ShapeModel, read_metadata, save_model
     from clgs.shape.registration import RegistrationSettings
-    from clgs.shape.model import (ModelFileError, ShapeModel, DensityAtlas, read_metadata,
-                                  save_model)
 
     out_path = os.fspath(out_path)
     items = _subject_items(subjects)

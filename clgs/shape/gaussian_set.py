@@ -16,8 +16,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from clgs.fit.gaussians import GaussianSet
 from clgs.fit.fixed_points import FixedPointSampler
+from clgs.fit.gaussians import GaussianSet
 from clgs.shape.model import exp_velocity, squarings_for
 from clgs.shape.template import zyx_triple
 
@@ -28,17 +28,13 @@ class ShapeGuidedSet(GaussianSet):
     Leaves: ``alpha`` (M,), raw scales, quaternions, raw densities. ``p_ref`` is fixed."""
 
     MIN_SQUARINGS = 2
-    # the centres through a sparse matrix built once (clgs.fit.fixed_points); False: grid_sample
-    # each time (kept for side-by-side timing, ``clgs bench train --method shape --alternate``)
-    FIXED_POINTS = True
     # The centres between refreshes of exp(v): u(alpha) = u(a0) + J (alpha - a0), J the secant
     # of u over alpha_m = a0_m +- LINEAR_TOL, refreshed (2M + 1 forward-only exponentiations, no
     # backward) once some |alpha_m - a0_m| exceeds LINEAR_TOL. While alpha moves fast (the last
     # step over LINEAR_TOL / 4: early, when its learning rate is high) a linearisation would last
-    # a few iterations only, so there the exact path runs. Measured on the femur model at
-    # LINEAR_TOL = 0.05: the centres within 0.0006 mm (0.0002 voxel) of the exact map, d centres /
-    # d alpha within about 1 % (docs/methods.md; tests/test_fixed_points.py checks a small model). None:
-    # the exact path every iteration.
+    # a few iterations only, so there the exact path runs. How close it stays to the exact map:
+    # docs/methods.md (tests/test_fixed_points.py checks a small model). None: the exact path every
+    # iteration.
     LINEAR_TOL = 0.05
 
     def __init__(self, p_ref_mm, scales, quats, densities, *, shape_model, geometry, box, scale_bounds,
@@ -133,7 +129,10 @@ class ShapeGuidedSet(GaussianSet):
         return self.residual.prior(self.params["residual"], bending)
 
     def _at_ref_points(self, field: torch.Tensor) -> torch.Tensor:
-        if not self.FIXED_POINTS or field.dtype != self.p_ref.dtype:
+        """``field`` (3, Z, Y, X) sampled at ``p_ref``: p_ref never moves, so its trilinear weights
+        are built once into a sparse matrix (:mod:`clgs.fit.fixed_points`); grid_sample only for
+        a field of another dtype."""
+        if field.dtype != self.p_ref.dtype:
             return self.shape_model.sample(field, self.p_ref)
         return self._ref_sampler()(field)
 
@@ -148,18 +147,12 @@ class ShapeGuidedSet(GaussianSet):
             return self.last_u + self.residual_field()
 
     def _model_centres_mm(self, u=None) -> torch.Tensor:
-        if u is None and self.LINEAR_TOL is not None and self.FIXED_POINTS and self._one_dtype():
+        if u is None and self.LINEAR_TOL is not None and self._one_dtype():
             out = self._linear_centres()
             if out is not None:
                 return out
         u = self.displacement() if u is None else u
-        # p_ref never moves, so its trilinear weights are built once into a sparse matrix: the
-        # samples and their gradient wrt u are two sparse products (2-3x faster than grid_sample,
-        # which recomputes the weights and the unneeded gradient wrt the points; the OpenCL
-        # gather, which sorts the points and passes over the whole grid, was slower than that)
-        if not self.FIXED_POINTS or u.dtype != self.p_ref.dtype:
-            return self.p_ref + self.shape_model.sample(u, self.p_ref)
-        return self.p_ref + self._ref_sampler()(u)
+        return self.p_ref + self._at_ref_points(u)
 
     def _one_dtype(self) -> bool:
         return self.shape_model.mean.dtype == self.p_ref.dtype

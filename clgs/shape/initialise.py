@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from clgs.errors import InputError
 
 
@@ -126,10 +127,7 @@ def initialise(template, atlas, geometry, n: int, *, tau: float = 0.5, boundary_
         scales[near, 2] *= tau
     to_scene = SceneMap(geometry)
     overlap = overlap_count(centres, scales, quats, to_scene, backend=backend)
-    if atlas is not None:
-        base = np.asarray(atlas.mean_at(centres), np.float64)
-    else:
-        base = np.full(n, 0.05)
+    base = np.asarray(atlas.mean_at(centres), np.float64) if atlas is not None else np.full(n, 0.05)
     dens = np.maximum(base, 0.0) / np.maximum(overlap, 1.0)
     return ShapeInit(centres, scales, quats, dens, overlap, near)
 

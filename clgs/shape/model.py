@@ -25,7 +25,6 @@ from __future__ import annotations
 import json
 import math
 import zipfile
-from typing import Optional
 
 import numpy as np
 import torch
@@ -106,7 +105,7 @@ def squarings_for(v: torch.Tensor, spacing, min_squarings: int = MIN_SQUARINGS) 
     return n
 
 
-def exp_velocity(v: torch.Tensor, spacing, n_squarings: Optional[int] = None,
+def exp_velocity(v: torch.Tensor, spacing, n_squarings: int | None = None,
                  min_squarings: int = MIN_SQUARINGS, sampler=None) -> torch.Tensor:
     """Displacement u = exp(v) - id (3, Z, Y, X) in mm of a stationary velocity field v (3, Z, Y, X)
     in mm (components x, y, z), by scaling and squaring. Differentiable in v. ``sampler``: as
@@ -165,7 +164,7 @@ class ShapeModel:
     beyond the kept modes (:func:`clgs.shape.builder.beyond_span_covariance`), for the shape
     surface's uncertainty."""
 
-    def __init__(self, mean, modes, sigma, spacing, origin, meta: Optional[dict] = None,
+    def __init__(self, mean, modes, sigma, spacing, origin, meta: dict | None = None,
                  dtype=torch.float32, beyond_cov=None):
         mean = torch.as_tensor(np.asarray(mean) if not isinstance(mean, torch.Tensor) else mean, dtype=dtype)
         modes = torch.as_tensor(np.asarray(modes) if not isinstance(modes, torch.Tensor) else modes, dtype=dtype)
@@ -208,7 +207,7 @@ class ShapeModel:
     def dtype(self):
         return self.mean.dtype
 
-    def to(self, dtype) -> "ShapeModel":
+    def to(self, dtype) -> ShapeModel:
         """A copy in another float dtype (float64 for gradient checks)."""
         return ShapeModel(self.mean.to(dtype), self.modes.to(dtype), self.sigma.to(dtype), self.spacing,
                           self.origin, self.meta, dtype=dtype, beyond_cov=self.beyond_cov)
@@ -230,7 +229,7 @@ class ShapeModel:
         a = self._alpha(alpha) * self.sigma
         return self.mean + torch.tensordot(a, self.modes, dims=1)
 
-    def displacement(self, alpha=None, n_squarings: Optional[int] = None, inverse: bool = False) -> torch.Tensor:
+    def displacement(self, alpha=None, n_squarings: int | None = None, inverse: bool = False) -> torch.Tensor:
         """u = exp(v(alpha)) - id (3, Z, Y, X) mm; with ``inverse`` exp(-v) - id (subject -> template)."""
         v = self.velocity(alpha)
         return exp_velocity(-v if inverse else v, self.spacing, n_squarings)
@@ -255,11 +254,11 @@ class ShapeModel:
         return torch.where(self.sigma > 0, coef / safe, torch.zeros_like(coef))
 
     # ---- files
-    def save(self, path, atlas: Optional["DensityAtlas"] = None, meta: Optional[dict] = None) -> None:
+    def save(self, path, atlas: DensityAtlas | None = None, meta: dict | None = None) -> None:
         save_model(path, self, atlas, meta)
 
     @classmethod
-    def load(cls, path) -> "ShapeModel":
+    def load(cls, path) -> ShapeModel:
         return load_model(path)[0]
 
 
@@ -269,7 +268,7 @@ class DensityAtlas:
     mean, var: (Z, Y, X) float32 (attenuation units of the CT, e.g. per mm); spacing/origin
     (Z, Y, X) mm. Outside the grid both are 0 (air, and no uncertainty)."""
 
-    def __init__(self, mean, var, spacing, origin, meta: Optional[dict] = None):
+    def __init__(self, mean, var, spacing, origin, meta: dict | None = None):
         mean = np.asarray(mean, np.float32)
         var = np.asarray(var, np.float32)
         if mean.ndim != 3 or var.shape != mean.shape or min(mean.shape) < 2:
@@ -332,11 +331,11 @@ class DensityAtlas:
     def var_at(self, points):
         return self.sample(points, "var")
 
-    def save(self, path, meta: Optional[dict] = None) -> None:
+    def save(self, path, meta: dict | None = None) -> None:
         save_model(path, None, self, meta)
 
     @classmethod
-    def load(cls, path) -> "DensityAtlas":
+    def load(cls, path) -> DensityAtlas:
         atlas = load_model(path, need_shape_model=False)[1]
         if atlas is None:
             raise ModelFileError(f"{path} holds no density atlas (the population had no CT volumes)")
@@ -344,8 +343,8 @@ class DensityAtlas:
 
 
 # --------------------------------------------------------------------------------------- files
-def save_model(path, shape_model: Optional[ShapeModel], atlas: Optional[DensityAtlas] = None,
-               meta: Optional[dict] = None) -> None:
+def save_model(path, shape_model: ShapeModel | None, atlas: DensityAtlas | None = None,
+               meta: dict | None = None) -> None:
     """Write a shape model and/or density atlas as one versioned npz, atomically.
 
     ``meta`` (JSON-serialisable) is stored with the format name and version; keys used by clgs:
@@ -385,7 +384,7 @@ def read_metadata(path) -> dict:
                 raise ModelFileError(f"{path} is not a clgs model file (no metadata record)")
             meta = json_from_array(z["metadata"])
     except FileNotFoundError:
-        raise ModelFileError(f"model file {path} does not exist: build it first (clgs <anatomy> build-model)")
+        raise ModelFileError(f"model file {path} does not exist: build it first (clgs <anatomy> build-model)") from None
     except ModelFileError:
         raise
     except _UNREADABLE as exc:

@@ -9,8 +9,6 @@ alone (``tolerance_mm`` None or 0) is the classic rule.
 """
 from __future__ import annotations
 
-from typing import Optional
-
 from clgs.errors import InputError
 
 #: defaults of the rule: 95 % of the variance, or a next mode that gains under 0.05 mm
@@ -18,8 +16,8 @@ VARIANCE = 0.95
 TOLERANCE_MM = 0.05
 
 
-def choose_modes(figures: Optional[dict], n_available: int, variance: Optional[float] = VARIANCE,
-                 tolerance_mm: Optional[float] = TOLERANCE_MM, n_modes: Optional[int] = None) -> dict:
+def choose_modes(figures: dict | None, n_available: int, variance: float | None = VARIANCE,
+                 tolerance_mm: float | None = TOLERANCE_MM, n_modes: int | None = None) -> dict:
     """{"n_modes", "reason", "rule"} for a population whose PCA has ``n_available`` modes and
     whose :func:`clgs.shape.statistics.field_space_figures` are ``figures`` (None when there were
     too few subjects for them: the variance rule alone). ``compactness`` must cover every mode for

@@ -6,9 +6,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from clgs.errors import InputError
 from clgs.geometry import Grid
 from clgs.shape.gaussian_set import ShapeGuidedSet
-from clgs.errors import InputError
 
 
 def shape_prior_term(set_name: str = "shape"):
@@ -61,12 +61,7 @@ class DensityPrior:
     current deformation), as the paper writes it. ``field="all"``: the whole model's field
     everywhere on the sub-grid, against the atlas of the whole scan (bone and the tissue around
     it), with the same confidence ``w``; the free Gaussians then get the atlas's help where the
-    few views leave them undetermined (measured on the femur at 5 views and 600 iterations:
-    +0.3 dB over ``"shape"``)."""
-
-    # the atlas's mean and variance from one trilinear pass (the same bits); False: two, as before
-    # (for ``clgs bench train --method shape --alternate``)
-    ONE_ATLAS_PASS = True
+    few views leave them undetermined (docs/methods.md)."""
 
     def __init__(self, atlas, template, geometry, value_scale: float, s: float, n_points: int,
                  set_name: str = "shape", field: str = "shape"):
@@ -100,12 +95,7 @@ class DensityPrior:
         ``x_bone``, the similarity undone); the tissue around it takes a larger size but not a
         smaller one (a limb has a girth of its own beside its bone's). Points outside the scaled
         bone that the tissue's read would place inside the template's bone (a ring around a
-        smaller bone) are not held.
-
-        Measured on subject 22 scaled to 355 and 558 mm (2 views, 1000 iterations): the whole atlas
-        scaled with the bone held the 355 mm limb to a 0.8-times outline, its tissue 2 dB worse
-        than without a size (3D PSNR 27.68 against 28.57 dB); tissue read unscaled there 29.23 dB.
-        The 558 mm one: tissue scaled with the bone 30.37 dB, its cross-section unscaled 28.56."""
+        smaller bone) are not held (why: docs/methods.md, "The bone's size")."""
         if s.size >= 1.0:  # the tissue takes the bone's size: one read, every point held
             mean, var = self.atlas.mean_var_at(x_bone.double())
             return mean, var, x_bone, torch.ones(len(pts_mm), dtype=pts_mm.dtype)
@@ -116,6 +106,10 @@ class DensityPrior:
         mean, var = self.atlas.mean_var_at(at.double())
         keep = (in_bone | ~in_tissue_read).to(pts_mm.dtype)
         return mean, var, at, keep
+
+    def _atlas_at(self, x_t: torch.Tensor):
+        """The atlas's mean and variance at template points, from one trilinear pass."""
+        return self.atlas.mean_var_at(x_t)
 
     def __call__(self, ctx):
         trainer = ctx.trainer
@@ -140,10 +134,8 @@ class DensityPrior:
             fitted = isinstance(s, ShapeGuidedSet) and s.fits_size
             if fitted and self.field == "all":
                 mean, var, x_t, keep = self._sized_atlas(s, pts_mm, x_t)
-            elif self.ONE_ATLAS_PASS:
-                mean, var = self.atlas.mean_var_at(x_t.double())
             else:
-                mean, var = self.atlas.mean_at(x_t.double()), self.atlas.var_at(x_t.double())
+                mean, var = self._atlas_at(x_t.double())
             mean = mean.float() * self.value_scale
             var = var.float() * self.value_scale ** 2
             w = torch.exp(-var / self.s2)
@@ -151,8 +143,8 @@ class DensityPrior:
                 w = w * keep
             # the atlas says nothing beyond its grid (the template's): where a larger scan (a longer
             # bone) reaches past it, the field is left to the projections, not pulled to the zeros
-            # the atlas reads there (tested on the scan's points, so a scan on the atlas's grid
-            # gives the same bits as before)
+            # the atlas reads there (tested on the scan's points: on the atlas's own grid every
+            # point is inside)
             # (with a fitted size the atlas is read at x_t, in the model's frame and size: that is
             # the point tested)
             w = w * self._inside_atlas(x_t if fitted else pts_mm)

@@ -16,14 +16,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
-from typing import Optional
 
 import numpy as np
 import torch
 
-from clgs.shape.model import exp_velocity, jacobian_determinant, sample_field, squarings_for
-from clgs.shape.template import zyx_triple, box_grid, grid_points
 from clgs.errors import InputError
+from clgs.shape.model import exp_velocity, jacobian_determinant, sample_field, squarings_for
+from clgs.shape.template import box_grid, grid_points, zyx_triple
 
 
 @dataclass(frozen=True)
@@ -55,7 +54,7 @@ class RegistrationSettings:
         return d
 
     @classmethod
-    def from_dict(cls, d: Optional[dict]) -> "RegistrationSettings":
+    def from_dict(cls, d: dict | None) -> RegistrationSettings:
         d = dict(d or {})
         for k in ("levels", "iterations"):
             if k in d:
@@ -126,8 +125,8 @@ class _threads:
 
 
 def register(fixed_sdf, fixed_spacing, fixed_origin, moving_sdf, moving_spacing, moving_origin,
-             settings: Optional[RegistrationSettings] = None, surface_points=None,
-             init_velocity=None, threads: Optional[int] = 1) -> Registration:
+             settings: RegistrationSettings | None = None, surface_points=None,
+             init_velocity=None, threads: int | None = 1) -> Registration:
     """Register a subject (moving) to the template (fixed); both given as signed distances (mm).
 
     fixed_*: the template's signed distance on the MODEL grid (the velocity's grid).

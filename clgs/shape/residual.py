@@ -85,7 +85,7 @@ class ResidualGrid:
     def zeros(self) -> torch.Tensor:
         return torch.zeros(self.coefficient_shape, dtype=self.dtype)
 
-    def to(self, dtype) -> "ResidualGrid":
+    def to(self, dtype) -> ResidualGrid:
         return ResidualGrid(self.shape, self.spacing, self.points, dtype=dtype)
 
     def _check(self, theta: torch.Tensor) -> torch.Tensor:

@@ -11,10 +11,8 @@ The tissue around the bone is the atlas's, around the template's bone. A limb's 
 does not scale with its femur (the simulated limbs: at least 70 x 65 mm semi-axes, 25 mm of muscle
 around the bone), but the limb runs the whole length of the scan; so the tissue is stretched along
 the leg only, and only for a larger bone (a smaller one sits inside a grid that the template's
-tissue already fills). Measured on the femur (2 views, subject 22 scaled to 355 and 558 mm, true
-sizes 0.80 and 1.26): the search gives 0.74 and 1.22, and 1.00-1.04 for subject 20 at its own size;
-scaling the tissue with the bone gave 0.90 / 1.12, leaving it as it is 0.74 / 1.38. The fit then
-refines ``s`` with everything else (:func:`clgs.methods.shape_guided.fit_initial_alpha`)."""
+tissue already fills; what the search gives on the femur: docs/methods.md). The fit then refines
+``s`` with everything else (:func:`clgs.methods.shape_guided.fit_initial_alpha`)."""
 from __future__ import annotations
 
 import numpy as np

@@ -20,7 +20,7 @@ so a leave-one-out PCA of a large field costs no more than one of a small surfac
 """
 from __future__ import annotations
 
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import numpy as np
 
@@ -48,7 +48,7 @@ def _gram_pca(gram: np.ndarray, measured: np.ndarray):
     return measured.mean(0), modes, s / np.sqrt(max(n - 1, 1)), u, safe
 
 
-def field_space_figures(rows, measure: Optional[Callable] = None, max_modes: Optional[int] = None,
+def field_space_figures(rows, measure: Callable | None = None, max_modes: int | None = None,
                         n_samples: int = 200, seed: int = 0) -> dict:
     """{"modes": [1..K], "compactness", "generalisation_mm", "specificity_mm": one per mode count}
     of a PCA of ``rows`` (N, D), the distances measured on ``measure(rows)`` ((k, D) -> (k, P*3)

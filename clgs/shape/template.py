@@ -16,13 +16,12 @@ import hashlib
 import json
 import zipfile
 from dataclasses import dataclass, field
-from typing import Optional
 
 import numpy as np
 
-from clgs.mesh import voxels as meshvol
-from clgs.io.mesh import check_mesh
 from clgs.errors import InputError
+from clgs.io.mesh import check_mesh
+from clgs.mesh import voxels as meshvol
 
 TEMPLATE_FORMAT = "clgs.template"
 TEMPLATE_VERSION = 1
@@ -63,7 +62,7 @@ def box_grid(lo_xyz, hi_xyz, max_cells: int = None, spacing: float = None):
     return (tuple(int(v) for v in n[::-1]), (float(spacing),) * 3, tuple(float(v) for v in origin_xyz[::-1]))
 
 
-def sample_volume(volume, spacing, origin, points, fill: Optional[float] = 0.0, order: int = 1) -> np.ndarray:
+def sample_volume(volume, spacing, origin, points, fill: float | None = 0.0, order: int = 1) -> np.ndarray:
     """Trilinear (order 1) samples of a (Z, Y, X) volume at points (..., 3) (x, y, z mm);
     ``fill`` outside the grid, or the nearest border value when ``fill`` is None."""
     from scipy.ndimage import map_coordinates
@@ -173,7 +172,7 @@ class Template:
     faces: np.ndarray
     spacing: tuple
     origin: tuple
-    normals: Optional[np.ndarray] = None
+    normals: np.ndarray | None = None
     name: str = ""
     meta: dict = field(default_factory=dict)
 
@@ -199,7 +198,7 @@ class Template:
     # ---- construction
     @classmethod
     def from_mesh(cls, vertices, faces, spacing: float = 2.0, margin: float = 10.0, name: str = "",
-                  shape=None, origin=None, meta=None) -> "Template":
+                  shape=None, origin=None, meta=None) -> Template:
         """Voxelise a closed surface: a grid of isotropic ``spacing`` mm around it with ``margin`` mm
         on every side (or the given ``shape``/``origin``)."""
         v, f = _check_mesh(vertices, faces)
@@ -277,7 +276,7 @@ class Template:
             metadata=json_array(meta)))
 
     @classmethod
-    def load(cls, path) -> "Template":
+    def load(cls, path) -> Template:
         try:
             return cls._load(path)
         except ValueError:
@@ -287,7 +286,7 @@ class Template:
                              "rebuild the template") from exc
 
     @classmethod
-    def _load(cls, path) -> "Template":
+    def _load(cls, path) -> Template:
         with np.load(path, allow_pickle=False) as z:
             if "metadata" not in z.files:
                 raise InputError(f"{path} is not a clgs template (no metadata)")
@@ -313,9 +312,9 @@ class Subject:
     id: str
     vertices: np.ndarray
     faces: np.ndarray
-    volume: Optional[np.ndarray] = None
-    spacing: Optional[tuple] = None
-    origin: Optional[tuple] = None
+    volume: np.ndarray | None = None
+    spacing: tuple | None = None
+    origin: tuple | None = None
     meta: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -334,7 +333,7 @@ class Subject:
         """Signed distance (mm) of the subject's surface on a grid."""
         return mesh_to_sdf(self.vertices, self.faces, shape, spacing, origin)
 
-    def volume_at(self, points, fill: Optional[float] = 0.0) -> np.ndarray:
+    def volume_at(self, points, fill: float | None = 0.0) -> np.ndarray:
         """CT values at points (..., 3) (x, y, z mm), trilinear; ``fill`` (default 0, air) outside
         the volume, or the nearest border value when ``fill`` is None."""
         if self.volume is None:

@@ -30,7 +30,7 @@ colour map (Slicer's PLY reader keeps only positions, normals and colours).
 """
 from __future__ import annotations
 
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import numpy as np
 
@@ -144,7 +144,7 @@ def shape_uncertainty(trainer, shape_set, vertices, faces, step: float = STEP, s
             "alpha_sd": [float(x) for x in np.sqrt(np.diag(cov))]}
 
 
-def write_uncertainty_files(out_dir, vertices, faces, values, parts: Optional[dict] = None) -> dict:
+def write_uncertainty_files(out_dir, vertices, faces, values, parts: dict | None = None) -> dict:
     """``shape_uncertainty.ply`` (binary PLY, vertex property ``uncertainty_mm``) and
     ``shape_uncertainty.vtk`` (legacy VTK polydata, point scalar ``uncertainty_mm``: what 3D
     Slicer shows as a model's scalars) in ``out_dir``, both in LPS with ``SPACE=LPS`` in the header
@@ -190,7 +190,7 @@ def read_uncertainty_ply(path) -> tuple:
     return mesh.vertices, mesh.faces, values.reshape(-1)
 
 
-def summary(field: dict, extra: Optional[dict] = None) -> dict:
+def summary(field: dict, extra: dict | None = None) -> dict:
     """Mean and largest value (mm) of the field and of its two parts, for the run's report."""
     def r4(x):
         return round(float(x), 4)

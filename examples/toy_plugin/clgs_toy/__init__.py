@@ -114,7 +114,7 @@ _template = None
 
 def load_template():
     """The mean shape on the CT grid."""
-    global _template
+    global _template  # noqa: PLW0603 - loaded once per process
     if _template is None:
         from clgs.shape.template import Template
 
