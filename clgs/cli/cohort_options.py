@@ -16,7 +16,12 @@ def cohort_options(fn):
 
 
 def check_cohort_options(workers, scheduler) -> None:
-    if workers and scheduler:
-        raise click.UsageError("give --workers N (a local cluster) or --scheduler ADDRESS (a running one), not both")
-    if scheduler is not None and "://" not in scheduler:
-        raise click.BadParameter(f"{scheduler!r}: give the address as tcp://HOST:PORT", param_hint="--scheduler")
+    """The one check of the library (:func:`clgs.cohort.cluster.check_choice`), before any work;
+    its error is printed as the command's."""
+    from clgs.cohort.cluster import check_choice
+    from clgs.errors import InputError
+
+    try:
+        check_choice(workers or None, scheduler)
+    except InputError as exc:
+        raise click.UsageError(str(exc)) from exc
