@@ -40,8 +40,7 @@ from typing import Callable, Optional, Union
 from clgs.errors import ClgsError
 from clgs.limits import MAX_ITERATIONS
 
-__all__ = ["Method", "Option", "register", "register_lazy", "get", "names", "describe", "MethodError",
-           "run_method", "accepted_settings", "check_method_settings"]
+__all__ = ["Method", "Option", "register", "register_lazy", "get", "names", "describe", "MethodError"]
 
 
 @dataclass(frozen=True)
@@ -216,13 +215,3 @@ register(Method(
 register_lazy("r2gs", "clgs.methods.r2gs", help="R2-Gaussian: radiative Gaussian splatting (slow, best at few views)")
 register_lazy("shape", "clgs.methods.shape_guided",
               help="shape-guided Gaussian splatting with an anatomy's shape model and density atlas")
-
-
-def __getattr__(name):
-    """``run_method``, ``accepted_settings``, ``check_method_settings`` from :mod:`clgs.methods.run`
-    (loaded on first use)."""
-    if name in ("run_method", "accepted_settings", "check_method_settings"):
-        from clgs.methods import run
-
-        return getattr(run, name)
-    raise AttributeError(f"module 'clgs.methods' has no attribute {name!r}")
