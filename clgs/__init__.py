@@ -18,6 +18,9 @@ Classical CT
     ``fdk``, ``sart``.
 Gaussian methods
     ``reconstruct_r2gs`` (R2-Gaussian), ``reconstruct_shape_guided`` (with an anatomy's shape model).
+Any registered method
+    ``run_method`` (a method by name, its settings checked: the one way the command line, batches
+    and experiments run one).
 Figures and anatomies
     ``metrics`` (3D PSNR / SSIM, surface distance), ``plugins`` (installed anatomies:
     ``get_anatomy``, ``anatomy_names``), ``get_anatomy``, ``Anatomy``.
@@ -50,6 +53,7 @@ _HOMES = {
     "mu_to_hu": "clgs.io.units",
     "reconstruct_r2gs": "clgs.methods.r2gs",
     "reconstruct_shape_guided": "clgs.methods.shape_guided",
+    "run_method": "clgs.methods.run",
     "metrics": "clgs.metrics:",
     "plugins": "clgs.anatomy.plugins:",
     "get_anatomy": "clgs.anatomy.plugins",
@@ -74,6 +78,7 @@ if _TYPE_CHECKING:  # what the lazy loading below gives, spelled out for type ch
     from clgs.io.units import hu_to_mu, mu_to_hu  # noqa: F401
     from clgs.io.volume import load_volume, save_volume  # noqa: F401
     from clgs.methods.r2gs import reconstruct_r2gs  # noqa: F401
+    from clgs.methods.run import run_method  # noqa: F401
     from clgs.methods.shape_guided import reconstruct_shape_guided  # noqa: F401
     from clgs.ops.ct_projector import CTProjector  # noqa: F401
     from clgs.ops.projector import project  # noqa: F401

@@ -44,28 +44,26 @@ METHOD_LABELS = {
 
 
 def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: bool, settings: dict) -> dict:
-    """One reconstruction: volume, seconds, error-against-time history and, for the methods bound
-    to the shape model, the template surface carried by the fitted alpha."""
+    """One reconstruction, through :func:`clgs.methods.run.run_method` (the registered method; the
+    shape-bound variants are its settings, :data:`SHAPE_VARIANTS`): volume, seconds,
+    error-against-time history and, for the methods bound to the shape model, the template surface
+    carried by the fitted alpha."""
+    from clgs.methods.run import method_accepts, run_method
+
     t0 = time.perf_counter()
     history, model_surface, jac_min, model_size, split = [], None, None, None, None
-    if method == "fdk":
-        from clgs.ct.fdk import fdk
+    name, variant = EXPERIMENT_METHODS[method]
+    chosen = {**settings.get(name, {}), **variant}  # settings are grouped by registered method: "r2gs", "shape"
+    if method_accepts(name, "iterations"):
+        chosen = {"iterations": iterations, **chosen}
+    out = run_method(name, scan, None, chosen, anatomy=anatomy, seed=seed, progress=progress)
+    volume = np.asarray(out["volume"], np.float32)
+    res = out.get("result")
+    if res is not None:
+        history = res.log.rows
+    if method in SHAPE_METHODS:
+        from clgs.methods.shape_guided import deformed_template_surface
 
-        volume = np.asarray(fdk(scan.projections, scan.geometry), np.float32)
-    elif method == "r2gs":
-        from clgs.methods.r2gs import reconstruct_r2gs
-
-        res = reconstruct_r2gs(scan, None, iterations, progress=progress, seed=seed, **settings.get("r2gs", {}))
-        volume, history = res.volume, res.log.rows
-    else:
-        from clgs.methods.shape_guided import deformed_template_surface, reconstruct_shape_guided
-
-        flags = {"init": dict(shape_prior=False, density_prior=False),
-                 "init+shape": dict(shape_prior=True, density_prior=False),
-                 "shape": dict(shape_prior=True, density_prior=True)}[method]
-        res = reconstruct_shape_guided(scan, anatomy, None, iterations, progress=progress, seed=seed,
-                                       **flags, **settings.get("shape", {}))
-        volume, history = res.volume, res.log.rows
         model_surface = deformed_template_surface(anatomy.template, res.trainer.sets[0])
         if model_surface is not None and anatomy.shape_model is not None:  # the deformation must never fold
             jac_min = float(np.min(anatomy.shape_model.jacobian_determinant(res.trainer.sets[0].alpha.detach())))
@@ -138,6 +136,12 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
 
 
 SHAPE_METHODS = ("init", "init+shape", "shape")  # the runs that need the anatomy's model and atlas
+# each as settings of the registered shape-guided method (its ablation switches)
+SHAPE_VARIANTS = {"init": dict(shape_prior=False, density_prior=False),
+                  "init+shape": dict(shape_prior=True, density_prior=False),
+                  "shape": dict(shape_prior=True, density_prior=True)}
+# the experiment's methods: (registered method, its settings that make the variant)
+EXPERIMENT_METHODS = {"fdk": ("fdk", {}), "r2gs": ("r2gs", {}), **{m: ("shape", v) for m, v in SHAPE_VARIANTS.items()}}
 
 
 def view_plan(views) -> dict:

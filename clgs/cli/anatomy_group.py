@@ -140,16 +140,14 @@ def default_method(anatomy) -> str:
 
 
 def method_accepts(method: str, option: str) -> bool:
-    """Whether the registered method's callable takes ``option`` (False when unknown)."""
-    import inspect
-
+    """Whether the registered method takes the setting ``option`` (False when unknown):
+    :func:`clgs.methods.run.method_accepts`."""
     try:
-        from clgs import methods
+        from clgs.methods.run import method_accepts as accepts
 
-        params = inspect.signature(methods.get(method).callable()).parameters
+        return accepts(method, option)
     except Exception:  # noqa: BLE001 - unknown or unimportable: the run reports it properly
         return False
-    return option in params or any(p.kind == p.VAR_KEYWORD for p in params.values())
 
 
 def _get_method(method: str):
@@ -166,8 +164,8 @@ def _get_method(method: str):
 
 
 def run_reconstruct(scan, anatomy, method: str, out=None, surface_level=None, **options):
-    """Reconstruct with a method of the registry (:mod:`clgs.methods`); the anatomy goes to the
-    methods that name an ``anatomy`` parameter (the others would take it for a setting). Returns
+    """Reconstruct with a method of the registry through :func:`clgs.methods.run.run_method` (the
+    anatomy goes to the methods that name an ``anatomy`` parameter). Returns
     the method's result dict (at least ``volume``). With ``out``, ``out/volume.npy`` is (over)written
     atomically with the volume just computed, whatever an earlier run left there (and
     ``out/volume.nii.gz`` for viewers), and so are the bone surface ``out/surface.stl`` (with
@@ -175,15 +173,10 @@ def run_reconstruct(scan, anatomy, method: str, out=None, surface_level=None, **
     ``surface_level`` when given; a method that writes its own, as the shape-guided one does, is
     given the level) and the slice panel ``out/slices.png``; ``result["surface"]`` and
     ``result["slices"]`` record them."""
-    import inspect
+    from clgs.methods.run import run_method
 
-    _, run = _get_method(method)
-    params = inspect.signature(run).parameters
-    if "anatomy" in params:
-        options["anatomy"] = anatomy
-    if "surface_level" in params and surface_level is not None:
-        options["surface_level"] = surface_level
-    result = run(scan, out, **options)
+    _get_method(method)  # an unknown or broken method: a click error
+    result = run_method(method, scan, out, options, anatomy=anatomy, surface_level=surface_level)
     if out is not None and "volume" in result:
         from clgs.anatomy.bone_level import choose_level
         from clgs.anatomy.evaluation import write_bone_surface

@@ -302,20 +302,26 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
             if is_verbose():
                 _say_detail(method, options, sc, time.perf_counter() - t_start)
             try:
-                run = method.callable()
+                method.callable()
             except (ImportError, AttributeError) as exc:
                 raise click.ClickException(f"method {method.name!r} could not be loaded: {exc}") from None
+            from clgs.methods.run import run_method
+
+            def run(scan_, folder):
+                """The one way to run a method (the settings were checked above)."""
+                return run_method(method, scan_, folder, kwargs)
+
             if is_volume_path(out):
                 t0 = time.perf_counter()
-                finish(run(sc, None, **kwargs), t0, None)
+                finish(run(sc, None), t0, None)
             elif method.atomic_dir:
                 with atomic.atomic_dir(out, overwrite=force) as tmp:
                     t0 = time.perf_counter()
-                    finish(run(sc, tmp, **kwargs), t0, tmp)
+                    finish(run(sc, tmp), t0, tmp)
             else:
                 out.mkdir(parents=True, exist_ok=True)
                 t0 = time.perf_counter()
-                finish(run(sc, out, **kwargs), t0, out)
+                finish(run(sc, out), t0, out)
         except (MemoryError, RuntimeError) as exc:
             if not is_out_of_memory(exc):
                 raise

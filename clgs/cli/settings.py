@@ -1,7 +1,8 @@
 """``--set KEY=VALUE``: a method's settings given by name on ``clgs <anatomy> reconstruct | demo``.
 
-Settings are checked before a run starts: the keys against the method's settings (its config
-dataclass's fields for the Gaussian methods, else its callable's parameters), the values against
+Settings are checked before a run starts: the keys against the method's settings
+(:func:`clgs.methods.run.accepted_settings`: its config dataclass's fields for the Gaussian
+methods, else its callable's parameters), the values against
 the fields' types, the method's options (ranges, choices, :mod:`clgs.cli.options`), the config's
 own checks (kinds, ranges: JsonConfig) and, for methods without a config, the ranges below.
 """
@@ -14,10 +15,6 @@ import click
 from clgs.cli.options import method_params
 from clgs.limits import MAX_ITERATIONS
 
-_EXTRA_KEYWORDS = {  # method -> keyword arguments its run passes on beside its config's fields
-    "shape": {"level": float | None},
-}
-_NOT_SETTINGS = {"scan", "out_dir", "out", "anatomy"}  # given by the command itself
 _RANGES = [  # every method (the configs check their own ranges too); beyond MAX_ITERATIONS is a typo, not a plan
     (("iterations", "subsets"), lambda v: 1 <= v <= MAX_ITERATIONS, f"between 1 and {MAX_ITERATIONS:,}"),
 ]
@@ -30,47 +27,21 @@ def _range_rule(key: str):
     return None
 
 
-def _type_hints(obj) -> dict:
-    import typing
-
-    try:
-        return typing.get_type_hints(obj)
-    except Exception:  # noqa: BLE001 - unresolvable annotations: no type check for them
-        return {}
-
-
-def method_settings(method: str, m, run) -> tuple:
+def method_settings(method: str, m, run=None) -> tuple:
     """(key -> type hint or None, key -> click option, open, config dataclass or None): the settings
-    ``--set`` may give the method; ``open`` when the method takes keywords this cannot list (any
-    key is then passed on)."""
-    import dataclasses
-    import inspect
+    ``--set`` may give the method (:func:`clgs.methods.run.settings_spec`, the one answer, plus the
+    click options that convert their values); ``open`` when the method takes keywords this cannot
+    list (any key is then passed on)."""
+    from clgs.methods.run import NOT_SETTINGS, settings_spec
 
-    hints: dict = {}
-    params = inspect.signature(run).parameters
-    run_hints = _type_hints(run)
-    takes_kwargs = False
-    for i, (k, p) in enumerate(params.items()):
-        if p.kind == p.VAR_KEYWORD:
-            takes_kwargs = True
-        elif p.kind != p.VAR_POSITIONAL and i > 0 and k not in _NOT_SETTINGS:
-            hints[k] = run_hints.get(k)
-    extra = _EXTRA_KEYWORDS.get(method, {})
-    cls = None
-    if m.config is not None and takes_kwargs:
-        cls = m.config_class()
-        cls_hints = _type_hints(cls)
-        for f in dataclasses.fields(cls):
-            hints.setdefault(f.name, cls_hints.get(f.name))
-        for k, h in extra.items():
-            hints.setdefault(k, h)
+    hints, open_, cls = settings_spec(m)
     try:
-        options = {o.name: o for o in method_params(m) if o.name and o.name not in _NOT_SETTINGS}
+        options = {o.name: o for o in method_params(m) if o.name and o.name not in NOT_SETTINGS}
     except Exception:  # noqa: BLE001 - a method without usable options: its parameters still count
         options = {}
     for k in options:
         hints.setdefault(k, None)
-    return hints, options, takes_kwargs and cls is None, cls
+    return hints, options, open_, cls
 
 
 def _accepts(hint, value) -> bool:
@@ -151,8 +122,9 @@ def check_settings(method: str, m, run, opts: dict, raw: dict | None = None) -> 
 
 def unknown_setting(key: str, owner: str, valid) -> click.BadParameter:
     """The one refusal of an unknown ``--set`` key, everywhere: it names the valid keys."""
-    return click.BadParameter(f"unknown setting {key!r} for {owner}; valid keys: {', '.join(sorted(valid))}",
-                              param_hint="--set")
+    from clgs.methods.run import unknown_setting_message
+
+    return click.BadParameter(unknown_setting_message(key, owner, valid), param_hint="--set")
 
 
 def parse_settings(pairs, raw: dict | None = None) -> dict:

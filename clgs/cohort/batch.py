@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import csv
 import hashlib
-import inspect
 import json
 import os
 import signal
@@ -128,11 +127,16 @@ def plan(runs, out_dir) -> list:
     before any run: inside the batch folder (not the folder itself, nor its summary), never in a
     scan folder, names the file system takes, no two runs in one folder or one inside another."""
     from clgs.io.outputs import OutputError, check_place
+    from clgs.methods.run import UnknownSettingError, check_method_settings
 
     out_dir = Path(os.path.abspath(out_dir)).resolve()
     planned, seen = [], {}
     for i, r in enumerate(runs, 1):
         settings = r["settings"] if isinstance(r["settings"], dict) else parse_pairs(r["settings"])
+        try:  # an unknown key is refused before any run, as the command line and run_method refuse it
+            check_method_settings(r["method"], settings)
+        except UnknownSettingError as exc:
+            raise InputError(f"{_row(i, r)}: {exc}") from None
         name = r.get("out") or default_name(r["scan"], r["method"], settings, r.get("seed"))
         given = Path(os.path.expanduser(str(name)))
         folder = Path(os.path.abspath(given if given.is_absolute() else out_dir / given))
@@ -158,17 +162,6 @@ def plan(runs, out_dir) -> list:
     return planned
 
 
-def _accepts(fn, method, key: str) -> bool:
-    params = inspect.signature(fn).parameters
-    if key in params:
-        return True
-    if any(p.kind == p.VAR_KEYWORD for p in params.values()) and method.config is not None:
-        import dataclasses
-
-        return key in {f.name for f in dataclasses.fields(method.config_class())}
-    return False
-
-
 def made_with(run: dict) -> dict:
     """What a run's record depends on: a kept record is reused only when these match."""
     return {"scan": run["scan"], "method": run["method"], "seed": run["seed"],
@@ -188,18 +181,14 @@ def read_record(folder):
     return record if isinstance(record, dict) else None
 
 
-def _resume_kwargs(fn, m, settings: dict) -> dict | None:
-    """The keyword arguments that continue a method's run from its checkpoint (None: it cannot)."""
-    if not _accepts(fn, m, "resume"):
+def _resume_settings(method: str, settings: dict) -> dict | None:
+    """The settings that continue a method's run from its checkpoint, given to
+    :func:`clgs.methods.run.run_method` with ``resume=True`` (None: the method cannot resume)."""
+    from clgs.methods.run import method_accepts
+
+    if not method_accepts(method, "resume"):
         return None
-    kwargs = {"resume": True}
-    if _accepts(fn, m, "iterations"):  # None: to the iterations the run was started with
-        kwargs["iterations"] = settings.get("iterations")
-    if "backend" in settings:
-        kwargs["backend"] = settings["backend"]
-    if _accepts(fn, m, "progress"):
-        kwargs["progress"] = False
-    return kwargs
+    return {k: settings[k] for k in ("iterations", "backend") if k in settings}
 
 
 def batch_run(scan: str, method: str, settings: dict, seed, out: str) -> dict:
@@ -221,14 +210,9 @@ def batch_run(scan: str, method: str, settings: dict, seed, out: str) -> dict:
     from clgs.io import atomic, outputs
     from clgs.io.reconstruction import save_reconstruction
     from clgs.io.scan import Scan
+    from clgs.methods.run import check_method_settings, run_method
 
-    m = methods.get(method)
-    fn = m.callable()
-    kwargs = dict(settings)
-    if seed is not None and _accepts(fn, m, "seed"):
-        kwargs["seed"] = int(seed)
-    if _accepts(fn, m, "progress"):
-        kwargs.setdefault("progress", False)
+    check_method_settings(methods.get(method), settings)
     folder = Path(out)
     want = made_with({"scan": scan, "method": method, "seed": seed, "settings": settings})
     sc = Scan.load(scan)
@@ -237,7 +221,7 @@ def batch_run(scan: str, method: str, settings: dict, seed, out: str) -> dict:
         resume = None
         if (before and before.get("status") in (STATUS_RUNNING, STATUS_INTERRUPTED)
                 and {k: before.get(k) for k in want} == want and (folder / CHECKPOINT).is_file()):
-            resume = _resume_kwargs(fn, m, settings)
+            resume = _resume_settings(method, settings)
         if resume is None:
             outputs.clear(folder)  # an earlier attempt's files (a killed worker, a cut run): start afresh
         existed = folder.is_dir()
@@ -246,13 +230,16 @@ def batch_run(scan: str, method: str, settings: dict, seed, out: str) -> dict:
         t0 = time.perf_counter()
         try:
             try:
-                result = fn(sc, str(folder), **(resume or kwargs))
+                if resume is not None:
+                    result = run_method(method, sc, str(folder), resume, resume=True, progress=False)
+                else:
+                    result = run_method(method, sc, str(folder), settings, seed=seed, progress=False)
             except CheckpointError:
                 if resume is None:
                     raise
                 outputs.clear(folder)  # a checkpoint that cannot be resumed: the run starts afresh
                 atomic.write_json(folder / RECORD, {**want, "status": STATUS_RUNNING})
-                result = fn(sc, str(folder), **kwargs)
+                result = run_method(method, sc, str(folder), settings, seed=seed, progress=False)
         except BaseException as exc:
             if (folder / CHECKPOINT).is_file():
                 status = STATUS_INTERRUPTED if isinstance(exc, KeyboardInterrupt) else STATUS_FAILED

@@ -50,7 +50,7 @@ from clgs.methods.registry import (
 )
 
 __all__ = ["Method", "Option", "register", "register_lazy", "get", "names", "describe", "MethodError", "GROUP",
-           "Registrar", "manager"]
+           "Registrar", "manager", "run_method", "accepted_settings", "check_method_settings"]
 
 # the registry's state, for tests that patch it (the dicts are shared)
 _REGISTRY, _LAZY = registry._REGISTRY, registry._LAZY

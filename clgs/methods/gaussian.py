@@ -13,7 +13,7 @@ RUN_OPTIONS = [
 
 
 def method_output(result, out_dir, files: dict, **extra) -> dict:
-    """``{"volume", "files", "info"}`` of a finished (or interrupted) run; its summary, and how to
+    """``{"volume", "files", "info", "result"}`` of a finished (or interrupted) run; its summary, and how to
     continue an interrupted one, go to stderr. ``extra``: more figures for the report."""
     print(result.summary, file=sys.stderr)
     if result.interrupted:
@@ -22,4 +22,5 @@ def method_output(result, out_dir, files: dict, **extra) -> dict:
     info = {"iterations": result.trainer.iteration, "n_gaussians": result.trainer.n_gaussians,
             "training_seconds": result.trainer.seconds, "value_scale": result.value_scale,
             "interrupted": result.interrupted, "stop_signal": getattr(result.trainer, "stop_signal", None), **extra}
-    return {"volume": result.volume, "files": files, "info": info}
+    # "result": the method's whole result (log, trainer), for Python callers such as the experiment
+    return {"volume": result.volume, "files": files, "info": info, "result": result}
