@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from clgs.errors import InputError
 
 
@@ -105,7 +106,7 @@ def align_rigid(vertices, reference_vertices, allow_mirror: bool = True, max_ite
                                       / max(((src - src.mean(0)) ** 2).sum(1).mean(), 1e-30)))
             trans = ref.mean(0) - scale * rot @ src.mean(0)
             prev = np.inf
-            for it in range(1, max_iter + 1):
+            for it in range(1, max_iter + 1):  # noqa: B007 - the count reached is recorded below
                 moved = scale * src @ rot.T + trans
                 d, idx = ref_tree.query(moved)
                 rot, trans, scale = _kabsch(src, ref[idx], with_scale=allow_scale)

@@ -40,9 +40,9 @@ import numpy as np
 
 # the surface -> label / signed distance steps live in clgs.mesh.voxels (shared with clgs.shape.template)
 from clgs.anatomy.alignment import principal_axes
+from clgs.errors import InputError
 from clgs.io.mesh import check_mesh
 from clgs.mesh.voxels import as_grid, grid_axes, mesh_to_label, signed_distance
-from clgs.errors import InputError
 
 # version of the phantom model: part of the key of cached models built from phantoms
 PHANTOM_VERSION = 2

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import importlib.metadata
 import warnings
-from typing import Optional
 
 import pluggy
 
@@ -56,12 +55,12 @@ class Registry:
         self.pm = pluggy.PluginManager(hookspecs.PROJECT)
         self.pm.add_hookspecs(hookspecs)
         self._package = {}  # plugin name -> (distribution name, version)
-        self._anatomies: Optional[dict] = None
+        self._anatomies: dict | None = None
         self.failures = []  # (plugin name, package, reason)
         self._commands_added = set()  # ids of the root groups already given the plugins' commands
 
     # ---- registration
-    def register(self, plugin, name: Optional[str] = None, package: str = "", version: str = "") -> None:
+    def register(self, plugin, name: str | None = None, package: str = "", version: str = "") -> None:
         """Register a plugin object (module or instance with ``clgs_anatomies``) from ``package``."""
         name = self.pm.register(plugin, name=name)
         self._package[name] = (package or name, version)
@@ -108,9 +107,8 @@ class Registry:
         if self._anatomies is not None:
             return self._anatomies
         found = {}
-        for impl, package, version, result in self._results("clgs_anatomies"):
-            if isinstance(result, Anatomy):
-                result = [result]
+        for impl, package, version, returned in self._results("clgs_anatomies"):
+            result = [returned] if isinstance(returned, Anatomy) else returned
             if not isinstance(result, (list, tuple)) or not all(isinstance(a, Anatomy) for a in result):
                 self._warn(impl.plugin_name, package, "clgs_anatomies() must return a list of clgs.anatomy.Anatomy, "
                                                       f"got {type(result).__name__}")
@@ -206,12 +204,12 @@ def _check_name(name) -> str:
     return ""
 
 
-_default: Optional[Registry] = None
+_default: Registry | None = None
 
 
 def registry(reload: bool = False) -> Registry:
     """The process-wide registry, loaded from installed entry points on first use."""
-    global _default
+    global _default  # noqa: PLW0603 - the process-wide registry, loaded once
     if _default is None or reload:
         reg = Registry()
         reg.load_entry_points()

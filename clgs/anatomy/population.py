@@ -8,13 +8,12 @@ import os
 import numpy as np
 
 from clgs.anatomy.alignment import align_rigid
-from clgs.anatomy.record import Anatomy, Scene
 from clgs.anatomy.phantom import PHANTOM_VERSION, DensityParams, Phantom, make_phantom
+from clgs.anatomy.record import Anatomy, Scene
+from clgs.errors import InputError
 from clgs.geometry import DETECTOR_MARGIN, shadow_half_extents
 from clgs.io.mesh import check_mesh
 from clgs.mesh.voxels import as_grid, mesh_to_label, signed_distance
-from clgs.errors import InputError
-
 
 #: version of :meth:`SurfacePopulation.population_fit`'s record (a new one is computed when it changes)
 FIT_VERSION = 1
@@ -91,7 +90,7 @@ class SurfacePopulation:
 
     @classmethod
     def centred(cls, *, shape, spacing_mm: float, pixel_mm: float, n_views: int = 50, arc_deg: float = 180.0,
-                DSO: float = 1000.0, DSD: float = 1500.0, **kwargs) -> "SurfacePopulation":
+                DSO: float = 1000.0, DSD: float = 1500.0, **kwargs) -> SurfacePopulation:
         """A population on a grid of ``shape`` (Z, Y, X) isotropic ``spacing_mm`` voxels centred on the
         rotation axis, scanned in cone beam (DSO/DSD mm) with ``pixel_mm`` detector pixels sized to
         see it whole; ``kwargs`` are the remaining constructor arguments."""
@@ -186,9 +185,8 @@ class SurfacePopulation:
 
     def load_subject(self, sid, grid=None):
         """Subject with its surface (mm) and simulated CT volume (1/mm) on the CT grid."""
-        from clgs.shape.template import Subject
-
         from clgs.progress import phase
+        from clgs.shape.template import Subject
 
         sid = str(sid)
         with phase(f"the CT phantom of {self.name} subject {sid}"):

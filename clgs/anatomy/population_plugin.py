@@ -13,7 +13,7 @@ Light to import: :mod:`clgs.anatomy.population` (numpy, meshes) loads when the h
 """
 from __future__ import annotations
 
-from typing import Callable, Optional, Union
+from collections.abc import Callable
 
 from clgs.anatomy.hookspecs import hookimpl
 from clgs.anatomy.record import Anatomy, Scene
@@ -65,9 +65,9 @@ class PopulationAnatomy:
 
 
 def population_anatomy(*, name: str, summary: str, version: str, data_dir, file_pattern: str, ids, test_ids,
-                       shape, spacing_mm: float, params: Union[object, Callable[[], object]], frame_offset,
-                       scene: Union[Scene, dict, None] = None, side_of: Optional[Callable] = None,
-                       builder_settings: Optional[dict] = None, notice: str = "") -> PopulationAnatomy:
+                       shape, spacing_mm: float, params: object | Callable[[], object], frame_offset,
+                       scene: Scene | dict | None = None, side_of: Callable | None = None,
+                       builder_settings: dict | None = None, notice: str = "") -> PopulationAnatomy:
     """One population anatomy, declared (see the module doc).
 
     ``data_dir`` / ``file_pattern`` (with ``{id}``) / ``ids`` / ``test_ids``: the subjects' npz files

@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field, fields
-from typing import TYPE_CHECKING, Any, Callable, Iterator, Mapping, Optional, Protocol, Union
+from typing import TYPE_CHECKING, Any, Optional, Protocol
 
 from clgs.errors import InputError
 
@@ -40,14 +41,14 @@ class ModelBuilder(Protocol):
     """Builds the shape model and atlas from the plugin's default population; returns the model
     file's path. ``settings`` are keyword arguments of :func:`clgs.shape.builder.build_model`."""
 
-    def __call__(self, out_path: Optional[str] = None, force: bool = False, **settings: Any) -> str: ...
+    def __call__(self, out_path: str | None = None, force: bool = False, **settings: Any) -> str: ...
 
 
 class SubjectFromMesh(Protocol):
     """A Subject (with a CT volume) from a surface file, or a tuple whose first item is one. May
     also take ``units=`` ("mm", "cm", "m", "in") and ``space=`` ("RAS" or "LPS")."""
 
-    def __call__(self, path: Any, seed: int = 0, **options: Any) -> Union["Subject", tuple]: ...
+    def __call__(self, path: Any, seed: int = 0, **options: Any) -> Subject | tuple: ...
 
 
 class SceneError(InputError):
@@ -103,24 +104,24 @@ class Scene:
     dict plugins used to give (``scene.get("n_views", 50)``, ``"nVoxel" in scene``, ``dict(scene)``:
     the set fields only); :meth:`from_dict` makes one from such a dict."""
 
-    mode: Optional[str] = None
-    DSO: Optional[float] = None
-    DSD: Optional[float] = None
-    nDetector: Optional[tuple] = None
-    dDetector: Optional[tuple] = None
-    offDetector: Optional[tuple] = None
-    nVoxel: Optional[tuple] = None
-    dVoxel: Optional[tuple] = None
-    offOrigin: Optional[tuple] = None
-    n_views: Optional[int] = None
-    arc_deg: Optional[float] = None
-    surface_level: Optional[float] = None
-    density: Optional[float] = None
-    n_detector: Optional[int] = None
+    mode: str | None = None
+    DSO: float | None = None
+    DSD: float | None = None
+    nDetector: tuple | None = None
+    dDetector: tuple | None = None
+    offDetector: tuple | None = None
+    nVoxel: tuple | None = None
+    dVoxel: tuple | None = None
+    offOrigin: tuple | None = None
+    n_views: int | None = None
+    arc_deg: float | None = None
+    surface_level: float | None = None
+    density: float | None = None
+    n_detector: int | None = None
 
     def __post_init__(self):
         checks = {
-            "DSO": lambda k, v: _number(k, v), "DSD": lambda k, v: _number(k, v),
+            "DSO": _number, "DSD": _number,
             "nDetector": lambda k, v: _vector(k, v, 2, "V, U pixels", integer=True),
             "dDetector": lambda k, v: _vector(k, v, 2, "V, U mm"),
             "offDetector": lambda k, v: _vector(k, v, 2, "V, U mm", positive=False),
@@ -128,8 +129,8 @@ class Scene:
             "dVoxel": lambda k, v: _vector(k, v, 3, "Z, Y, X mm"),
             "offOrigin": lambda k, v: _vector(k, v, 3, "Z, Y, X mm", positive=False),
             "n_views": lambda k, v: _number(k, v, integer=True),
-            "arc_deg": lambda k, v: _number(k, v), "surface_level": lambda k, v: _number(k, v),
-            "density": lambda k, v: _number(k, v), "n_detector": lambda k, v: _number(k, v, integer=True),
+            "arc_deg": _number, "surface_level": _number,
+            "density": _number, "n_detector": lambda k, v: _number(k, v, integer=True),
         }
         if self.mode is not None and self.mode not in ("cone", "parallel"):
             raise SceneError(f"scene 'mode' must be 'cone' or 'parallel', got {self.mode!r}")
@@ -149,7 +150,7 @@ class Scene:
         return tuple(f.name for f in fields(cls))
 
     @classmethod
-    def from_dict(cls, settings: Optional[Mapping]) -> "Scene":
+    def from_dict(cls, settings: Mapping | None) -> Scene:
         """A Scene from a dict of settings (how plugins gave it before); an unknown key is a
         :class:`SceneError` naming the valid ones."""
         if settings is None:
@@ -236,18 +237,18 @@ class Anatomy:
     name: str
     summary: str
     version: str = "0"
-    load_template: Optional[TemplateLoader] = None
-    load_shape_model: Optional[ShapeModelLoader] = None
-    load_atlas: Optional[AtlasLoader] = None
-    population: Optional[SubjectIds] = None
-    test_subjects: Optional[SubjectIds] = None
-    load_subject: Optional[SubjectLoader] = None
-    build_model: Optional[ModelBuilder] = None
+    load_template: TemplateLoader | None = None
+    load_shape_model: ShapeModelLoader | None = None
+    load_atlas: AtlasLoader | None = None
+    population: SubjectIds | None = None
+    test_subjects: SubjectIds | None = None
+    load_subject: SubjectLoader | None = None
+    build_model: ModelBuilder | None = None
     scene: Scene = field(default_factory=Scene)
     commands: list = field(default_factory=list)
     package: str = ""
-    model_path: Optional[str] = None
-    subject_from_mesh: Optional[SubjectFromMesh] = None
+    model_path: str | None = None
+    subject_from_mesh: SubjectFromMesh | None = None
     population_model: Any = None
 
     def __post_init__(self):
@@ -278,10 +279,10 @@ class AnatomyParts:
     if any (its scene gives the bone level). :meth:`load` reads them from an :class:`Anatomy`;
     :meth:`of` takes either."""
 
-    template: "Template"
-    shape_model: Optional["ShapeModel"] = None
-    atlas: Optional["DensityAtlas"] = None
-    anatomy: Optional[Anatomy] = None
+    template: Template
+    shape_model: ShapeModel | None = None
+    atlas: DensityAtlas | None = None
+    anatomy: Anatomy | None = None
 
     def __post_init__(self):
         if self.template is None:
@@ -292,7 +293,7 @@ class AnatomyParts:
         return iter((self.template, self.shape_model, self.atlas))
 
     @classmethod
-    def load(cls, anatomy: Anatomy) -> "AnatomyParts":
+    def load(cls, anatomy: Anatomy) -> AnatomyParts:
         """The parts from an Anatomy's lazy loaders (a progress phase each); any object with the
         record's ``name`` and loaders will do."""
         from clgs.progress import phase
@@ -313,7 +314,7 @@ class AnatomyParts:
         return cls(template, model, atlas, anatomy)
 
     @classmethod
-    def of(cls, value) -> "AnatomyParts":
+    def of(cls, value) -> AnatomyParts:
         """``value`` as AnatomyParts: kept when it is one, loaded when it is an Anatomy; anything
         else (a tuple included) is a TypeError saying what to give."""
         if isinstance(value, cls):

@@ -10,7 +10,7 @@ side cannot be told are left as they are and say so.
 """
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

@@ -4,6 +4,7 @@ from a surface file, projections with noise. Library code shared by ``clgs <anat
 from __future__ import annotations
 
 import os
+
 from clgs.anatomy.record import Scene
 from clgs.errors import InputError
 

@@ -158,9 +158,9 @@ def _get_method(method: str):
         m = methods.get(method)
         return m, m.callable()
     except LookupError as exc:
-        raise click.ClickException(f"reconstruction method {method!r} is not available: {exc}")
+        raise click.ClickException(f"reconstruction method {method!r} is not available: {exc}") from exc
     except (ImportError, AttributeError) as exc:
-        raise click.ClickException(f"reconstruction method {method!r} could not be loaded: {exc}")
+        raise click.ClickException(f"reconstruction method {method!r} could not be loaded: {exc}") from exc
 
 
 def run_reconstruct(scan, anatomy, method: str, out=None, surface_level=None, **options):
@@ -220,7 +220,8 @@ def _geometry_views(path) -> int:
     import json
 
     try:
-        doc = json.loads(open(path, encoding="utf-8").read())
+        with open(path, encoding="utf-8") as f:
+            doc = json.load(f)
     except (OSError, ValueError) as exc:
         raise click.BadParameter(f"{path}: not a readable JSON file ({exc})", param_hint="--geometry") from None
     doc = doc.get("geometry", doc) if isinstance(doc, dict) else doc
@@ -276,7 +277,7 @@ def _view_set_option(text):
     try:
         return view_set(text if text in CLINICAL_SETS else ",".join(str(d) for d in parse_degrees(text)) + ",")
     except ValueError as exc:
-        raise click.BadParameter(str(exc), param_hint="--angles")
+        raise click.BadParameter(str(exc), param_hint="--angles") from exc
 
 
 def _detector_option(text):
@@ -389,7 +390,7 @@ def _simulate_command(anatomy) -> click.Command:
         try:
             scan.save(out, overwrite=force)
         except FileExistsError:
-            raise click.ClickException(f"{out} exists: pass --force to replace it")
+            raise click.ClickException(f"{out} exists: pass --force to replace it") from None
         if geometry_file:
             what = f"{scan.n_views} views from {geometry_file}"
         else:
@@ -658,8 +659,8 @@ def _run_demo(anatomy, subject, views, method, out, seed, surface_level, opts, t
     history = result.get("history") or (result.get("info") or {}).get("history")
     if history:
         info("  iteration   time (s)   metrics", err=False)
-        for row in history:
-            row = dict(row)
+        for logged in history:
+            row = dict(logged)
             it, tt = row.pop("iteration", ""), row.pop("time", row.pop("seconds", float("nan")))
             info(f"  {it!s:>9} {tt:10.1f}   " + "  ".join(
                 f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()), err=False)
@@ -750,7 +751,8 @@ def _experiment_command(anatomy) -> click.Command:
                                  settings={"r2gs": per_run, "shape": {**per_run, **shape_opts}}, echo=info,
                                  workers=workers or None, scheduler=scheduler, simulation=protocol, detector_mm=fov,
                                  meshes=mesh_files)
-        click.echo(open(os.path.join(out, "table.md")).read())
+        with open(os.path.join(out, "table.md"), encoding="utf-8") as f:
+            click.echo(f.read())
         for v, g in summary["gain_db"].items():
             click.echo(f"{v}{' views' if str(v).isdigit() else ''}: shape-guided minus R2-Gaussian "
                        f"{g['mean']:+.2f} dB (ahead on {g['subjects_ahead']}/{g['subjects']} subjects)")

@@ -292,7 +292,7 @@ def parse_spacing(value, param: str = "--spacing"):
     try:
         nums = [float(p) for p in parts]
     except ValueError:
-        raise click.BadParameter(f"{value!r}: give one number or three (dZ,dY,dX) in mm", param_hint=param)
+        raise click.BadParameter(f"{value!r}: give one number or three (dZ,dY,dX) in mm", param_hint=param) from None
     if len(nums) == 1:
         nums *= 3
     if len(nums) != 3 or min(nums) <= 0 or not all(math.isfinite(n) for n in nums):

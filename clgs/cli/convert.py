@@ -17,8 +17,8 @@ from clgs.cli.common import (
     load_volume_file,
     parse_spacing,
 )
-from clgs.cli.verbosity import info
 from clgs.cli.options import FiniteFloat, force_option, out_option
+from clgs.cli.verbosity import info
 
 #: series numbers within a scan's study: its truth and each method's reconstruction apart
 SERIES_NUMBERS = {"truth": 100, "fdk": 101, "sart": 102, "r2gs": 103, "shape": 104}

@@ -88,10 +88,9 @@ def import_raw(raw, out, flats, darks, air_columns, angles_file, arc, mode, DSO,
     zinger and stripe removal, crop and binning, the view angles, and the rotation axis (found by
     three estimators whose agreement is reported, or given) and the detector's roll, then the
     geometry; the scan reconstructs with every method (clgs reconstruct SCAN ...)."""
+    from clgs.cli.common import claim_output
     from clgs.io.raw import RawError, read_raw, scan_from_raw
     from clgs.io.scan import ScanError
-
-    from clgs.cli.common import claim_output
 
     if out.resolve() == raw.resolve() or raw.resolve() in out.resolve().parents:
         raise click.ClickException(f"--out {out} would write into the raw data {raw}; choose another folder")

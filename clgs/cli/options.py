@@ -123,7 +123,7 @@ def click_option(opt: Option) -> click.Option:
     if opt.kind == "switch":
         return click.Option([f"{opt.flag}/--no-{opt.flag[2:]}", opt.name], default=None, help=help_)
     kinds = {
-        "seed": lambda: Seed(),
+        "seed": Seed,
         "str": lambda: click.STRING,
         "choice": lambda: click.Choice(list(opt.choices)),
         "int": lambda: click.IntRange(min=opt.min, max=opt.max, min_open=opt.min_open, max_open=opt.max_open),

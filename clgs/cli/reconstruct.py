@@ -12,9 +12,9 @@ import click
 
 from clgs.cli.common import (
     check_not_input,
-    claim_output,
     check_output,
     check_writable,
+    claim_output,
     click_error,
     exit_if_interrupted,
     fmt_number,
@@ -25,9 +25,8 @@ from clgs.cli.common import (
     out_of_memory,
     remove_empty,
 )
-from clgs.cli.verbosity import detail, info, is_verbose
 from clgs.cli.options import FiniteFloat, check_option_values, force_option, method_params, out_option
-
+from clgs.cli.verbosity import detail, info, is_verbose
 
 METHOD_KEY = "clgs.reconstruct.method"  # ctx.meta: (method record or None, its click options)
 

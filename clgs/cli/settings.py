@@ -90,7 +90,8 @@ def check_settings(method: str, m, run, opts: dict, raw: dict | None = None) -> 
     hints, options, open_, cls = method_settings(method, m, run)
     raw = raw or {}
     out = {}
-    for key, value in opts.items():
+    for key, given in opts.items():
+        value = given
         shown = f"{key}={raw.get(key, json.dumps(value))}"
         if key not in hints and not open_:
             raise unknown_setting(key, f"the {method} method", hints)

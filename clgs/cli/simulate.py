@@ -21,7 +21,6 @@ from clgs.cli.options import AliasOption, FiniteFloat, Seed, distance_options, f
 from clgs.cli.settings import option_settings
 from clgs.cli.verbosity import detail, info
 
-
 SIMULATION_SETTINGS = ("views", "arc", "mode", "DSO", "DSD", "detector", "pixel", "I0", "sigma", "scatter", "seed",
                        "noise", "kev", "grid", "grid_spacing", "simulation", "surface_level")
 

@@ -36,18 +36,19 @@ layer below them. Not the experiment or the CLI.
 """
 from clgs.methods import builtin, registry
 from clgs.methods.registry import (
-                                   GROUP,
-                                   Method,
-                                   MethodError,
-                                   Option,
-                                   Registrar,
-                                   describe,
-                                   get,
-                                   manager,
-                                   names,
-                                   register,
-                                   register_lazy,
+    GROUP,
+    Method,
+    MethodError,
+    Option,
+    Registrar,
+    describe,
+    get,
+    manager,
+    names,
+    register,
+    register_lazy,
 )
+from clgs.methods.run import accepted_settings, check_method_settings, run_method
 
 __all__ = ["Method", "Option", "register", "register_lazy", "get", "names", "describe", "MethodError", "GROUP",
            "Registrar", "manager", "run_method", "accepted_settings", "check_method_settings"]
