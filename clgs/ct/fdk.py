@@ -8,12 +8,11 @@ from __future__ import annotations
 import numpy as np
 
 from clgs.ct import fdk_views
+from clgs.ct.filter_names import FILTERS
 from clgs.errors import InputError
 from clgs.geometry import Geometry
 from clgs.io.validate import check_projections
 from clgs.ops.fdk import backproject, view_depths
-
-FILTERS = ("ram-lak", "shepp-logan", "cosine", "hamming", "hann")
 
 
 def ramp_filter(length: int, spacing: float, filter: str = "ram-lak"):

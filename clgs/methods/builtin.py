@@ -3,9 +3,8 @@
 in-process. Nothing heavy is imported: ``run`` and ``options`` are ``"module:attr"`` strings, and
 R2-Gaussian and the shape-guided method are declared by module (imported when chosen)."""
 from clgs.anatomy.hookspecs import hookimpl
+from clgs.ct.filter_names import FILTERS as _FILTERS
 from clgs.limits import MAX_ITERATIONS
-
-_FILTERS = ("ram-lak", "shepp-logan", "cosine", "hamming", "hann")  # clgs.ct.fdk.FILTERS, without importing it
 
 
 @hookimpl
