@@ -5,24 +5,18 @@ import re
 
 import numpy as np
 import pytest
+from sphere_scan import sphere_scan
 
 from clgs import metrics, progress
 from clgs.fit import estimate
 from clgs.fit.training_log import RATE, fmt_rate
-from clgs.geometry import Geometry
-from clgs.io.scan import Scan
 
 N = 16
 
 
 @pytest.fixture(scope="module")
 def scan():
-    from clgs.ops.ct_projector import CTProjector
-
-    geo = Geometry.default(n_views=6, n_voxel=N, n_detector=24, volume_mm=64.0)
-    zz, yy, xx = np.mgrid[:N, :N, :N] - (N - 1) / 2
-    truth = np.where(zz ** 2 + yy ** 2 + xx ** 2 < 25, 0.02, 0.0).astype(np.float32)
-    return Scan(geo, np.asarray(CTProjector(geo).forward(truth), np.float32), truth=truth)
+    return sphere_scan(N, 6, 24, 64.0, 25)
 
 
 def _run(scan, **kw):

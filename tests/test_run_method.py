@@ -4,13 +4,12 @@ setting K?" and one refusal of an unknown key."""
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from sphere_scan import sphere_scan
 from test_shape_guided import _scan, _small, _tiny_anatomy, atlas, shape_model, template  # noqa: F401
 
 import clgs
 from clgs import methods
 from clgs.cli import main
-from clgs.geometry import Geometry
-from clgs.io.scan import Scan
 from clgs.methods.run import UnknownSettingError, accepted_settings, check_method_settings, run_method
 
 N = 12
@@ -18,12 +17,7 @@ N = 12
 
 @pytest.fixture(scope="module")
 def scan():
-    from clgs.ops.ct_projector import CTProjector
-
-    geo = Geometry.default(n_views=5, n_voxel=N, n_detector=16, volume_mm=48.0)
-    zz, yy, xx = np.mgrid[:N, :N, :N] - (N - 1) / 2
-    truth = np.where(zz ** 2 + yy ** 2 + xx ** 2 < 16, 0.02, 0.0).astype(np.float32)
-    return Scan(geo, np.asarray(CTProjector(geo).forward(truth), np.float32), truth=truth)
+    return sphere_scan(N, 5, 16, 48.0, 16)
 
 
 @pytest.fixture(scope="module")
