@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 import torch
 
+from clgs.anatomy import AnatomyParts
+
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
@@ -175,7 +177,7 @@ def test_a_shape_guided_run_writes_the_field_and_reports_it(tmp_path):
     sm = shape_model.__wrapped__(t)
     at = atlas.__wrapped__(t)
     scan = _scan(t, n_views=2, shape_model=sm)
-    res = reconstruct_shape_guided(scan, (t, sm, at), iterations=20, out_dir=tmp_path / "run",
+    res = reconstruct_shape_guided(scan, AnatomyParts(t, sm, at), iterations=20, out_dir=tmp_path / "run",
                                    **_small(alpha_freeze=3))
     u = res.uncertainty
     assert u is not None and u["file"] == "shape_uncertainty.ply" and 0 < u["mean_mm"] <= u["max_mm"]
@@ -196,6 +198,6 @@ def test_a_shape_guided_run_writes_the_field_and_reports_it(tmp_path):
     json.dumps(u)
     # one view (along x) cannot see the shift along x: that mode keeps most of the prior's spread,
     # where two views pin it down
-    one = reconstruct_shape_guided(_scan(t, n_views=1, shape_model=sm), (t, sm, at), iterations=20,
+    one = reconstruct_shape_guided(_scan(t, n_views=1, shape_model=sm), AnatomyParts(t, sm, at), iterations=20,
                                    out_dir=tmp_path / "one", **_small(alpha_freeze=3)).uncertainty
     assert one["alpha_sd"][1] > 0.5 > 5 * u["alpha_sd"][1] and one["mean_mm"] > 5 * u["mean_mm"]

@@ -16,12 +16,14 @@ def cohort_options(fn):
 
 
 def check_cohort_options(workers, scheduler) -> None:
-    """The one check of the library (:func:`clgs.cohort.cluster.check_choice`), before any work;
-    its error is printed as the command's."""
-    from clgs.cohort.cluster import check_choice
+    """The library's one check (:func:`clgs.cohort.cluster.check_choice`), before any work: a
+    malformed choice is a usage error (exit 2), more workers than the machine holds an error (1)."""
+    from clgs.cohort.cluster import check_form, check_workers
     from clgs.errors import InputError
 
     try:
-        check_choice(workers or None, scheduler)
+        check_form(workers or None, scheduler)
     except InputError as exc:
         raise click.UsageError(str(exc)) from exc
+    if workers and not scheduler:
+        check_workers(workers)

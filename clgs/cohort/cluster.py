@@ -43,15 +43,21 @@ def cores() -> int:
 
 
 def check_choice(workers, scheduler) -> None:
-    """``workers`` and ``scheduler`` are two ways to pick a cluster: at most one, and sensible."""
+    """``workers`` and ``scheduler`` are two ways to pick a cluster: at most one, and sensible
+    (:func:`check_form`), and no more local workers than this machine holds (:func:`check_workers`)."""
+    check_form(workers, scheduler)
+    if workers and not scheduler:
+        check_workers(workers)
+
+
+def check_form(workers, scheduler) -> None:
+    """At most one of ``workers`` and ``scheduler``, each well formed (a usage error on the command line)."""
     if workers is not None and scheduler:
         raise InputError("give --workers N (a local cluster) or --scheduler ADDRESS (a running one), not both")
     if workers is not None and (isinstance(workers, bool) or int(workers) != workers or workers < 0):
         raise InputError(f"workers must be a whole number >= 0 (0: run here, one after another), got {workers!r}")
     if scheduler is not None and (not isinstance(scheduler, str) or "://" not in scheduler):
         raise InputError(f"scheduler {scheduler!r} is not an address: give it as tcp://HOST:PORT")
-    if workers and not scheduler:
-        check_workers(workers)
 
 
 # memory a worker process takes before its first run (Python, NumPy, torch, PyOpenCL, Dask: about
