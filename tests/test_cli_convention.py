@@ -67,8 +67,9 @@ def test_the_walk_sees_the_whole_tree():
     assert keys >= WRITERS and keys >= SETTERS, sorted((WRITERS | SETTERS) - keys)
     from clgs.anatomy import plugins
 
-    installed = plugins.anatomy_names()  # femur and patella where their packages load
-    assert installed and all(any(path.startswith(f"{a} ") for path in TREE) for a in installed)
+    plugins.registry(reload=True)  # what is installed now (another test may have swapped the registry)
+    installed, tree = plugins.anatomy_names(), commands()  # femur and patella where their packages load
+    assert installed and all(any(path.startswith(f"{a} ") for path in tree) for a in installed)
     assert len([p for p in TREE if p.startswith("reconstruct --method")]) >= 4
 
 
