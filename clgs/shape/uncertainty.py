@@ -163,13 +163,13 @@ def write_uncertainty_files(out_dir, vertices, faces, values, parts: dict | None
     lps = mesh.vertices * RAS_TO_LPS
     lines = ["# vtk DataFile Version 3.0", "clgs shape surface uncertainty (mm) SPACE=LPS", "ASCII",
              "DATASET POLYDATA", f"POINTS {len(lps)} float"]
-    lines += [f"{x:.6f} {y:.6f} {z:.6f}" for x, y, z in lps]
+    lines += [f"{x:.9g} {y:.9g} {z:.9g}" for x, y, z in lps]
     lines.append(f"POLYGONS {len(mesh.faces)} {4 * len(mesh.faces)}")
     lines += [f"3 {a} {b} {c}" for a, b, c in mesh.faces]
     lines.append(f"POINT_DATA {len(lps)}")
     for name, vals in scalars.items():  # the first is the active scalar a viewer colours by
         lines += [f"SCALARS {name} float 1", "LOOKUP_TABLE default"]
-        lines += [f"{v:.6f}" for v in vals]
+        lines += [f"{v:.9g}" for v in vals]
     vtk = atomic.write_bytes(out_dir / VTK_NAME, ("\n".join(lines) + "\n").encode("ascii"))
     return {"ply": Path(ply), "vtk": Path(vtk)}
 
