@@ -30,6 +30,7 @@ geometry ``DSO``, ``DSD``, ``dDetector`` and ``angles`` are nominal values deriv
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Sequence
@@ -571,6 +572,24 @@ class Geometry:
         d = self.to_dict()
         d["angles"] = list(np.asarray(angles, float).reshape(-1))
         return Geometry.from_dict(d)
+
+    def binned(self, factor: int) -> Geometry:
+        """The same scan seen by a detector whose ``factor`` x ``factor`` pixel blocks are one pixel
+        (the detector's extent, centre and every view unchanged; its sides must be multiples of
+        ``factor``). What coarse-to-fine training renders early (:mod:`clgs.fit.schedule`)."""
+        f = int(factor)
+        nv, nu = self.nDetector
+        if f < 1 or nv % f or nu % f:
+            raise GeometryError(f"a {nv} x {nu} detector cannot be binned by {factor}: its sides must be multiples")
+        if f == 1:
+            return self
+        if self.vectors is not None:
+            vec = np.array(self.vectors, dtype=np.float64)
+            vec[:, 6:12] *= f  # pixel steps along u and v; the detector centre stays
+            return Geometry.from_vectors(vec, (nv // f, nu // f), self.nVoxel, self.dVoxel, self.offOrigin,
+                                         self.mode, self.isocentre, self.orientation)
+        return dataclasses.replace(self, nDetector=(nv // f, nu // f),
+                                   dDetector=tuple(float(d) * f for d in self.dDetector))
 
     @classmethod
     def default(cls, n_views: int = 50, arc: float = np.pi, mode: str = "cone", n_voxel: int = 128,

@@ -15,6 +15,7 @@ from clgs.fit import tv_patch
 from clgs.fit.config import CHECKPOINT
 from clgs.fit.gaussians import Densifier
 from clgs.fit.outputs import make_evaluator
+from clgs.fit.schedule import coarse_hook, plateau_hook
 from clgs.fit.trainer import Backend, LossTerm, Trainer
 
 
@@ -84,7 +85,8 @@ def projection_losses(cfg) -> list:
 
 def make_trainer(scan, cfg, sets, losses, out_dir=None, progress=False) -> Trainer:
     """The trainer of a Gaussian method: training-unit projections, the densifier (it edits only
-    sets marked ``densify``), the evaluator and checkpoints in ``out_dir``. ``cfg`` holds the
+    sets marked ``densify``), the plateau rule when the schedule has one, the evaluator and
+    checkpoints in ``out_dir``. ``cfg`` holds the
     shared settings (R2GSConfig's names); ``cfg.value_scale`` must be set."""
     geo = scan.geometry
     densifier = Densifier(geo, start=cfg.densify_start, until=cfg.densify_until, interval=cfg.densify_interval,
@@ -92,14 +94,19 @@ def make_trainer(scan, cfg, sets, losses, out_dir=None, progress=False) -> Train
                           min_density=cfg.min_density, max_gaussians=cfg.max_gaussians)
     projections = np.asarray(scan.projections, np.float32) * np.float32(geo.scale * cfg.value_scale)
     out_dir = None if out_dir is None else Path(out_dir)
-    return Trainer(
+    plateau = plateau_hook(cfg)  # the fast schedule's stopping rule (None: every iteration runs)
+    trainer = Trainer(
         sets, geo, projections, losses, iterations=cfg.iterations,
         backend=Backend(cfg.backend, cfg.projector_mode), render_scale=geo.scale, seed=cfg.seed,
-        hooks=[densifier], evaluate=make_evaluator(scan, cfg.value_scale), log_every=cfg.log_every,
+        hooks=[densifier] + ([plateau] if plateau is not None else []), evaluate=make_evaluator(scan, cfg.value_scale), log_every=cfg.log_every,
         log_early=cfg.log_early, checkpoint_every=cfg.checkpoint_every if out_dir is not None else 0,
         checkpoint_path=None if out_dir is None else out_dir / CHECKPOINT, progress=progress,
         config=cfg.to_json(),
     )
+    coarse = coarse_hook(trainer, cfg)  # early iterations on a binned detector, when asked for
+    if coarse is not None:
+        trainer.hooks.insert(0, coarse)
+    return trainer
 
 
 def restore(trainer: Trainer, state, cfg) -> None:

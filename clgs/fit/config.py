@@ -136,10 +136,29 @@ class GaussianFitConfig(JsonConfig):
     checkpoint_every: int = setting(1000, "--checkpoint-every",
                                     "write a checkpoint every N iterations (0: only at the end / on Ctrl-C)")
     schedule_iterations: int | None = None  # length of the lr decays (default: iterations)
+    # how the run spends its iterations (clgs.fit.schedule): "fast" (the default run) or "paper";
+    # the fields above hold the paper's values, a run gets its schedule's from run_config
+    schedule: str = setting("fast", "--schedule",
+                            "fast: the paper's schedule cut short (the method's fast length, or --iterations), ended "
+                            "sooner when the projections stop improving; paper: the published 30 000 iterations")
+    # the plateau rule (clgs.fit.schedule.PlateauStop): checks every stop_every iterations after
+    # densification (0: off; None: the schedule's: the fast schedule's FAST_STOP_EVERY, paper off)
+    stop_every: int | None = None
+    stop_tolerance: float = 0.002  # relative fall of the loss on every view between checks, below: flat
+    stop_patience: int = 2  # flat checks in a row that end the run
+    # coarse-to-fine rendering (clgs.fit.schedule.CoarseToFine): this fraction of the run on a
+    # detector binned by coarse_factor (0: full resolution throughout)
+    coarse_until: float = 0.0
+    coarse_factor: int = 2
 
-    CHOICES = {"projector_mode": ("affine", "exact"), "backend": ("cl", "torch")}
+    FAST_ITERATIONS = 30_000  # the fast schedule's run length (each method sets its own)
+    FAST_STOP_EVERY = 500  # the fast schedule's plateau checks
+
+    CHOICES = {"projector_mode": ("affine", "exact"), "backend": ("cl", "torch"), "schedule": ("fast", "paper")}
     POSITIVE = frozenset({"value_scale"})
-    AT_LEAST = {"iterations": 1, "densify_interval": 1, "max_gaussians": 1, "tv_size": 2, "schedule_iterations": 1}
+    AT_LEAST = {"iterations": 1, "densify_interval": 1, "max_gaussians": 1, "tv_size": 2, "schedule_iterations": 1,
+                "stop_patience": 1, "coarse_factor": 1}
+    AT_MOST = {**JsonConfig.AT_MOST, "coarse_until": 1.0}
 
     def __post_init__(self):
         super().__post_init__()
@@ -191,15 +210,17 @@ def run_config(config_cls, iterations: int | None, settings: dict, resume: bool,
     """(settings, checkpoint or None) of a new run, or of a run resumed from ``out_dir``: a resumed
     run keeps its checkpoint's settings (only ``iterations`` may grow and ``backend`` change).
 
-    ``iterations=None``: the default (30 000) for a new run; for a resumed one, the iterations it
-    was started with (an interrupted run is finished, not extended)."""
+    ``iterations=None``: the schedule's length for a new run (:func:`clgs.fit.schedule.resolve`:
+    30 000 for ``schedule="paper"``, the method's shorter run for ``"fast"``); for a resumed one,
+    the iterations it was started with (an interrupted run is finished, not extended)."""
     if iterations is not None and not 1 <= iterations <= MAX_ITERATIONS:
         raise InputError(f"iterations must be between 1 and {MAX_ITERATIONS:,}, got {iterations}")
     check_run_folder(out_dir, resume)
     settings = dict(settings)
     if not resume:
-        n = config_cls().iterations if iterations is None else int(iterations)
-        return config_cls.from_json({**config_cls().to_json(), **settings, "iterations": n}), None
+        from clgs.fit.schedule import resolve
+
+        return config_cls.from_json(resolve(config_cls, iterations, settings)), None
     if out_dir is None:
         raise InputError("resume needs out_dir (the folder holding checkpoint.pt)")
     state = ckpt.load(Path(out_dir) / CHECKPOINT)
@@ -210,6 +231,8 @@ def run_config(config_cls, iterations: int | None, settings: dict, resume: bool,
     except (KeyError, TypeError, ValueError) as exc:
         raise ckpt.CheckpointError(f"{Path(out_dir) / CHECKPOINT} holds no readable run settings ({exc}): it "
                                    "cannot be resumed; start a new run") from None
+    if "schedule" not in saved:  # written before schedules existed: it ran the paper's, to its end
+        saved.update(schedule="paper", stop_every=0)
     if "scale_floor" not in saved and any(f.name == "scale_floor" for f in fields(config_cls)):
         saved["scale_floor"] = None  # written before the floor existed: keep the bounds it trained with
     cfg = config_cls.from_json(saved)

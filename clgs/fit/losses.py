@@ -107,8 +107,8 @@ class ImageTerms:
 
     def __init__(self, dssim: bool = True):
         self.fused = bool(dssim)
-        self._maps: dict = {}  # (view, dtype) -> (mu_b, bb), torch path
-        self._targets: dict = {}  # (view, dtype) -> clgs.ops.ssim.SSIMTarget, OpenCL path
+        self._maps: dict = {}  # (view, dtype, shape) -> (mu_b, bb), torch path
+        self._targets: dict = {}  # (view, dtype, shape) -> clgs.ops.ssim.SSIMTarget, OpenCL path
         self._results = weakref.WeakKeyDictionary()  # context -> (l1, dssim), OpenCL path
 
     @staticmethod
@@ -118,7 +118,7 @@ class ImageTerms:
                 and not ctx.target.requires_grad)
 
     def _target_maps(self, ctx):
-        key = (ctx.view, ctx.target.dtype)
+        key = (ctx.view, ctx.target.dtype, tuple(ctx.target.shape))
         maps = self._maps.get(key)
         if maps is None:
             with torch.no_grad():
@@ -129,7 +129,7 @@ class ImageTerms:
         out = self._results.get(ctx)
         if out is None:
             render = ctx.render
-            key = (ctx.view, render.dtype)
+            key = (ctx.view, render.dtype, tuple(render.shape))  # coarse-to-fine renders change size
             target = self._targets.get(key)
             if target is None:  # b and its maps, padded for the kernels (not kept twice)
                 target = self._targets[key] = ssim_cl.SSIMTarget(ctx.target.detach().to(render.dtype))

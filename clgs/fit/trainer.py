@@ -273,6 +273,7 @@ class Trainer:
         self.seconds = 0.0  # training time so far, over every run resumed from this one
         self.wall_offset = 0.0
         self.interrupted = False
+        self.converged: dict | None = None  # set by a stopping rule (request_stop): the run is finished
         self._sums: dict = {}
         self._count = 0
         self._stop = False
@@ -350,6 +351,14 @@ class Trainer:
                 h.on_iteration(self)
         return out
 
+    def request_stop(self, converged: dict) -> None:
+        """End the run after this iteration as a finished one (a stopping rule's call, e.g.
+        :class:`clgs.fit.schedule.PlateauStop`): ``converged`` says when and why; the checkpoint,
+        the closing log row and the outputs follow as at the last iteration, and resuming the run
+        does nothing more."""
+        self.converged = dict(converged)
+        self._stop = True
+
     # ------------------------------------------------------------------ the loop
     def fit(self) -> Trainer:
         """Run to ``iterations`` (continuing from a resumed state); see the module doc for Ctrl-C."""
@@ -370,12 +379,15 @@ class Trainer:
         if self.estimate_enabled:
             warm = WarmUp(self.iteration, self.iterations, self.log_due)
         start = (self.iteration, self.seconds)
+        for h in self.hooks:  # e.g. the resolution a resumed run trains at
+            if hasattr(h, "on_fit"):
+                h.on_fit(self)
         try:
             try:
                 if self.iteration == 0 and self.log_every > 0 and not self.log.rows:
                     self._log_row(t_wall, {}, warm)
                     progress.set_figures(self.log.headline())
-                while self.iteration < self.iterations and not self._stop:
+                while self.iteration < self.iterations and not self._stop and self.converged is None:
                     t0 = time.perf_counter()
                     self.step()
                     took = time.perf_counter() - t0
@@ -395,8 +407,14 @@ class Trainer:
                 for sig, handler in old_handlers.items():
                     signal.signal(sig, handler)
                 torch.set_num_threads(threads)
-            if self._stop:
+            if self._stop and self.converged is None:
                 self.interrupted = True
+            elif self.converged is not None and self.progress_enabled:
+                from clgs.progress import note
+
+                note(f"converged at iteration {self.converged['iteration']} of {self.iterations}: "
+                     f"{self.converged['reason']}; stopped (--set stop_every=0 runs every iteration)",
+                     bar=getattr(progress, "bar", None))
             self.check_finite()
             # checkpoint first: the closing row below is off the logging schedule, and a resumed run
             # must log exactly what an uninterrupted one does
@@ -424,7 +442,10 @@ class Trainer:
 
         self.expected = estimate
         if worth_telling(estimate):
-            note(estimate.message(), bar=getattr(self._progress, "bar", None))
+            text = estimate.message()
+            if any(hasattr(h, "request_stop_rule") for h in self.hooks):
+                text += "; at most: the run stops sooner once its projections stop improving"
+            note(text, bar=getattr(self._progress, "bar", None))
 
     def log_due(self, iteration: int) -> bool:
         """Whether ``iteration`` gets a log row: every ``log_every``, and with ``log_early`` also at
@@ -482,6 +503,7 @@ class Trainer:
             "seed": self.seed,
             "config": ckpt.dumps(self.config),
             "data": self.data_id,
+            "converged": ckpt.dumps(self.converged),
         }
 
     @property
@@ -529,6 +551,7 @@ class Trainer:
                                        "resumed; start the run again")
         self.seconds = float(state["seconds"])
         self.wall_offset = float(state["wall"])
+        self.converged = ckpt.loads(state["converged"]) if state.get("converged") is not None else None
 
     def save_checkpoint(self, t_wall: float | None = None):
         if self.checkpoint_path is None:

@@ -66,9 +66,10 @@ class R2GSConfig(GaussianFitConfig):
                                "initial number of Gaussians")
     init: str = setting("fdk", "--init", "initialise from an FDK volume or uniformly at random")  # "fdk" | "random"
 
-    CLI = ("iterations", "n_gaussians", "max_gaussians", "init", "seed", "backend", "projector_mode", "scale_floor",
+    CLI = ("iterations", "schedule", "n_gaussians", "max_gaussians", "init", "seed", "backend", "projector_mode", "scale_floor",
            "lambda_tv", "lambda_dssim", "log_every", "log_early", "checkpoint_every")
     KIND = "r2gs"
+    FAST_ITERATIONS = 10_000  # the fast schedule's run (clgs.fit.schedule; docs/schedules.md)
     CHOICES = {**GaussianFitConfig.CHOICES, "init": ("fdk", "random")}
     AT_LEAST = {**GaussianFitConfig.AT_LEAST, "n_gaussians": 1}
 

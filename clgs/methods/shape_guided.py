@@ -140,11 +140,13 @@ class ShapeGuidedConfig(GaussianFitConfig):
     lr_scale: float = 0.005
     lr_rotation: float = 0.01
 
-    CLI = ("iterations", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every", "log_early",
+    CLI = ("iterations", "schedule", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every", "log_early",
            "checkpoint_every", "max_gaussians", "n_shape", "n_free", "tau", "shape_prior", "density_prior",
            "density_prior_field", "free_init", "alpha_init_iterations", "fit_size", "residual", "residual_points",
            "uncertainty")
     KIND = "shape-guided"
+    FAST_ITERATIONS = 4_000  # the fast schedule's run (clgs.fit.schedule; docs/schedules.md)
+    FAST_STOP_EVERY = 250
     CHOICES = {**GaussianFitConfig.CHOICES, "free_init": ("atlas", "fdk"), "density_prior_field": ("all", "shape"),
                "fit_size": ("auto", "on", "off"), "residual": ("on", "off"), "uncertainty": ("on", "off")}
     POSITIVE = GaussianFitConfig.POSITIVE | {"tau", "density_s"}

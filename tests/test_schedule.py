@@ -1,0 +1,263 @@
+"""Schedules (clgs.fit.schedule): the fast and paper settings a run gets, the plateau rule that
+ends a fast run, which never reads the truth, and a stopped or interrupted fast run that resumes
+bit for bit."""
+import numpy as np
+import pytest
+import torch
+
+from clgs.errors import InputError
+from clgs.fit import checkpoint as ckpt
+from clgs.fit.config import run_config
+from clgs.fit.schedule import PAPER_ITERATIONS, PlateauStop, resolve, views_loss
+from clgs.geometry import Geometry
+from clgs.io.scan import Scan
+from clgs.methods.r2gs import R2GSConfig, build_trainer, reconstruct_r2gs
+from clgs.methods.shape_guided import ShapeGuidedConfig
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """6 Gaussians in a 64 mm cube, 8 cone-beam views (as tests/test_trainer.py's)."""
+    from clgs.ops.projector import project
+    from clgs.ops.voxelizer import voxelize
+
+    geo = Geometry.default(n_views=8, n_voxel=16, n_detector=24, volume_mm=64.0)
+    rng = np.random.default_rng(0)
+    n = 6
+    m = torch.tensor(rng.uniform(-0.4, 0.4, (n, 3)), dtype=torch.float32)
+    s = torch.tensor(rng.uniform(0.1, 0.25, (n, 3)), dtype=torch.float32)
+    q = torch.tensor(rng.normal(size=(n, 4)), dtype=torch.float32)
+    d = torch.tensor(rng.uniform(0.01, 0.02, n), dtype=torch.float32)
+    with torch.no_grad():
+        proj = project(m, s, q, d, geo, list(range(geo.n_views))).numpy()
+        truth = voxelize(m, s, q, d, geo.volume_grid()).numpy()
+    return Scan(geo, proj, truth)
+
+
+# a fast run short enough for a test: densification early, plateau checks every 10 iterations after it
+FAST = dict(n_gaussians=120, max_gaussians=400, init="random", value_scale=60.0, log_every=10, checkpoint_every=0,
+            densify_start=10, densify_interval=10, densify_until=60, stop_every=10, stop_tolerance=0.1,
+            stop_patience=2)
+
+
+# ---------------------------------------------------------------------- what a run gets
+def test_paper_keeps_the_published_schedule():
+    d = resolve(R2GSConfig, None, {"schedule": "paper"})
+    assert d["iterations"] == PAPER_ITERATIONS == 30_000
+    assert (d["densify_start"], d["densify_until"], d["densify_interval"]) == (500, 15_000, 100)
+    assert d["stop_every"] == 0 and d["schedule"] == "paper"
+    # given iterations shorten it; the decays follow the run (as before schedules existed)
+    cfg, _ = run_config(R2GSConfig, 1000, {"schedule": "paper"}, False, None)
+    assert cfg.iterations == 1000 and cfg.densify_until == 15_000 and not cfg.stop_every
+
+
+@pytest.mark.parametrize("config", [R2GSConfig, ShapeGuidedConfig])
+def test_fast_is_the_default_and_cuts_the_paper_short(config):
+    """The fast schedule is the paper's run cut short: the same learning rates and densification
+    at every iteration it runs, fewer iterations, the plateau rule on."""
+    cfg, _ = run_config(config, None, {}, False, None)
+    paper, _ = run_config(config, None, {"schedule": "paper"}, False, None)
+    n = config.FAST_ITERATIONS
+    assert cfg.schedule == "fast" and cfg.iterations == n < PAPER_ITERATIONS
+    assert cfg.schedule_iterations == PAPER_ITERATIONS  # the decays of the 30 000-iteration run
+    same = ("densify_start", "densify_until", "densify_interval", "grad_threshold", "lambda_tv", "lambda_dssim")
+    assert all(getattr(cfg, k) == getattr(paper, k) for k in same)
+    assert cfg.stop_every == config.FAST_STOP_EVERY > 0 and paper.stop_every == 0
+    longer, _ = run_config(config, 50_000, {}, False, None)
+    assert longer.schedule_iterations == 50_000  # more than the paper's: the decays span the run
+
+
+def test_what_is_given_wins_over_the_schedule():
+    cfg, _ = run_config(R2GSConfig, 3000, {"densify_until": 2500, "stop_every": 0}, False, None)
+    assert cfg.iterations == 3000 and cfg.densify_until == 2500 and cfg.stop_every == 0
+    assert cfg.densify_start == 500 and cfg.schedule_iterations == PAPER_ITERATIONS
+    cfg, _ = run_config(R2GSConfig, 3000, {"schedule_iterations": 3000}, False, None)
+    assert cfg.schedule_iterations == 3000  # the paper's compression, asked for
+    with pytest.raises(InputError, match="schedule must be one of fast, paper"):
+        run_config(R2GSConfig, None, {"schedule": "slow"}, False, None)
+
+
+# ---------------------------------------------------------------------- the plateau rule
+class _Loss:
+    """A trainer stand-in whose views_loss follows a given list (through the monkeypatch below)."""
+
+    def __init__(self, iterations=1000):
+        self.iteration, self.iterations, self.stopped = 0, iterations, None
+
+    def request_stop(self, info):
+        self.stopped = info
+
+
+def test_plateau_stops_after_patience_flat_checks(monkeypatch):
+    from clgs.fit import schedule as S
+
+    losses = iter([1.0, 0.5, 0.3, 0.299, 0.2985, 0.2])
+    monkeypatch.setattr(S, "views_loss", lambda trainer: next(losses))
+    rule, t = PlateauStop(every=10, tolerance=0.01, patience=2, after=10), _Loss()
+    for it in range(1, 80):
+        t.iteration = it
+        rule.on_iteration(t)
+        if t.stopped:
+            break
+    # checks at 10 (1.0), 20 (0.5), 30 (0.3), 40 (0.299: flat 1), 50 (0.2985: flat 2 -> stop)
+    assert t.stopped["iteration"] == 50
+    assert rule.state_dict()["flat"] == 2
+    with pytest.raises(InputError):
+        PlateauStop(every=10, tolerance=float("nan"))
+
+
+def test_a_fall_between_flat_checks_starts_the_count_again(monkeypatch):
+    from clgs.fit import schedule as S
+
+    losses = iter([1.0, 0.999, 0.5, 0.499, 0.4])
+    monkeypatch.setattr(S, "views_loss", lambda trainer: next(losses))
+    rule, t = PlateauStop(every=1, tolerance=0.01, patience=2), _Loss()
+    for it in range(1, 6):
+        t.iteration = it
+        rule.on_iteration(t)
+    assert t.stopped is None  # flat, fall, flat, fall: never two flat in a row
+
+
+def test_views_loss_is_the_mean_l1_over_every_view(scene):
+    t = build_trainer(scene, R2GSConfig(**{**FAST, "iterations": 5}))
+    with torch.no_grad():
+        tensors = tuple(x.detach() for x in t.scene_tensors())
+        ref = torch.stack([t.backend.project(*tensors, t.geometry, [v])[0] * t.render_scale for v in t.views])
+    expected = float((ref - t.projections).abs().mean())
+    assert views_loss(t) == pytest.approx(expected, rel=1e-5)
+
+
+def _fast_run(scan, out=None, iterations=200, **kw):
+    return reconstruct_r2gs(scan, out, iterations, progress=False, fdk=scan.truth if scan.truth is not None else None,
+                            **{**FAST, **kw})
+
+
+def test_a_fast_run_stops_when_converged_and_the_truth_plays_no_part(scene):
+    """The stop comes from the projections alone: the same scan with its truth, a wrong truth and
+    no truth stops at the same iteration with the same Gaussians."""
+    runs = []
+    fdk = scene.truth
+    for truth in (scene.truth, np.random.default_rng(1).random(scene.truth.shape).astype(np.float32), None):
+        s = Scan(scene.geometry, scene.projections, truth)
+        runs.append(reconstruct_r2gs(s, None, 200, progress=False, fdk=fdk, **FAST))
+    first = runs[0].trainer
+    assert first.converged is not None and first.iteration < 200, "the plateau rule never fired"
+    assert first.iteration == first.converged["iteration"] >= first.config["densify_until"] == 60
+    assert not runs[0].interrupted
+    for other in runs[1:]:
+        assert other.trainer.iteration == first.iteration
+        for k in first.sets[0].params:
+            assert torch.equal(first.sets[0].params[k], other.trainer.sets[0].params[k]), k
+
+
+def test_a_converged_run_resumed_does_nothing_more(scene, tmp_path):
+    out = tmp_path / "run"
+    done = _fast_run(scene, out)
+    it = done.trainer.iteration
+    assert done.trainer.converged is not None and it < 200
+    state = ckpt.load(out / "checkpoint.pt")
+    assert ckpt.loads(state["converged"])["iteration"] == it
+    again = reconstruct_r2gs(scene, out, resume=True, progress=False, fdk=scene.truth)
+    assert again.trainer.iteration == it and again.trainer.converged == done.trainer.converged
+
+
+def test_an_interrupted_fast_run_resumes_bit_for_bit(scene, tmp_path, monkeypatch):
+    """Interrupted after the plateau checks began (their history is in the checkpoint), resumed:
+    the same stop, the same Gaussians, Adam moments and log as the run that was never stopped."""
+    from clgs.fit import trainer as T
+
+    whole = _fast_run(scene).trainer
+    stop_at = whole.converged["iteration"] - 5  # between its last two checks
+    real_step = T.Trainer.step
+
+    def step(self):
+        if self.iteration == stop_at:
+            raise KeyboardInterrupt
+        return real_step(self)
+
+    out = tmp_path / "run"
+    monkeypatch.setattr(T.Trainer, "step", step)
+    first = _fast_run(scene, out)
+    assert first.interrupted and first.trainer.iteration == stop_at and first.trainer.converged is None
+    monkeypatch.setattr(T.Trainer, "step", real_step)
+    resumed = reconstruct_r2gs(scene, out, resume=True, progress=False, fdk=scene.truth).trainer
+    assert resumed.iteration == whole.iteration and resumed.converged == whole.converged
+    for k in whole.sets[0].params:
+        assert torch.equal(whole.sets[0].params[k], resumed.sets[0].params[k]), k
+    oa, ob = whole.optimizer.state_dict(), resumed.optimizer.state_dict()
+    for i in oa["state"]:
+        for k in ("exp_avg", "exp_avg_sq"):
+            assert torch.equal(oa["state"][i][k], ob["state"][i][k]), (i, k)
+    strip = lambda rows: [{k: v for k, v in r.items() if k not in ("seconds", "wall")} for r in rows]  # noqa: E731
+    assert strip(whole.log.rows) == strip(resumed.log.rows)
+
+
+def test_old_checkpoints_resume_on_the_paper_schedule(scene, tmp_path):
+    out = tmp_path / "run"
+    _fast_run(scene, out, iterations=12, stop_every=0)
+    state = ckpt.load(out / "checkpoint.pt")
+    saved = ckpt.loads(state["config"])
+    for key in ("schedule", "stop_every", "stop_tolerance", "stop_patience"):
+        saved.pop(key)
+    state["config"] = ckpt.dumps(saved)
+    state.pop("converged")
+    ckpt.save(out / "checkpoint.pt", state)
+    cfg, _ = run_config(R2GSConfig, None, {}, True, out)
+    assert cfg.schedule == "paper" and cfg.stop_every == 0
+
+
+# ---------------------------------------------------------------------- coarse-to-fine
+@pytest.mark.parametrize("vectors", [False, True])
+def test_the_binned_detector_sees_the_binned_projections(scene, vectors):
+    """Projections rendered on the 2x2-binned detector match the full detector's averaged over
+    2x2 blocks (a coarse pixel's centre sample against its four fine samples: close, not equal),
+    for a circular and a per-view geometry; and a detector that does not divide is refused."""
+    from clgs.fit.schedule import bin_projections
+    from clgs.geometry import GeometryError
+    from clgs.ops.projector import project
+
+    geo = Geometry.default(n_views=4, n_voxel=16, n_detector=48, volume_mm=64.0)
+    geo = geo.as_vectors() if vectors else geo
+    rng = np.random.default_rng(2)
+    m = torch.tensor(rng.uniform(-0.3, 0.3, (5, 3)), dtype=torch.float32)
+    s = torch.tensor(rng.uniform(0.15, 0.3, (5, 3)), dtype=torch.float32)
+    q = torch.tensor(rng.normal(size=(5, 4)), dtype=torch.float32)
+    d = torch.full((5,), 0.02)
+    views = list(range(4))
+    with torch.no_grad():
+        fine = project(m, s, q, d, geo, views)
+        coarse = project(m, s, q, d, geo.binned(2), views)
+    binned = bin_projections(fine, 2)
+    assert coarse.shape == binned.shape == (4, 24, 24)
+    assert float((coarse - binned).abs().max()) < 0.03 * float(binned.max())
+    assert float((coarse - binned).abs().mean()) < 0.003 * float(binned.max())
+    assert geo.binned(1) is geo
+    with pytest.raises(GeometryError, match="multiples"):
+        Geometry.default(n_views=2, n_detector=25).binned(2)
+
+
+def test_coarse_to_fine_trains_coarse_then_full_and_resumes_bit_for_bit(scene, tmp_path, monkeypatch):
+    from clgs.fit import trainer as T
+
+    kw = dict(FAST, coarse_until=0.5, stop_every=0)
+    whole = _fast_run(scene, iterations=40, **kw).trainer
+    assert tuple(whole.geometry.nDetector) == tuple(scene.geometry.nDetector)  # full resolution at the end
+    first_row = whole.log.rows[0]
+    assert first_row["iteration"] == 0
+    real_step = T.Trainer.step
+    seen = []
+
+    def step(self):
+        seen.append(tuple(self.projections.shape[1:]))
+        if self.iteration == 13 and not (tmp_path / "run" / "checkpoint.pt").exists():
+            raise KeyboardInterrupt
+        return real_step(self)
+
+    monkeypatch.setattr(T.Trainer, "step", step)
+    first = _fast_run(scene, tmp_path / "run", iterations=40, **kw)
+    assert first.interrupted and seen[0] == (12, 12)
+    resumed = reconstruct_r2gs(scene, tmp_path / "run", resume=True, progress=False, fdk=scene.truth).trainer
+    # the step at iteration 13 ran twice (interrupted, then resumed): iteration i is seen[i + 1] from there
+    assert seen[14] == seen[20] == (12, 12) and seen[21] == seen[-1] == (24, 24) and len(seen) == 41
+    for k in whole.sets[0].params:
+        assert torch.equal(whole.sets[0].params[k], resumed.sets[0].params[k]), k
