@@ -135,3 +135,49 @@ def test_bench_train_refuses_the_shape_only_options_for_r2gs():
     for extra in (["--alternate", "2"], ["--at-iteration", "100"]):
         res = CliRunner().invoke(cli, ["bench", "train", "--gaussians", "300", *extra])
         assert res.exit_code == 2 and "go with --method shape" in res.output
+
+
+def test_bench_quality_time_runs_both_schedules_and_reads_a_reference_back(tmp_path):
+    """Both schedules on a tiny simulated scan: each run's figures, the levels the paper run sets,
+    the ratio line; then the paper run read back with --reference (a second process's figures,
+    said so) gives the same table for a fast run."""
+    import numpy as np
+    import torch
+
+    from clgs.geometry import Geometry
+    from clgs.io.scan import Scan
+    from clgs.ops.projector import project
+    from clgs.ops.voxelizer import voxelize
+
+    geo = Geometry.default(n_views=8, n_voxel=16, n_detector=24, volume_mm=64.0)
+    rng = np.random.default_rng(0)
+    m = torch.tensor(rng.uniform(-0.4, 0.4, (6, 3)), dtype=torch.float32)
+    s = torch.tensor(rng.uniform(0.1, 0.25, (6, 3)), dtype=torch.float32)
+    q = torch.tensor(rng.normal(size=(6, 4)), dtype=torch.float32)
+    d = torch.tensor(rng.uniform(0.01, 0.02, 6), dtype=torch.float32)
+    with torch.no_grad():
+        proj = project(m, s, q, d, geo, list(range(8))).numpy()
+        truth = voxelize(m, s, q, d, geo.volume_grid()).numpy()
+    Scan(geo, proj, truth).save(tmp_path / "scan")
+    common = ["--method", "r2gs", "--log-every", "10", "--set", "n_gaussians=200"]
+    out = _run("quality-time", str(tmp_path / "scan"), *common, "--paper-iterations", "40", "--fast-iterations",
+               "20", "-o", str(tmp_path / "qt"))
+    assert re.search(r"paper: 40 of 40 iterations \(ran to its end\), .*3D PSNR [0-9.]+ dB", out)
+    assert re.search(r" fast: 20 of 20 iterations", out)
+    assert "3D PSNR >= " in out and "(final - 0.1)" in out
+    assert re.search(r"fast against paper: [0-9.]+ of its time, [-+][0-9.]+ dB", out)
+    for name in ("paper", "fast"):
+        assert (tmp_path / "qt" / name / "log.csv").is_file() and (tmp_path / "qt" / name / "run.json").is_file()
+    again = _run("quality-time", str(tmp_path / "scan"), *common, "--fast-iterations", "20", "--reference",
+                 str(tmp_path / "qt" / "paper"))
+    assert "an earlier process" in again and re.search(r" fast: 20 of 20 iterations", again)
+    # the fast run is the paper's cut short: the same figures at the same iterations
+    import json
+
+    from clgs.fit.training_log import TrainingLog
+
+    paper = TrainingLog.read_csv(tmp_path / "qt" / "paper" / "log.csv").rows
+    fast = TrainingLog.read_csv(tmp_path / "qt" / "fast" / "log.csv").rows
+    assert json.loads((tmp_path / "qt" / "fast" / "run.json").read_text())["config"]["schedule_iterations"] == 30000
+    assert [r["iteration"] for r in fast] == [0, 10, 20]
+    assert fast[0]["psnr3d"] == paper[0]["psnr3d"]

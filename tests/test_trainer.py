@@ -538,3 +538,19 @@ def test_shape_guided_settings_are_checked_too():
     with pytest.raises(ValueError, match="lr_alpha must be >= 0"):
         ShapeGuidedConfig.from_json({"lr_alpha": -1})
     assert ShapeGuidedConfig.from_json({"iterations": 1e3}).iterations == 1000  # JSON's 1e3 is a count
+
+
+def test_an_os_sart_start_places_the_gaussians_on_the_sart_volume(scene):
+    """``init="sart"``: the start volume (and the value scale from it) is OS-SART's, 10 iterations
+    of 5 subsets unless told otherwise; the FDK is not computed."""
+    from clgs.ct.sart import sart
+    from clgs.methods import r2gs
+
+    ref = sart(scene.projections, scene.geometry, n_iter=3, subsets=5)
+    cfg = R2GSConfig(**{**SMALL, "iterations": 5, "init": "sart", "init_sart_iterations": 3, "n_gaussians": 80})
+    t = build_trainer(scene, cfg)
+    assert cfg.value_scale == pytest.approx(value_scale_from(ref), rel=1e-6)
+    assert 0 < t.n_gaussians <= 80
+    with pytest.raises(Exception, match="init must be one of fdk, sart, random"):
+        R2GSConfig(init="art")
+    assert r2gs.sart_start(scene, 3).shape == tuple(scene.geometry.nVoxel)

@@ -64,13 +64,16 @@ class R2GSConfig(GaussianFitConfig):
     # initial count (fewer when fewer voxels pass the threshold)
     n_gaussians: int = setting(50_000, "--gaussians",
                                "initial number of Gaussians")
-    init: str = setting("fdk", "--init", "initialise from an FDK volume or uniformly at random")  # "fdk" | "random"
+    init: str = setting("fdk", "--init",
+                        "initialise from an FDK volume, from OS-SART (--set init_sart_iterations=N, 5 subsets), or "
+                        "uniformly at random")  # "fdk" | "sart" | "random"
+    init_sart_iterations: int = 10  # OS-SART iterations of the "sart" start (5 subsets)
 
     CLI = ("iterations", "schedule", "n_gaussians", "max_gaussians", "init", "seed", "backend", "projector_mode", "scale_floor",
            "lambda_tv", "lambda_dssim", "log_every", "log_early", "checkpoint_every")
     KIND = "r2gs"
     FAST_ITERATIONS = 10_000  # the fast schedule's run (clgs.fit.schedule; docs/schedules.md)
-    CHOICES = {**GaussianFitConfig.CHOICES, "init": ("fdk", "random")}
+    CHOICES = {**GaussianFitConfig.CHOICES, "init": ("fdk", "sart", "random")}
     AT_LEAST = {**GaussianFitConfig.AT_LEAST, "n_gaussians": 1}
 
 
@@ -103,6 +106,8 @@ def build_trainer(scan, cfg: R2GSConfig, out_dir=None, *, progress=False, fdk=No
     sched = r2gs_schedules(cfg.schedule_iterations or cfg.iterations)
     kw = dict(box=box, scale_bounds=scale_bounds_for(geo, cfg.scale_bounds, cfg.scale_floor), schedules=sched,
               name="free", densify=True)
+    if cfg.init == "sart" and gaussians is None and state is None and fdk is None:
+        fdk = sart_start(scan, cfg.init_sart_iterations)
     if cfg.value_scale is None:
         fdk = fdk_volume(scan) if fdk is None else fdk
         cfg.value_scale = value_scale_from(fdk)
@@ -111,17 +116,27 @@ def build_trainer(scan, cfg: R2GSConfig, out_dir=None, *, progress=False, fdk=No
     elif state is not None:
         empty = np.zeros((0, 3), np.float32)
         gset = GaussianSet(empty, empty, np.zeros((0, 4), np.float32), np.zeros(0, np.float32), raw=True, **kw)
-    elif cfg.init == "fdk":
+    elif cfg.init in ("fdk", "sart"):
         fdk = fdk_volume(scan) if fdk is None else fdk
-        with phase(f"placing {cfg.n_gaussians} Gaussians on the FDK"):
+        with phase(f"placing {cfg.n_gaussians} Gaussians on the {'OS-SART' if cfg.init == 'sart' else 'FDK'} volume"):
             gset = init_from_volume(fdk * cfg.value_scale, geo.volume_grid(scene=True), n_gaussians=cfg.n_gaussians,
                                     threshold=cfg.init_threshold, density_factor=cfg.density_factor, seed=cfg.seed,
                                     **kw)
     elif cfg.init == "random":
         gset = init_random(cfg.n_gaussians, seed=cfg.seed, **kw)
     else:
-        raise InputError(f"init must be 'fdk' or 'random', got {cfg.init!r}")
+        raise InputError(f"init must be 'fdk', 'sart' or 'random', got {cfg.init!r}")
     return make_trainer(scan, cfg, [gset], projection_losses(cfg), out_dir, progress)
+
+
+def sart_start(scan, iterations: int) -> np.ndarray:
+    """The OS-SART start volume (``iterations`` iterations, 5 subsets, non-negative): a better
+    start than FDK at few views, bought for seconds (docs/schedules.md)."""
+    from clgs.ct.sart import sart
+
+    with phase(f"the OS-SART start ({iterations} iterations)"):
+        return np.asarray(sart(scan.projections, scan.geometry, n_iter=int(iterations),
+                               subsets=min(5, scan.geometry.n_views)), np.float32)
 
 
 def reconstruct_r2gs(scan, out_dir=None, iterations: int | None = None, *, resume: bool = False,
