@@ -29,12 +29,14 @@ def main():
     args = ap.parse_args()
     data = scipy.io.loadmat(args.mat)  # a MATLAB file: arrays only, no code runs
     if "img" not in data:
-        raise SystemExit(f"{args.mat} holds no 'img' array (has: {', '.join(k for k in data if not k.startswith('__'))})")
+        names = ", ".join(k for k in data if not k.startswith("__"))
+        raise SystemExit(f"{args.mat} holds no 'img' array (it has: {names})")
     img = np.asarray(data["img"], np.float32)
     if img.ndim != 3 or not np.isfinite(img).all() or img.min() < 0:
         raise SystemExit(f"{args.mat}: expected a finite, non-negative 3D volume, got shape {img.shape}")
     nib.save(nib.Nifti1Image(img, np.diag([args.voxel_mm] * 3 + [1.0])), args.out)
-    print(f"wrote {args.out}: {img.shape} voxels of {args.voxel_mm} mm, attenuation {img.min():.4g}-{img.max():.4g} 1/mm")
+    print(f"wrote {args.out}: {img.shape} voxels of {args.voxel_mm} mm, "
+          f"attenuation {img.min():.4g}-{img.max():.4g} 1/mm")
 
 
 if __name__ == "__main__":

@@ -98,7 +98,8 @@ def make_trainer(scan, cfg, sets, losses, out_dir=None, progress=False) -> Train
     trainer = Trainer(
         sets, geo, projections, losses, iterations=cfg.iterations,
         backend=Backend(cfg.backend, cfg.projector_mode), render_scale=geo.scale, seed=cfg.seed,
-        hooks=[densifier] + ([plateau] if plateau is not None else []), evaluate=make_evaluator(scan, cfg.value_scale), log_every=cfg.log_every,
+        hooks=[densifier] + ([plateau] if plateau is not None else []),
+        evaluate=make_evaluator(scan, cfg.value_scale), log_every=cfg.log_every,
         log_early=cfg.log_early, checkpoint_every=cfg.checkpoint_every if out_dir is not None else 0,
         checkpoint_path=None if out_dir is None else out_dir / CHECKPOINT, progress=progress,
         config=cfg.to_json(),

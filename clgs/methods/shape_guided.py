@@ -140,8 +140,8 @@ class ShapeGuidedConfig(GaussianFitConfig):
     lr_scale: float = 0.005
     lr_rotation: float = 0.01
 
-    CLI = ("iterations", "schedule", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every", "log_early",
-           "checkpoint_every", "max_gaussians", "n_shape", "n_free", "tau", "shape_prior", "density_prior",
+    CLI = ("iterations", "schedule", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every",
+           "log_early", "checkpoint_every", "max_gaussians", "n_shape", "n_free", "tau", "shape_prior", "density_prior",
            "density_prior_field", "free_init", "alpha_init_iterations", "fit_size", "residual", "residual_points",
            "uncertainty")
     KIND = "shape-guided"
