@@ -82,18 +82,21 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
     made before the simulation protocol was a choice used ``"same"`` and do not name it; the
     shape-bound runs name whether a size was fitted (``fit_size``: records made before it was
     fitted count as ``"off"``), and whether a residual deformation was (``residual``: records made
-    before it existed count as ``"off"``)."""
+    before it existed count as ``"off"``); every Gaussian run names its schedule (``schedule``:
+    records made before schedules existed ran the paper's, compressed to the iterations)."""
     sim = {} if simulation == "same" else {"simulation": simulation}
     if method == "fdk":
         return {"iterations": 0, **sim}
     key = "r2gs" if method == "r2gs" else "shape"
     chosen = {k: v for k, v in settings.get(key, {}).items() if k not in _BOOKKEEPING}
-    size = {}
+    from clgs.fit.config import GaussianFitConfig
+
+    size = {"schedule": str(chosen.pop("schedule", GaussianFitConfig.schedule))}
     if method in ("init+shape", "shape"):
         from clgs.methods.shape_guided import ShapeGuidedConfig
 
-        size = {"fit_size": str(chosen.pop("fit_size", ShapeGuidedConfig.fit_size)),
-                "residual": str(chosen.pop("residual", ShapeGuidedConfig.residual))}
+        size.update(fit_size=str(chosen.pop("fit_size", ShapeGuidedConfig.fit_size)),
+                    residual=str(chosen.pop("residual", ShapeGuidedConfig.residual)))
     return {"iterations": iterations, "seed": seed,
             "settings": json.loads(json.dumps(chosen, sort_keys=True, default=str)), **sim, **size}
 
@@ -102,7 +105,7 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
 _BOOKKEEPING = {"log_every", "log_early", "checkpoint_every", "checkpoint_dir", "progress"}
 _OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings", "detector_fov_mm": "--detector-mm",
            "simulation": "--simulation", "fit_size": "shape-guided setting fit_size",
-           "residual": "shape-guided setting residual"}
+           "residual": "shape-guided setting residual", "schedule": "the Gaussian runs' schedule (--set schedule=...)"}
 
 
 def load_experiment_subject(anatomy, sid, meshes, seed: int):
@@ -125,7 +128,7 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
     (records from before seeds, settings, detectors and simulation protocols were kept count as
     seed 0, no settings, the whole detector and the same-grid protocol)."""
     defaults = {"seed": 0, "settings": {}, "detector_fov_mm": None, "simulation": "same", "fit_size": "off",
-                "residual": "off"}
+                "residual": "off", "schedule": "paper"}
     made_with = {"simulation": "same", **made_with}
     for key, want in made_with.items():
         had = row.get(key, defaults.get(key, want))
@@ -410,7 +413,7 @@ def write_reports(out: Path, rows, summary, views, ablation_views) -> None:
     keys = ["subject", "views", "method", "psnr3d", "ssim3d", "psnr3d_fov", "ssim3d_fov", "surface_mean_mm",
             "surface_p95_mm",
             "surface_hausdorff_mm", "model_surface_mean_mm", "model_surface_p95_mm", "model_surface_hausdorff_mm",
-            "jacobian_min", "model_size", "seconds", "iterations", "detector_fov_mm"]
+            "jacobian_min", "model_size", "seconds", "iterations", "schedule", "detector_fov_mm"]
     def cell(x):
         return "" if x is None else ("x".join(f"{v:g}" for v in x) if isinstance(x, list) else str(x))
 
