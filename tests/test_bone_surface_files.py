@@ -231,8 +231,9 @@ def _saved(subject, path):
 @pytest.mark.parametrize("method", ["shape", "r2gs"])
 def test_the_femur_demo_writes_the_femur_not_the_thigh(tmp_path, method):
     """`clgs femur demo` (held-out subject 20, 5 views, a few iterations): the written surface is
-    the femur's (bounds within 10 mm of the true femur's; the thigh's lie 25-40 mm beyond them),
-    and its distance to the true surface is the one printed."""
+    the femur's (bounds within 15 mm of the true femur's, the thigh's lie 25-40 mm beyond them; 30
+    iterations of R2-Gaussian mode cut from the fast schedule leave one end 12 mm short), and its
+    distance to the true surface is the one printed."""
     pytest.importorskip("clgs_femur", reason="install with: pip install -e anatomies/femur")
     from clgs.cli import main
 
@@ -241,7 +242,7 @@ def test_the_femur_demo_writes_the_femur_not_the_thigh(tmp_path, method):
     assert res.exit_code == 0, res.output
     surface, truth = tmp_path / "recon" / "surface.stl", tmp_path / "scan" / "truth_surface.stl"
     s, t = trimesh.load(surface), trimesh.load(truth)
-    assert np.abs(s.bounds - t.bounds).max() < 10.0, (s.bounds, t.bounds)
+    assert np.abs(s.bounds - t.bounds).max() < 15.0, (s.bounds, t.bounds)
     assert s.area < 2.5 * t.area, (s.area, t.area)  # the thigh's: 3.5 to 5.5 times the femur's
     assert independent_mean_distance(surface, truth) == pytest.approx(printed(res.output, "surface_mean_mm"),
                                                                       rel=0.03, abs=0.02)

@@ -712,8 +712,11 @@ def _experiment_command(anatomy) -> click.Command:
     @cohort_options
     @click.option("--set", "shape_settings", multiple=True, metavar="KEY=VALUE",
                   help="a setting of every shape-guided run, e.g. residual=on (repeatable; recorded with each run)")
+    @click.option("--schedule", type=click.Choice(["fast", "paper"]), default="fast", show_default=True,
+                  help="the schedule of every Gaussian run: fast, the paper's cut at --iterations; paper, its decays "
+                       "compressed into them (docs/schedules.md)")
     def experiment(views, more_views, view_sets, detector_mm, meshes, units, mesh_space, subjects, iterations,
-                   shape_settings,
+                   shape_settings, schedule,
                    ablation_views, out, seed, log_every, progress, protocol, workers, scheduler):
         """The seed paper's experiment: R2-Gaussian vs shape-guided on every held-out subject,
         the ablation, error against run time, surfaces; writes table.md, results.csv, curves.png.
@@ -740,7 +743,7 @@ def _experiment_command(anatomy) -> click.Command:
                     f"{', '.join(repr(s) for s in bad)}: not held-out {name} subject(s); the experiment runs on "
                     f"held-out subjects only: {', '.join(held) if held else '(the plugin has none)'}",
                     param_hint="--subjects")
-        per_run = {"log_every": log_every, "checkpoint_every": 0}
+        per_run = {"log_every": log_every, "checkpoint_every": 0, "schedule": schedule}
         raw: dict = {}
         shape_opts = parse_settings(shape_settings, raw)
         if shape_opts:  # fail now, not in every run; checked as every --set is
