@@ -62,7 +62,10 @@ def test_fast_is_the_default_and_cuts_the_paper_short(config):
     assert cfg.schedule_iterations == PAPER_ITERATIONS  # the decays of the 30 000-iteration run
     same = ("densify_start", "densify_until", "densify_interval", "grad_threshold", "lambda_tv", "lambda_dssim")
     assert all(getattr(cfg, k) == getattr(paper, k) for k in same)
-    assert cfg.stop_every == config.FAST_STOP_EVERY > 0 and paper.stop_every == 0
+    assert cfg.stop_every == config.FAST_STOP_EVERY and paper.stop_every == 0
+    # the shape-guided method's fast runs stop at a plateau; R2-Gaussian mode's run to their end
+    # (its projection loss plateaus while the volume still improves: docs/schedules.md)
+    assert (ShapeGuidedConfig.FAST_STOP_EVERY > 0) and R2GSConfig.FAST_STOP_EVERY == 0
     longer, _ = run_config(config, 50_000, {}, False, None)
     assert longer.schedule_iterations == 50_000  # more than the paper's: the decays span the run
 
