@@ -141,24 +141,9 @@ def test_bench_quality_time_runs_both_schedules_and_reads_a_reference_back(tmp_p
     """Both schedules on a tiny simulated scan: each run's figures, the levels the paper run sets,
     the ratio line; then the paper run read back with --reference (a second process's figures,
     said so) gives the same table for a fast run."""
-    import numpy as np
-    import torch
+    from gaussian_scene import six_gaussian_scan
 
-    from clgs.geometry import Geometry
-    from clgs.io.scan import Scan
-    from clgs.ops.projector import project
-    from clgs.ops.voxelizer import voxelize
-
-    geo = Geometry.default(n_views=8, n_voxel=16, n_detector=24, volume_mm=64.0)
-    rng = np.random.default_rng(0)
-    m = torch.tensor(rng.uniform(-0.4, 0.4, (6, 3)), dtype=torch.float32)
-    s = torch.tensor(rng.uniform(0.1, 0.25, (6, 3)), dtype=torch.float32)
-    q = torch.tensor(rng.normal(size=(6, 4)), dtype=torch.float32)
-    d = torch.tensor(rng.uniform(0.01, 0.02, 6), dtype=torch.float32)
-    with torch.no_grad():
-        proj = project(m, s, q, d, geo, list(range(8))).numpy()
-        truth = voxelize(m, s, q, d, geo.volume_grid()).numpy()
-    Scan(geo, proj, truth).save(tmp_path / "scan")
+    six_gaussian_scan().save(tmp_path / "scan")
     common = ["--method", "r2gs", "--log-every", "10", "--set", "n_gaussians=200"]
     out = _run("quality-time", str(tmp_path / "scan"), *common, "--paper-iterations", "40", "--fast-iterations",
                "20", "-o", str(tmp_path / "qt"))

@@ -4,6 +4,7 @@ bit for bit."""
 import numpy as np
 import pytest
 import torch
+from gaussian_scene import six_gaussian_scan
 
 from clgs.errors import InputError
 from clgs.fit import checkpoint as ckpt
@@ -18,20 +19,7 @@ from clgs.methods.shape_guided import ShapeGuidedConfig
 @pytest.fixture(scope="module")
 def scene():
     """6 Gaussians in a 64 mm cube, 8 cone-beam views (as tests/test_trainer.py's)."""
-    from clgs.ops.projector import project
-    from clgs.ops.voxelizer import voxelize
-
-    geo = Geometry.default(n_views=8, n_voxel=16, n_detector=24, volume_mm=64.0)
-    rng = np.random.default_rng(0)
-    n = 6
-    m = torch.tensor(rng.uniform(-0.4, 0.4, (n, 3)), dtype=torch.float32)
-    s = torch.tensor(rng.uniform(0.1, 0.25, (n, 3)), dtype=torch.float32)
-    q = torch.tensor(rng.normal(size=(n, 4)), dtype=torch.float32)
-    d = torch.tensor(rng.uniform(0.01, 0.02, n), dtype=torch.float32)
-    with torch.no_grad():
-        proj = project(m, s, q, d, geo, list(range(geo.n_views))).numpy()
-        truth = voxelize(m, s, q, d, geo.volume_grid()).numpy()
-    return Scan(geo, proj, truth)
+    return six_gaussian_scan()
 
 
 # a fast run short enough for a test: densification early, plateau checks every 10 iterations after it

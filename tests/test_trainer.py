@@ -6,6 +6,7 @@ import signal
 import numpy as np
 import pytest
 import torch
+from gaussian_scene import six_gaussian_scan
 
 from clgs.fit import checkpoint as ckpt
 from clgs.fit.assembly import value_scale_from
@@ -18,20 +19,7 @@ from clgs.methods.r2gs import R2GSConfig, build_trainer, reconstruct_r2gs
 @pytest.fixture(scope="module")
 def scene():
     """6 anisotropic Gaussians (attenuation ~0.01-0.02 /mm) in a 64 mm cube, 8 cone-beam views."""
-    from clgs.ops.projector import project
-    from clgs.ops.voxelizer import voxelize
-
-    geo = Geometry.default(n_views=8, n_voxel=16, n_detector=24, volume_mm=64.0)
-    rng = np.random.default_rng(0)
-    n = 6
-    m = torch.tensor(rng.uniform(-0.4, 0.4, (n, 3)), dtype=torch.float32)
-    s = torch.tensor(rng.uniform(0.1, 0.25, (n, 3)), dtype=torch.float32)
-    q = torch.tensor(rng.normal(size=(n, 4)), dtype=torch.float32)
-    d = torch.tensor(rng.uniform(0.01, 0.02, n), dtype=torch.float32)
-    with torch.no_grad():
-        proj = project(m, s, q, d, geo, list(range(geo.n_views))).numpy()
-        truth = voxelize(m, s, q, d, geo.volume_grid()).numpy()
-    return Scan(geo, proj, truth)
+    return six_gaussian_scan()
 
 
 SMALL = dict(n_gaussians=150, densify_start=10, densify_interval=10, densify_until=30, log_every=10,
