@@ -226,12 +226,19 @@ def test_experiment_records_made_before_the_size_count_as_made_without_one(tmp_p
     from clgs.errors import InputError
     from clgs.experiment import _check_same_run, _made_with
 
-    want = _made_with("shape", 1000, 0, {}, "same")
-    assert want["fit_size"] == "on" and want["settings"] == {}
+    paper = {"schedule": "paper"}  # the record below is from before schedules too: it ran the paper's
+    want = _made_with("shape", 1000, 0, {"shape": paper}, "same")
+    assert want["fit_size"] == "on" and want["settings"] == {} and want["schedule"] == "paper"
     old = {"iterations": 1000, "seed": 0, "settings": {}}  # a record from before the size
     with pytest.raises(InputError, match="fit_size 'off'"):
         _check_same_run(tmp_path / "run.json", old, want)
-    _check_same_run(tmp_path / "run.json", old, _made_with("shape", 1000, 0, {"shape": {"fit_size": "off"}}, "same"))
+    _check_same_run(tmp_path / "run.json", old,
+                    _made_with("shape", 1000, 0, {"shape": {"fit_size": "off", **paper}}, "same"))
+    # nor runs of two schedules: records from before schedules count as the paper's
+    assert _made_with("shape", 1000, 0, {}, "same")["schedule"] == "fast"
+    with pytest.raises(InputError, match="schedule 'paper', this run asks for 'fast'"):
+        _check_same_run(tmp_path / "run.json", {**old, "fit_size": "off"},
+                        _made_with("shape", 1000, 0, {"shape": {"fit_size": "off"}}, "same"))
     assert "fit_size" not in _made_with("r2gs", 1000, 0, {}, "same")
     assert "fit_size" not in _made_with("init", 1000, 0, {}, "same")  # no shape model bound: no size
 
