@@ -22,6 +22,10 @@ With ``progress``, a bar (named ``desc``) shows the log's figures and its traini
 run time is printed for a run longer than a minute (:mod:`clgs.fit.estimate`; ``estimate``
 overrides; the clock is only read, so results do not change).
 
+A stopping rule (a hook, e.g. :class:`clgs.fit.schedule.PlateauStop`) may end the run early as a
+finished one (:meth:`Trainer.request_stop`): ``converged`` then says when and why, the checkpoint
+records it, and a resumed run does nothing more.
+
 Ctrl-C: the first SIGINT (main thread), or a SIGTERM (what ``timeout``, batch schedulers and
 container stops send), asks the loop to stop at the end of the current iteration; the loop then
 writes a checkpoint and returns with ``interrupted = True`` and ``stop_signal`` set to the signal

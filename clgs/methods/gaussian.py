@@ -21,6 +21,9 @@ def method_output(result, out_dir, files: dict, **extra) -> dict:
         print(f"interrupted at iteration {result.trainer.iteration}: outputs so far written{where}", file=sys.stderr)
     info = {"iterations": result.trainer.iteration, "n_gaussians": result.trainer.n_gaussians,
             "training_seconds": result.trainer.seconds, "value_scale": result.value_scale,
-            "interrupted": result.interrupted, "stop_signal": getattr(result.trainer, "stop_signal", None), **extra}
+            "interrupted": result.interrupted, "stop_signal": getattr(result.trainer, "stop_signal", None),
+            # the schedule, and where its plateau rule ended the run (None: it ran every iteration)
+            "schedule": result.trainer.config.get("schedule"),
+            "converged": getattr(result.trainer, "converged", None), **extra}
     # "result": the method's whole result (log, trainer), for Python callers such as the experiment
     return {"volume": result.volume, "files": files, "info": info, "result": result}
