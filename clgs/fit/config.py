@@ -139,8 +139,9 @@ class GaussianFitConfig(JsonConfig):
     # how the run spends its iterations (clgs.fit.schedule): "fast" (the default run) or "paper";
     # the fields above hold the paper's values, a run gets its schedule's from run_config
     schedule: str = setting("fast", "--schedule",
-                            "fast: the paper's schedule cut short (the method's fast length, or --iterations), ended "
-                            "sooner when the projections stop improving; paper: the published 30 000 iterations")
+                            "fast: the paper's schedule cut short (the method's fast length, or --iterations; the "
+                            "shape-guided method also stops once its projections stop improving); paper: the "
+                            "published 30 000 iterations")
     # the plateau rule (clgs.fit.schedule.PlateauStop): checks every stop_every iterations after
     # densification (0: off; None: the schedule's: the fast schedule's FAST_STOP_EVERY, paper off)
     stop_every: int | None = None

@@ -1,6 +1,6 @@
 """The expected run time of a Gaussian fit, from the run's own first iterations.
 
-Why here and why so: an R2-Gaussian run's default is 30 000 iterations, hours on a CPU; a user
+Why here and why so: an R2-Gaussian run is thousands of iterations (the paper's schedule 30 000: hours on a CPU); a user
 should know that in the first seconds, not after. The trainer times its first iterations (the very
 iterations of the run: nothing is run twice and nothing is changed, the clock is only read), and
 :class:`WarmUp` extrapolates: the time already spent since the run began (loading, FDK,

@@ -14,6 +14,19 @@ from clgs.io import atomic
 from clgs.io.volume import save_volume
 
 
+def rendered_views(trainer: Trainer, tensors=None, chunk: int = 8):
+    """(model's projections, measured ones) of every training view, training units, in chunks of
+    ``chunk`` views (no gradients): what the log's projection PSNR and the plateau rule
+    (:func:`clgs.fit.schedule.views_loss`) compare."""
+    tensors = tensors or tuple(t.detach() for t in trainer.scene_tensors())
+    views = trainer.views
+    with torch.no_grad():
+        for i in range(0, len(views), chunk):
+            part = views[i:i + chunk]
+            yield trainer.backend.project(*tensors, trainer.geometry, part) * trainer.render_scale, \
+                trainer.projections[part]
+
+
 def make_evaluator(scan, value_scale: float):
     """Figures for the log: projection PSNR over the training views (peak = the largest measured
     value) and, with a ground truth, 3D PSNR / SSIM of the voxelised volume (clgs.metrics)."""
@@ -22,15 +35,11 @@ def make_evaluator(scan, value_scale: float):
     def evaluate(trainer: Trainer) -> dict:
         tensors = tuple(t.detach() for t in trainer.scene_tensors())
         out = {}
-        views = trainer.views
         mse, peak = 0.0, 0.0
-        for i in range(0, len(views), 8):
-            chunk = views[i:i + 8]
-            pred = trainer.backend.project(*tensors, trainer.geometry, chunk) * trainer.render_scale
-            target = trainer.projections[chunk]
+        for pred, target in rendered_views(trainer, tensors):
             mse += float(((pred - target) ** 2).sum())
             peak = max(peak, float(target.max()))
-        mse /= len(views) * trainer.projections[0].numel()
+        mse /= len(trainer.views) * trainer.projections[0].numel()
         out["proj_psnr"] = 10 * math.log10(peak * peak / mse) if mse > 0 and peak > 0 else float("inf")
         if truth is not None:
             vol = voxelize_volume(trainer, tensors) / value_scale

@@ -13,8 +13,10 @@ paper's schedule short: the early, high learning rates are what converge. Two sc
   decays are compressed into them (what every run did before schedules existed).
 * ``fast`` (the default): the paper's schedule, unchanged, cut at each method's
   ``FAST_ITERATIONS`` (or the iterations given): the learning rates and densification of the
-  paper's run at the same iteration, and a plateau rule (:class:`PlateauStop`) that ends the run
-  sooner once the loss on every training view has stopped setting records.
+  paper's run at the same iteration, and, for a method whose ``FAST_STOP_EVERY`` is set (the
+  shape-guided one), a plateau rule (:class:`PlateauStop`) that ends the run sooner once the loss
+  on every training view has stopped setting records. R2-Gaussian mode has none by default: its
+  projections plateau long before its volume does (docs/schedules.md).
 
 :func:`resolve` turns a run's schedule and the settings given into the settings it runs with; the
 config records both, so a run's ``config.json`` says what it did and a resumed run keeps it.
@@ -26,6 +28,7 @@ import math
 import torch
 
 from clgs.errors import InputError
+from clgs.fit.outputs import rendered_views
 
 SCHEDULES = ("fast", "paper")
 PAPER_ITERATIONS = 30_000  # R2-Gaussian's and the shape-guided paper's run length
@@ -39,7 +42,7 @@ def resolve(config_cls, iterations: int | None, settings: dict) -> dict:
     ``paper``: 30 000 iterations unless given, the decays over the run; the plateau rule off.
     ``fast``: ``config_cls.FAST_ITERATIONS`` unless given; the decays as the paper's 30 000-iteration
     run has them (over more when more iterations are given), densification as the paper's; the
-    plateau rule on, checking every ``FAST_STOP_EVERY`` iterations from half the run on."""
+    plateau rule checking every ``FAST_STOP_EVERY`` iterations from half the run on (0: none)."""
     base = config_cls().to_json()
     schedule = settings.get("schedule", base.get("schedule", "paper"))
     if schedule not in SCHEDULES:
@@ -62,14 +65,10 @@ def views_loss(trainer) -> float:
     """Mean absolute difference between the model's projections and the measured ones over every
     training view (training units, no gradients): the training signal the plateau rule reads. Only
     the trainer's projections enter; a scan's truth never does."""
-    tensors = tuple(t.detach() for t in trainer.scene_tensors())
     total, count = 0.0, 0
-    with torch.no_grad():
-        for i in range(0, len(trainer.views), 8):
-            chunk = trainer.views[i:i + 8]
-            pred = trainer.backend.project(*tensors, trainer.geometry, chunk) * trainer.render_scale
-            total += float((pred - trainer.projections[chunk]).abs().sum())
-            count += pred.numel()
+    for pred, target in rendered_views(trainer):
+        total += float((pred - target).abs().sum())
+        count += pred.numel()
     return total / max(count, 1)
 
 

@@ -151,8 +151,10 @@ def reconstruct_r2gs(scan, out_dir=None, iterations: int | None = None, *, resum
     refused unless ``resume=True`` (continue its run from its checkpoint, with the checkpoint's
     settings, to the iterations it was started with, or to ``iterations`` when given) or
     ``overwrite=True`` (its clgs files are removed first): :func:`clgs.fit.config.run_folder`.
-    ``iterations=None`` on a new run: 30 000, R2-Gaussian's. ``fdk``: a ready FDK volume (else
-    computed). Ctrl-C stops cleanly: outputs so far are written and ``result.interrupted`` is True.
+    ``iterations=None`` on a new run: the schedule's length (``schedule="fast"``, the default:
+    the paper's schedule cut at 10 000; ``"paper"``: R2-Gaussian's 30 000; docs/schedules.md).
+    ``fdk``: a ready FDK volume (else computed). Ctrl-C stops cleanly: outputs so far are written
+    and ``result.interrupted`` is True.
     """
     with run_folder(out_dir, resume, overwrite), enabled(progress), run_clock():
         return _reconstruct_r2gs(scan, out_dir, iterations, resume=resume, progress=progress, fdk=fdk, **settings)
