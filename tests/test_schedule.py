@@ -68,6 +68,13 @@ def test_what_is_given_wins_over_the_schedule():
         run_config(R2GSConfig, None, {"schedule": "slow"}, False, None)
 
 
+def test_a_methods_fast_settings_apply_to_fast_runs_only_and_given_settings_win(monkeypatch):
+    monkeypatch.setattr(R2GSConfig, "FAST_SETTINGS", {"tv_every": 4})
+    assert run_config(R2GSConfig, None, {}, False, None)[0].tv_every == 4
+    assert run_config(R2GSConfig, None, {"schedule": "paper"}, False, None)[0].tv_every == 1
+    assert run_config(R2GSConfig, None, {"tv_every": 2}, False, None)[0].tv_every == 2
+
+
 # ---------------------------------------------------------------------- the plateau rule
 class _Loss:
     """A trainer stand-in whose views_loss follows a given list (through the monkeypatch below)."""
@@ -252,3 +259,37 @@ def test_coarse_to_fine_trains_coarse_then_full_and_resumes_bit_for_bit(scene, t
     assert seen[14] == seen[20] == (12, 12) and seen[21] == seen[-1] == (24, 24) and len(seen) == 41
     for k in whole.sets[0].params:
         assert torch.equal(whole.sets[0].params[k], resumed.sets[0].params[k]), k
+
+
+# ---------------------------------------------------------------------- TV every k-th iteration
+def test_tv_every_k_runs_the_patch_on_every_kth_iteration_weighted_k(scene):
+    """``tv_every=k``: the TV term is k times the TV patch on iterations divisible by k (drawn from
+    the same random block as a k=1 term with the same generator state) and absent on the others;
+    a run trains only those iterations' TV (the log's TV is the mean over every iteration)."""
+    from types import SimpleNamespace
+
+    from clgs.fit.assembly import tv_term
+    from clgs.fit.trainer import Backend
+
+    t = build_trainer(scene, R2GSConfig(**{**FAST, "iterations": 5}))
+    tensors = tuple(x.detach() for x in t.scene_tensors())
+
+    def ctx(it, seed=3):
+        return SimpleNamespace(iteration=it, geometry=t.geometry, generator=torch.Generator().manual_seed(seed),
+                               trainer=SimpleNamespace(backend=Backend("cl")), tensors=tensors)
+
+    every3, every1 = tv_term(8, 3), tv_term(8, 1)
+    for it in (1, 2, 4, 5):
+        assert every3(ctx(it)) is None
+    for it in (0, 3, 6):
+        one = float(every1(ctx(it)))
+        assert one > 0 and float(every3(ctx(it))) == pytest.approx(3 * one, rel=1e-6)
+    # in a run: the term is in the step's values on iterations 0, 3, 6, ... only
+    t = build_trainer(scene, R2GSConfig(**{**FAST, "iterations": 7, "tv_every": 3, "lambda_tv": 0.05}))
+    seen = []
+    for _ in range(7):
+        it = t.iteration
+        seen.append((it, "tv" in t.step()))
+    assert seen == [(i, i % 3 == 0) for i in range(7)]
+    with pytest.raises(InputError, match="tv_every"):
+        R2GSConfig(tv_every=0)

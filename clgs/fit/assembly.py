@@ -59,15 +59,23 @@ def value_scale_from(volume: np.ndarray) -> float:
     return 1.0 / p
 
 
-def tv_term(size: int):
+def tv_term(size: int, every: int = 1):
     """TV of the model voxelised on a random ``size^3`` block of the volume grid, shifted by a random
     fraction of a voxel as R2-Gaussian places its patch anywhere (on the OpenCL
-    backend one fused device pass: cull, field, TV and its gradient, see :mod:`clgs.fit.tv_patch`)."""
+    backend one fused device pass: cull, field, TV and its gradient, see :mod:`clgs.fit.tv_patch`).
+
+    ``every`` > 1: only every ``every``-th iteration, weighted ``every`` times (the same TV per
+    iteration on average, for a fraction of the cost: the patch is most of a late iteration of a
+    scene of large Gaussians, docs/schedules.md); other iterations skip the term."""
+    every = max(int(every), 1)
 
     def fn(ctx):
+        if ctx.iteration % every:
+            return None
         grid = ctx.geometry.volume_grid(scene=True)
         block = L.random_block(grid, size, ctx.generator, subvoxel=True)  # off the evaluation lattice
-        return tv_patch.patch_tv(ctx.trainer.backend, ctx.tensors, block)
+        tv = tv_patch.patch_tv(ctx.trainer.backend, ctx.tensors, block)
+        return tv if every == 1 else tv * every
 
     return fn
 
@@ -79,7 +87,7 @@ def projection_losses(cfg) -> list:
     return [
         LossTerm("l1", 1.0, image.l1),
         LossTerm("dssim", cfg.lambda_dssim, image.dssim),
-        LossTerm("tv", cfg.lambda_tv, tv_term(cfg.tv_size)),
+        LossTerm("tv", cfg.lambda_tv, tv_term(cfg.tv_size, cfg.tv_every)),
     ]
 
 

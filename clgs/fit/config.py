@@ -111,6 +111,7 @@ class GaussianFitConfig(JsonConfig):
     lambda_dssim: float = setting(0.25, "--dssim", "weight of the D-SSIM term")
     lambda_tv: float = setting(0.05, "--tv", "weight of the TV term (0 disables it)")
     tv_size: int = 32
+    tv_every: int = 1  # the TV patch every k-th iteration, weighted k times (1: every iteration, as published)
     densify_start: int = 500
     densify_until: int = 15_000
     densify_interval: int = 100
@@ -154,11 +155,12 @@ class GaussianFitConfig(JsonConfig):
 
     FAST_ITERATIONS = 30_000  # the fast schedule's run length (each method sets its own)
     FAST_STOP_EVERY = 500  # the fast schedule's plateau checks
+    FAST_SETTINGS = {}  # settings the fast schedule changes from the paper's (each method sets its own)
 
     CHOICES = {"projector_mode": ("affine", "exact"), "backend": ("cl", "torch"), "schedule": ("fast", "paper")}
     POSITIVE = frozenset({"value_scale"})
-    AT_LEAST = {"iterations": 1, "densify_interval": 1, "max_gaussians": 1, "tv_size": 2, "schedule_iterations": 1,
-                "stop_patience": 1, "coarse_factor": 1}
+    AT_LEAST = {"iterations": 1, "densify_interval": 1, "max_gaussians": 1, "tv_size": 2, "tv_every": 1,
+                "schedule_iterations": 1, "stop_patience": 1, "coarse_factor": 1}
     AT_MOST = {**JsonConfig.AT_MOST, "coarse_until": 1.0}
 
     def __post_init__(self):

@@ -64,7 +64,8 @@ FINITE_CHECK_EVERY = 100  # iterations between checks that every parameter is fi
 
 @dataclass
 class LossTerm:
-    """``weight x fn(ctx)`` in the total loss; ``weight == 0`` skips the term entirely."""
+    """``weight x fn(ctx)`` in the total loss; ``weight == 0`` skips the term entirely, and ``fn``
+    returning None skips it for that iteration."""
 
     name: str
     weight: float
@@ -323,6 +324,8 @@ class Trainer:
             if term.weight == 0:
                 continue
             v = term.fn(ctx)
+            if v is None:  # the term sits this iteration out (e.g. a TV patch every k-th iteration)
+                continue
             values[term.name] = v.detach()
             total = term.weight * v if total is None else total + term.weight * v
         self.optimizer.zero_grad(set_to_none=True)
