@@ -166,3 +166,28 @@ def test_bench_quality_time_runs_both_schedules_and_reads_a_reference_back(tmp_p
     assert json.loads((tmp_path / "qt" / "fast" / "run.json").read_text())["config"]["schedule_iterations"] == 30000
     assert [r["iteration"] for r in fast] == [0, 10, 20]
     assert fast[0]["psnr3d"] == paper[0]["psnr3d"]
+
+
+def test_bench_iteration_cost_times_a_trained_runs_settings_against_variants(tmp_path):
+    """A tiny R2-Gaussian run's checkpoint, timed under its own settings and two variants in
+    alternating rounds: one row each, the run's own at 1.00x; a folder without a checkpoint and an
+    unknown setting are refused with what to do."""
+    from gaussian_scene import six_gaussian_scan
+
+    from clgs.methods.r2gs import reconstruct_r2gs
+
+    scan = six_gaussian_scan()
+    scan.save(tmp_path / "scan")
+    reconstruct_r2gs(scan, tmp_path / "run", 12, progress=False, n_gaussians=150, init="random", value_scale=60.0,
+                     log_every=0, densify_start=2, densify_interval=4, densify_until=8)
+    out = _run("iteration-cost", str(tmp_path / "run"), "--scan", str(tmp_path / "scan"), "--variant", "tv_every=2",
+               "--variant", "tv_size=4,lambda_dssim=0", "--rounds", "2", "--block", "2")
+    assert re.search(r"scene: [0-9]+ Gaussians of .*run \(trained 12 iterations\).*timed from iteration 12 on", out)
+    assert re.search(r"the run's settings\s+[0-9.]+\s+1\.00x", out)
+    assert re.search(r"tv_every=2\s+[0-9.]+\s+[0-9.]+x", out)
+    assert re.search(r"tv_size=4,lambda_dssim=0\s+[0-9.]+\s+[0-9.]+x", out)
+    res = CliRunner().invoke(cli, ["bench", "iteration-cost", str(tmp_path / "scan"), "--scan", str(tmp_path / "scan")])
+    assert res.exit_code == 2 and "holds no checkpoint.pt" in res.output
+    res = CliRunner().invoke(cli, ["bench", "iteration-cost", str(tmp_path / "run"), "--scan", str(tmp_path / "scan"),
+                                   "--variant", "tv_evry=2"])
+    assert res.exit_code == 2 and "tv_evry" in res.output

@@ -13,6 +13,8 @@ BENCHMARKS = {
     "tv-patch": ("clgs.bench.tv_patch", "TV patch: the fused device pass against the unfused path, same patches"),
     "train": ("clgs.bench.train", "training iterations per second against the same iteration in torch"),
     "scaling": ("clgs.bench.scaling", "time per training iteration against the Gaussians and the detector size"),
+    "iteration-cost": ("clgs.bench.iteration_cost", "ms per iteration on a trained run's Gaussians: its settings "
+                       "against variants"),
     "quality-time": ("clgs.bench.quality_time", "time to each quality level: the fast schedule against the paper's"),
     "cohort": ("clgs.bench.cohort", "time and peak memory per cohort task; runs per minute with 1 and 2 workers"),
 }
