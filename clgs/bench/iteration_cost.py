@@ -24,6 +24,7 @@ from clgs.bench.host import HostWatch
 def trained_scene(run_dir, scan):
     """(settings JSON, [means, scales, quats, densities] as numpy, training units, iteration) of the
     R2-Gaussian run whose ``checkpoint.pt`` is in ``run_dir``, trained on ``scan``."""
+    from clgs.errors import InputError
     from clgs.fit import checkpoint as ckpt
     from clgs.fit.assembly import restore
     from clgs.methods.r2gs import R2GSConfig, build_trainer
@@ -36,7 +37,7 @@ def trained_scene(run_dir, scan):
     saved = ckpt.loads(state["config"])
     try:
         cfg = R2GSConfig.from_json(saved)
-    except Exception as exc:  # a shape-guided run's settings, or damaged ones
+    except (InputError, TypeError, ValueError) as exc:  # a shape-guided run's settings, or damaged ones
         raise click.UsageError(f"{path} is not an R2-Gaussian run's checkpoint ({exc})") from None
     trainer = build_trainer(scan, cfg, state=state)
     restore(trainer, state, cfg)
