@@ -16,7 +16,9 @@ paper's schedule short: the early, high learning rates are what converge. Two sc
   paper's run at the same iteration, and, for a method whose ``FAST_STOP_EVERY`` is set (the
   shape-guided one), a plateau rule (:class:`PlateauStop`) that ends the run sooner once the loss
   on every training view has stopped setting records. R2-Gaussian mode has none by default: its
-  projections plateau long before its volume does (docs/schedules.md).
+  projections plateau long before its volume does (docs/schedules.md). A method's
+  ``FAST_SETTINGS`` would change more of it (none does today: a TV patch every k-th iteration,
+  ``tv_every``, was measured and saves 5-10 % of the thorax's time, docs/schedules.md).
 
 :func:`resolve` turns a run's schedule and the settings given into the settings it runs with; the
 config records both, so a run's ``config.json`` says what it did and a resumed run keeps it.
