@@ -81,9 +81,11 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
     experiment reuses a record only when these match (else its table would mix runs). Records
     made before the simulation protocol was a choice used ``"same"`` and do not name it; the
     shape-bound runs name whether a size was fitted (``fit_size``: records made before it was
-    fitted count as ``"off"``), and whether a residual deformation was (``residual``: records made
-    before it existed count as ``"off"``); every Gaussian run names its schedule (``schedule``:
-    records made before schedules existed ran the paper's, compressed to the iterations)."""
+    fitted count as ``"off"``), whether a residual deformation was (``residual``: records made
+    before it existed count as ``"off"``) and the shape prior's weight (``lambda_shape``: records
+    made before it was named used the paper's 1e-4); every Gaussian run names its schedule
+    (``schedule``: records made before schedules existed ran the paper's, compressed to the
+    iterations)."""
     sim = {} if simulation == "same" else {"simulation": simulation}
     if method == "fdk":
         return {"iterations": 0, **sim}
@@ -96,7 +98,8 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
         from clgs.methods.shape_guided import ShapeGuidedConfig
 
         size.update(fit_size=str(chosen.pop("fit_size", ShapeGuidedConfig.fit_size)),
-                    residual=str(chosen.pop("residual", ShapeGuidedConfig.residual)))
+                    residual=str(chosen.pop("residual", ShapeGuidedConfig.residual)),
+                    lambda_shape=float(chosen.pop("lambda_shape", ShapeGuidedConfig.lambda_shape)))
     return {"iterations": iterations, "seed": seed,
             "settings": json.loads(json.dumps(chosen, sort_keys=True, default=str)), **sim, **size}
 
@@ -105,7 +108,8 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
 _BOOKKEEPING = {"log_every", "log_early", "checkpoint_every", "checkpoint_dir", "progress"}
 _OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings", "detector_fov_mm": "--detector-mm",
            "simulation": "--simulation", "fit_size": "shape-guided setting fit_size",
-           "residual": "shape-guided setting residual", "schedule": "the Gaussian runs' schedule (--set schedule=...)"}
+           "residual": "shape-guided setting residual", "lambda_shape": "shape-guided setting lambda_shape",
+           "schedule": "the Gaussian runs' schedule (--set schedule=...)"}
 
 
 def load_experiment_subject(anatomy, sid, meshes, seed: int):
@@ -127,8 +131,10 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
     """ValueError if the kept record ``row`` was made with other settings than ``made_with``
     (records from before seeds, settings, detectors and simulation protocols were kept count as
     seed 0, no settings, the whole detector and the same-grid protocol)."""
+    from clgs.methods.shape_guided import PAPER_LAMBDA_SHAPE
+
     defaults = {"seed": 0, "settings": {}, "detector_fov_mm": None, "simulation": "same", "fit_size": "off",
-                "residual": "off", "schedule": "paper"}
+                "residual": "off", "schedule": "paper", "lambda_shape": PAPER_LAMBDA_SHAPE}
     made_with = {"simulation": "same", **made_with}
     for key, want in made_with.items():
         had = row.get(key, defaults.get(key, want))

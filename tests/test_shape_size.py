@@ -226,9 +226,12 @@ def test_experiment_records_made_before_the_size_count_as_made_without_one(tmp_p
     from clgs.errors import InputError
     from clgs.experiment import _check_same_run, _made_with
 
-    paper = {"schedule": "paper"}  # the record below is from before schedules too: it ran the paper's
+    # the record below is from before schedules and the shape prior's weight were named too: it ran
+    # the paper's
+    paper = {"schedule": "paper", "lambda_shape": 1e-4}
     want = _made_with("shape", 1000, 0, {"shape": paper}, "same")
     assert want["fit_size"] == "on" and want["settings"] == {} and want["schedule"] == "paper"
+    assert want["lambda_shape"] == 1e-4
     old = {"iterations": 1000, "seed": 0, "settings": {}}  # a record from before the size
     with pytest.raises(InputError, match="fit_size 'off'"):
         _check_same_run(tmp_path / "run.json", old, want)
@@ -238,9 +241,24 @@ def test_experiment_records_made_before_the_size_count_as_made_without_one(tmp_p
     assert _made_with("shape", 1000, 0, {}, "same")["schedule"] == "fast"
     with pytest.raises(InputError, match="schedule 'paper', this run asks for 'fast'"):
         _check_same_run(tmp_path / "run.json", {**old, "fit_size": "off"},
-                        _made_with("shape", 1000, 0, {"shape": {"fit_size": "off"}}, "same"))
+                        _made_with("shape", 1000, 0, {"shape": {"fit_size": "off", "lambda_shape": 1e-4}}, "same"))
     assert "fit_size" not in _made_with("r2gs", 1000, 0, {}, "same")
     assert "fit_size" not in _made_with("init", 1000, 0, {}, "same")  # no shape model bound: no size
+
+
+def test_experiment_records_made_before_the_shape_prior_weight_was_named_count_as_the_papers(tmp_path):
+    """The default shape prior weight changed from the paper's 1e-4 to 0: a resumed experiment must
+    not keep an older record beside a new run."""
+    from clgs.errors import InputError
+    from clgs.experiment import _check_same_run, _made_with
+
+    old = {"iterations": 1000, "seed": 0, "settings": {}, "fit_size": "on", "schedule": "fast"}
+    want = _made_with("shape", 1000, 0, {}, "same")
+    assert want["lambda_shape"] == 0.0 and want["settings"] == {}
+    with pytest.raises(InputError, match="lambda_shape 0.0001, this run asks for 0.0"):
+        _check_same_run(tmp_path / "run.json", old, want)
+    _check_same_run(tmp_path / "run.json", old, _made_with("shape", 1000, 0, {"shape": {"lambda_shape": 1e-4}}, "same"))
+    assert "lambda_shape" not in _made_with("r2gs", 1000, 0, {}, "same")
 
 
 def test_the_experiment_table_names_each_subjects_fitted_sizes():
