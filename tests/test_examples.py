@@ -95,3 +95,37 @@ def test_femur_sizes_writes_subject_22_at_the_lengths_asked(tmp_path):
         assert surface_length(v) == pytest.approx(length, rel=1e-3)
     bad = subprocess.run(cmd[:3] + ["--lengths", "x"], capture_output=True, text=True, cwd=EXAMPLES, timeout=600)
     assert bad.returncode == 2 and "--lengths takes millimetres" in bad.stderr
+
+
+def test_femur_mode_oracle_gives_the_registration_back_from_a_model_centred_on_it(tmp_path):
+    """Known answer: a model whose mean velocity is the subject's own registration projects that
+    subject on alpha = 0, so every mode count's surface is the registration's (subject 23: the
+    femur the model reaches best, 0.22 mm in docs/shape-model.md). And an unknown subject is refused."""
+    pytest.importorskip("clgs_femur", reason="install with: pip install -e anatomies/femur")
+    import numpy as np
+
+    from clgs.anatomy.plugins import get_anatomy
+    from clgs.shape.builder import register_subject
+    from clgs.shape.model import ShapeModel, save_model
+
+    femur = get_anatomy("femur")
+    template = femur.load_template()
+    shape, spacing, origin = template.model_grid(64)
+    v = register_subject(template, femur.load_subject("23"), "23", tmp_path / "entry.npz", 64, {},
+                         atlas=False)["velocity"]
+    modes = np.zeros((2, 3) + tuple(shape), np.float32)
+    modes[0, 0], modes[1, 2] = 1.0, 1.0  # translations along x and z, orthonormal as flat vectors
+    modes /= np.sqrt(np.prod(shape))
+    model = tmp_path / "centred.npz"
+    save_model(model, ShapeModel(v, modes, np.ones(2, np.float32), spacing, origin),
+               meta={"settings": {"max_cells": 64, "registration": {}}})
+    cmd = [sys.executable, str(EXAMPLES / "femur_mode_oracle.py"), "--model", str(model), "--subjects", "23",
+           "--modes", "1,2"]
+    r = subprocess.run(cmd, capture_output=True, text=True, cwd=EXAMPLES, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    row = next(line for line in r.stdout.splitlines() if line.startswith("| 23 |"))
+    registration, one, two = (float(x) for x in row.strip("| ").split("|")[1:])
+    assert 0.1 < registration < 0.5 and one == pytest.approx(registration, abs=0.011)
+    assert two == pytest.approx(registration, abs=0.011)
+    bad = subprocess.run(cmd[:4] + ["--subjects", "05"], capture_output=True, text=True, cwd=EXAMPLES, timeout=600)
+    assert bad.returncode == 2 and "not held-out femur subjects: 05" in bad.stderr
