@@ -76,14 +76,17 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
             "displacement": split}
 
 
-def _made_with(method: str, iterations: int, seed: int, settings: dict, simulation: str = "fine") -> dict:
+def _made_with(method: str, iterations: int, seed: int, settings: dict, simulation: str = "fine",
+               angles=None) -> dict:
     """What a run's result depends on besides the subject, as kept in its record: a resumed
     experiment reuses a record only when these match (else its table would mix runs). Records
     made before the simulation protocol was a choice used ``"same"`` and do not name it; the
     shape-bound runs name whether a size was fitted (``fit_size``: records made before it was
     fitted count as ``"off"``), whether a residual deformation was (``residual``: records made
-    before it existed count as ``"off"``) and the shape prior's weight (``lambda_shape``: records
-    made before it was named used the paper's 1e-4); every Gaussian run names its schedule
+    before it existed count as ``"off"``), the shape prior's weight (``lambda_shape``: records
+    made before it was named used the paper's 1e-4) and the tissue its registration held
+    (``register_tissue``, ``"auto"`` resolved for the views at ``angles``, radians: records made
+    before it was named held the free set's start, ``"free"``); every Gaussian run names its schedule
     (``schedule``: records made before schedules existed ran the paper's, compressed to the
     iterations)."""
     sim = {} if simulation == "same" else {"simulation": simulation}
@@ -99,9 +102,22 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
 
         size.update(fit_size=str(chosen.pop("fit_size", ShapeGuidedConfig.fit_size)),
                     residual=str(chosen.pop("residual", ShapeGuidedConfig.residual)),
-                    lambda_shape=float(chosen.pop("lambda_shape", ShapeGuidedConfig.lambda_shape)))
+                    lambda_shape=float(chosen.pop("lambda_shape", ShapeGuidedConfig.lambda_shape)),
+                    register_tissue=str(chosen.pop("register_tissue", ShapeGuidedConfig.register_tissue)))
+        if size["register_tissue"] == "auto":
+            from clgs.methods.shape_guided import registration_tissue
+
+            size["register_tissue"] = "free" if angles is None else registration_tissue("auto", angles)
     return {"iterations": iterations, "seed": seed,
             "settings": json.loads(json.dumps(chosen, sort_keys=True, default=str)), **sim, **size}
+
+
+def _angles_of(views, angles):
+    """The view angles (radians) of an experiment's view set: ``angles`` when given, else the
+    count's (``"5"`` or ``"5-fov300"``) spread over a half-turn, as the subject is simulated."""
+    if angles is not None:
+        return np.asarray(angles, np.float64)
+    return np.linspace(0.0, math.pi, int(str(views).split("-fov")[0]), endpoint=False)
 
 
 # settings that change how often a run logs or saves, not its result
@@ -109,6 +125,7 @@ _BOOKKEEPING = {"log_every", "log_early", "checkpoint_every", "checkpoint_dir", 
 _OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings", "detector_fov_mm": "--detector-mm",
            "simulation": "--simulation", "fit_size": "shape-guided setting fit_size",
            "residual": "shape-guided setting residual", "lambda_shape": "shape-guided setting lambda_shape",
+           "register_tissue": "shape-guided setting register_tissue",
            "schedule": "the Gaussian runs' schedule (--set schedule=...)"}
 
 
@@ -134,7 +151,8 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
     from clgs.methods.shape_guided import PAPER_LAMBDA_SHAPE
 
     defaults = {"seed": 0, "settings": {}, "detector_fov_mm": None, "simulation": "same", "fit_size": "off",
-                "residual": "off", "schedule": "paper", "lambda_shape": PAPER_LAMBDA_SHAPE}
+                "residual": "off", "schedule": "paper", "lambda_shape": PAPER_LAMBDA_SHAPE,
+                "register_tissue": "free"}
     made_with = {"simulation": "same", **made_with}
     for key, want in made_with.items():
         had = row.get(key, defaults.get(key, want))
@@ -250,7 +268,8 @@ def _run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: 
                 tag = f"{sid}_{v}_{method.replace('+', '-')}"
                 order.append(tag)
                 record_path = out / "runs" / f"{tag}.json"
-                made_with = dict(_made_with(method, iterations, seed, settings, simulation), detector_fov_mm=det)
+                made_with = dict(_made_with(method, iterations, seed, settings, simulation,
+                                            _angles_of(v, angles)), detector_fov_mm=det)
                 if record_path.is_file():
                     row = json.loads(record_path.read_text())
                     _check_same_run(record_path, row, made_with)
@@ -351,7 +370,7 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
     parts = None
     if method in SHAPE_METHODS:
         parts = _cached(("parts", anatomy.name, str(anatomy.model_path)), lambda: load_anatomy_parts(anatomy))
-    made_with = dict(_made_with(method, iterations, seed, settings, simulation),
+    made_with = dict(_made_with(method, iterations, seed, settings, simulation, scan.geometry.angles),
                      detector_fov_mm=None if detector_mm is None else [float(x) for x in detector_mm])
     run = _run_one(method, scan, parts, iterations, seed, progress, settings)
     # the surface scored is the surface written: one mesh, at one level (named in the record)

@@ -575,3 +575,45 @@ def test_training_keeps_the_shape_the_views_show(template, shape_model, tissue_a
     assert ours[0] > start[0] - 0.01  # kept (or moved on towards the truth)
     assert paper[0] < start[0] - 0.05  # drawn back towards 0
     assert np.abs(ours - truth).sum() < np.abs(paper - truth).sum() - 0.1
+
+
+def test_registering_against_the_fdks_tissue_lets_a_short_femur_be_short():
+    """Known answer on a real femur: subject 24 (405 mm, the template 434 mm), 5 views. Held against
+    the atlas's tissue, which has a hole the template's length, the registration fits the bone long
+    to fill it (model surface 1.67 mm from the truth, docs/methods.md); held against the FDK's
+    tissue outside the template's bone it fits the bone's own length (0.98 mm). Only the
+    registration differs: both runs train from the atlas's tissue."""
+    pytest.importorskip("clgs_femur", reason="install with: pip install -e anatomies/femur")
+    from clgs.anatomy.plugins import get_anatomy
+    from clgs.anatomy.simulation import simulate_subject
+    from clgs.methods.shape_guided import ShapeGuidedConfig, build_trainer, deformed_template_surface
+    from clgs.metrics import surface_distance
+
+    femur = get_anatomy("femur")
+    parts = AnatomyParts.load(femur)
+    scan = simulate_subject(femur, femur.load_subject("24"), 5, protocol="same")
+    found = {}
+    for held in ("free", "fdk"):
+        t = build_trainer(scan, parts, ShapeGuidedConfig(iterations=1, register_tissue=held, log_every=0,
+                                                         checkpoint_every=0))
+        found[held] = surface_distance(deformed_template_surface(parts.template, t.sets[0]), scan.surface)["mean"]
+        assert t.sets[1].name == "free" and len(t.sets[1]) == ShapeGuidedConfig().n_free  # the atlas's tissue
+    assert found["free"] > 1.4  # measured 1.67
+    assert found["fdk"] < 1.2  # measured 0.98
+
+
+def test_the_registration_holds_the_fdks_tissue_only_where_the_views_cover_a_half_turn():
+    """auto (the default): the FDK's tissue where no two neighbouring views (modulo 180 degrees)
+    are more than 40 degrees apart; AP + lateral and a C-arm's quarter-turn keep the free set's."""
+    from clgs.methods.shape_guided import ShapeGuidedConfig, registration_tissue, widest_view_gap_deg
+
+    assert ShapeGuidedConfig().register_tissue == "auto"
+    half = [np.linspace(0, np.pi, n, endpoint=False) for n in (5, 10)]
+    assert [widest_view_gap_deg(a) for a in half] == pytest.approx([36.0, 18.0])
+    assert all(registration_tissue("auto", a) == "fdk" for a in half)
+    assert widest_view_gap_deg(np.radians([0.0, 90.0])) == pytest.approx(90.0)
+    assert widest_view_gap_deg(np.radians([-10.0, 350.0, 170.0])) == pytest.approx(180.0)  # one line, three times
+    for angles in (np.radians([0.0, 90.0]), np.radians([0.0, 45.0, 90.0]), np.linspace(0, np.pi / 2, 5),
+                   np.linspace(0, np.pi, 4, endpoint=False), [0.0]):
+        assert registration_tissue("auto", angles) == "free"
+    assert registration_tissue("fdk", [0.0]) == "fdk" and registration_tissue("free", half[1]) == "free"

@@ -261,6 +261,31 @@ def test_experiment_records_made_before_the_shape_prior_weight_was_named_count_a
     assert "lambda_shape" not in _made_with("r2gs", 1000, 0, {}, "same")
 
 
+def test_experiment_records_made_before_the_registrations_tissue_was_named_count_as_held_on_the_free_set(tmp_path):
+    """The tissue the registration holds (register_tissue) changes the fitted shape: a resumed
+    experiment must not keep an older record (which held the free set's start) beside a run that
+    held the FDK's tissue."""
+    from clgs.errors import InputError
+    from clgs.experiment import _check_same_run, _made_with
+
+    old = {"iterations": 1000, "seed": 0, "settings": {}, "fit_size": "on", "schedule": "fast", "lambda_shape": 0.0}
+    want = _made_with("shape", 1000, 0, {"shape": {"register_tissue": "fdk"}}, "same")
+    assert want["register_tissue"] == "fdk" and want["settings"] == {}
+    with pytest.raises(InputError, match="register_tissue 'free', this run asks for 'fdk'"):
+        _check_same_run(tmp_path / "run.json", old, want)
+    _check_same_run(tmp_path / "run.json", old, _made_with("shape", 1000, 0, {"shape": {"register_tissue": "free"}},
+                                                           "same"))
+    assert "register_tissue" not in _made_with("r2gs", 1000, 0, {}, "same")
+    # the default, auto, is recorded as what it chose for the views: AP + lateral kept the free
+    # set's start (an older record stays good), 5 views over a half-turn the FDK's
+    ap_lat = np.radians([0.0, 90.0])
+    assert _made_with("shape", 1000, 0, {}, "same", ap_lat)["register_tissue"] == "free"
+    _check_same_run(tmp_path / "run.json", old, _made_with("shape", 1000, 0, {}, "same", ap_lat))
+    five = np.linspace(0, np.pi, 5, endpoint=False)
+    with pytest.raises(InputError, match="register_tissue 'free', this run asks for 'fdk'"):
+        _check_same_run(tmp_path / "run.json", old, _made_with("shape", 1000, 0, {}, "same", five))
+
+
 def test_the_experiment_table_names_each_subjects_fitted_sizes():
     from clgs.experiment import markdown_tables, summarise
 

@@ -112,6 +112,14 @@ class ShapeGuidedConfig(GaussianFitConfig):
     # "atlas": the atlas's tissue around the bone; "fdk": R2-Gaussian's FDK start
     free_init: str = setting("atlas", "--free-init",
                              "start the free Gaussians on the atlas's tissue around the bone, or on the FDK")
+    # the tissue the registration holds fixed around the bone: "free" the free set's start (the
+    # run's own), "fdk" the FDK outside the template's bone (the run still trains from its own),
+    # "auto" the FDK's where the views cover a half-turn (registration_tissue)
+    register_tissue: str = setting("auto", "--register-tissue",
+                                   "tissue held fixed around the bone while alpha (and the size) are registered: "
+                                   "the free Gaussians' start (free), the FDK outside the template's bone (fdk), or "
+                                   "auto: fdk where no two neighbouring views are more than 40 degrees apart, "
+                                   "free otherwise")
     # alpha-only registration before training (0: start at alpha = 0)
     alpha_init_iterations: int = setting(100, "--alpha-init-iterations",
                                          "iterations registering alpha to the projections before training "
@@ -158,12 +166,13 @@ class ShapeGuidedConfig(GaussianFitConfig):
 
     CLI = ("iterations", "schedule", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every",
            "log_early", "checkpoint_every", "max_gaussians", "n_shape", "n_free", "tau", "shape_prior", "density_prior",
-           "density_prior_field", "free_init", "alpha_init_iterations", "fit_size", "residual", "residual_points",
-           "uncertainty", "lambda_shape")
+           "density_prior_field", "free_init", "register_tissue", "alpha_init_iterations", "fit_size", "residual",
+           "residual_points", "uncertainty", "lambda_shape")
     KIND = "shape-guided"
     FAST_ITERATIONS = 4_000  # the fast schedule's run (clgs.fit.schedule; docs/schedules.md)
     FAST_STOP_EVERY = 250
-    CHOICES = {**GaussianFitConfig.CHOICES, "free_init": ("atlas", "fdk"), "density_prior_field": ("all", "shape"),
+    CHOICES = {**GaussianFitConfig.CHOICES, "free_init": ("atlas", "fdk"), "register_tissue": ("auto", "free", "fdk"),
+               "density_prior_field": ("all", "shape"),
                "fit_size": ("auto", "on", "off"), "residual": ("on", "off"), "uncertainty": ("on", "off")}
     POSITIVE = GaussianFitConfig.POSITIVE | {"tau", "density_s"}
     AT_LEAST = {**GaussianFitConfig.AT_LEAST, "density_points": 2, "residual_points": 4}
@@ -207,13 +216,57 @@ class ShapeGuidedResult:
     uncertainty: dict | None = None  # the shape surface's uncertainty summary (clgs.shape.uncertainty.summary)
 
 
-def _free_init_volume(fdk, geometry, template) -> np.ndarray:
-    """The FDK volume with the template's bone blanked out (free Gaussians start outside it)."""
+def _free_init_volume(fdk, geometry, template, size=None, centre_mm=None) -> np.ndarray:
+    """The FDK volume with the template's bone blanked out (free Gaussians start outside it); with
+    ``size`` > 1, the bone scaled by it about ``centre_mm`` (a larger bone's ends stay blanked)."""
     pts = geometry.volume_grid(scene=False).points().reshape(-1, 3)
+    k = max(float(size or 1.0), 1.0)
+    if k > 1.0:
+        pts = centre_mm + (pts - centre_mm) / k
     inside = template.sdf_at(pts).reshape(fdk.shape) < 0
     vol = np.array(fdk, np.float32, copy=True)
     vol[inside] = float(vol.min())
     return vol
+
+
+#: ``register_tissue="auto"`` registers against the FDK's tissue where no gap between neighbouring
+#: views (modulo a half-turn) is wider than this: 5 views over 180 degrees (36) and more; not AP +
+#: lateral (90), whose two-view FDK is mostly streaks (docs/methods.md has the figures)
+AUTO_FDK_GAP_DEG = 40.0
+
+
+def widest_view_gap_deg(angles) -> float:
+    """The widest angle (degrees) between neighbouring views, their angles taken modulo a half-turn
+    (a view and its opposite see the same lines): 180 for a single view."""
+    a = np.sort(np.mod(np.degrees(np.asarray(angles, np.float64).reshape(-1)), 180.0))
+    if a.size < 2:
+        return 180.0
+    return float(np.max(np.diff(np.concatenate([a, [a[0] + 180.0]]))))
+
+
+def registration_tissue(choice: str, angles) -> str:
+    """The tissue the registration holds for the setting ``choice`` on a scan of views at ``angles`` (radians):
+    ``"free"`` or ``"fdk"`` as given; ``"auto"`` the FDK's where the views leave no gap wider than
+    :data:`AUTO_FDK_GAP_DEG`, the free set's start otherwise.
+
+    Why: the atlas's tissue has a hole the template's bone's shape, and a bone shorter than the
+    template is fitted long to fill it (subject 24, 405 mm, 5 views: 421 mm, model surface 1.67 mm
+    after the registration); the FDK's tissue has no such pull (0.98 mm), but from AP + lateral
+    views the FDK is streaks, and the fit then does worse than against the atlas's tissue."""
+    if choice != "auto":
+        return choice
+    return "fdk" if widest_view_gap_deg(angles) <= AUTO_FDK_GAP_DEG else "free"
+
+
+def fdk_tissue(fdk, geometry, template, cfg, set_kw: dict, size=None, centre_mm=None) -> GaussianSet:
+    """Free Gaussians (``cfg.n_free``) on the FDK outside the template's bone (:func:`_free_init_volume`):
+    the free set's start with ``free_init="fdk"``, and the tissue held while alpha is registered with
+    ``register_tissue="fdk"``."""
+    vol = _free_init_volume(fdk, geometry, template, size, centre_mm) * cfg.value_scale
+    with phase(f"placing {cfg.n_free} Gaussians on the FDK"):
+        return init_from_volume(vol, geometry.volume_grid(scene=True), n_gaussians=cfg.n_free,
+                                threshold=cfg.init_threshold, density_factor=cfg.density_factor,
+                                seed=cfg.seed + 1, **set_kw)
 
 
 def field_sampler(backend: str):
@@ -304,8 +357,9 @@ def _registration(scan, shape_model, cfg, init, free, moving: dict, k: int, *, s
         if name not in moving:
             p.requires_grad_(False)
     sets: list = [bound]
-    if free is not None and len(free) > 0:
-        sets.append(_Frozen(free))
+    for i, fixed in enumerate(free if isinstance(free, list) else [free]):
+        if fixed is not None and len(fixed) > 0:
+            sets.append(_Frozen(fixed, "fixed" if i == 0 else f"fixed{i}"))
     image = L.ImageTerms(dssim=cfg.lambda_dssim > 0)
     losses = [LossTerm("l1", 1.0, image.l1),
               LossTerm("dssim", cfg.lambda_dssim, image.dssim)]
@@ -325,8 +379,8 @@ def _registration(scan, shape_model, cfg, init, free, moving: dict, k: int, *, s
 class _Frozen:
     """A Gaussian set seen through fixed (detached) tensors, with nothing to optimise."""
 
-    def __init__(self, gset):
-        self.name = "fixed"
+    def __init__(self, gset, name: str = "fixed"):
+        self.name = name
         with torch.no_grad():
             self._tensors = tuple(t.detach().clone() for t in gset.tensors())
 
@@ -403,15 +457,16 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
                                (outside.scales * geo.scale).astype(np.float32), outside.quats.astype(np.float32),
                                (outside.densities * cfg.value_scale).astype(np.float32), **free_kw)
         elif new_free:  # "fdk", or an atlas of the bone alone
-            vol = _free_init_volume(need_fdk(), geo, template) * cfg.value_scale
-            with phase(f"placing {cfg.n_free} Gaussians on the FDK"):
-                free = init_from_volume(vol, geo.volume_grid(scene=True), n_gaussians=cfg.n_free,
-                                        threshold=cfg.init_threshold, density_factor=cfg.density_factor,
-                                        seed=cfg.seed + 1, **free_kw)
+            free = fdk_tissue(need_fdk(), geo, template, cfg, free_kw)
+        held = free  # the tissue the registrations hold fixed
+        registering = bound and (cfg.alpha_init_iterations > 0
+                                 or (cfg.residual == "on" and cfg.residual_init_iterations > 0))
+        if registering and outside is not None and registration_tissue(cfg.register_tissue, geo.angles) == "fdk":
+            held = fdk_tissue(need_fdk(), geo, template, cfg, free_kw, size=size, centre_mm=centre)
         if bound and cfg.alpha_init_iterations > 0:
-            alpha0, size = fit_initial_alpha(scan, shape_model, cfg, init, free, size=size, centre_mm=centre)
+            alpha0, size = fit_initial_alpha(scan, shape_model, cfg, init, held, size=size, centre_mm=centre)
         if bound and cfg.residual == "on" and cfg.residual_init_iterations > 0:
-            theta0 = fit_initial_residual(scan, shape_model, cfg, init, free, alpha0, size=size, centre_mm=centre)
+            theta0 = fit_initial_residual(scan, shape_model, cfg, init, held, alpha0, size=size, centre_mm=centre)
     else:
         n = state["sets"]["shape"]["scales"].shape[0]
         size = 1.0 if "log_size" in state["sets"]["shape"] else None  # the checkpoint holds its value
