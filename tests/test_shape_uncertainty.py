@@ -181,8 +181,9 @@ def test_a_shape_guided_run_writes_the_field_and_reports_it(tmp_path):
                                    **_small(alpha_freeze=3))
     u = res.uncertainty
     assert u is not None and u["file"] == "shape_uncertainty.ply" and 0 < u["mean_mm"] <= u["max_mm"]
-    assert u["beyond_model_max_mm"] == 0.0  # a model without a beyond-span covariance: the posterior alone
-    assert u["mean_mm"] == pytest.approx(u["posterior_mean_mm"], abs=1e-4)
+    assert u["beyond_model_max_mm"] == 0.0  # a model without a beyond-span covariance: no such part
+    assert u["mean_mm"] >= u["posterior_mean_mm"] and u["mean_mm"] >= u["volume_mean_mm"] > 0.0
+    assert 0.0 <= u["share_above_2mm"] <= 1.0
     assert json.loads((tmp_path / "run" / "alpha.json").read_text())["uncertainty"] == u
     assert len(u["alpha_sd"]) == 2 and all(0 < s <= 1.0 + 1e-9 for s in u["alpha_sd"])  # narrower than the prior
     v, f, values = read_uncertainty_ply(tmp_path / "run" / "shape_uncertainty.ply")
@@ -196,8 +197,33 @@ def test_a_shape_guided_run_writes_the_field_and_reports_it(tmp_path):
 
     assert cKDTree(surface.vertices).query(v)[0].max() < 1e-3
     json.dumps(u)
+    # the parts as written, read by trimesh alone: the field is their root sum of squares, and the
+    # volume's part is each vertex's distance to surface.stl (the bone surface the run wrote)
+    import trimesh
+
+    raw = trimesh.load(str(tmp_path / "run" / "shape_uncertainty.ply"), process=False).metadata["_ply_raw"]
+    props = raw["vertex"]["data"]
+    parts = {k: np.asarray(props[k], np.float64) for k in ("uncertainty_mm", "posterior_mm", "beyond_model_mm",
+                                                            "volume_mm")}
+    rss = np.sqrt(parts["posterior_mm"] ** 2 + parts["beyond_model_mm"] ** 2 + parts["volume_mm"] ** 2)
+    np.testing.assert_allclose(parts["uncertainty_mm"], rss, rtol=1e-5, atol=1e-6)
+    bone = load_mesh(tmp_path / "run" / "surface.stl")
+    _, d, _ = trimesh.proximity.closest_point(trimesh.Trimesh(bone.vertices, bone.faces, process=False), v)
+    np.testing.assert_allclose(parts["volume_mm"], d, atol=1e-3)
     # one view (along x) cannot see the shift along x: that mode keeps most of the prior's spread,
     # where two views pin it down
     one = reconstruct_shape_guided(_scan(t, n_views=1, shape_model=sm), AnatomyParts(t, sm, at), iterations=20,
                                    out_dir=tmp_path / "one", **_small(alpha_freeze=3)).uncertainty
-    assert one["alpha_sd"][1] > 0.5 > 5 * u["alpha_sd"][1] and one["mean_mm"] > 5 * u["mean_mm"]
+    assert one["alpha_sd"][1] > 0.5 > 5 * u["alpha_sd"][1] and one["posterior_mean_mm"] > 5 * u["posterior_mean_mm"]
+
+
+def test_the_share_above_2_mm_is_a_share_of_the_surfaces_area():
+    """Two triangles, of 1 and 3 mm^2: the first's vertices above 2 mm make a quarter of the area,
+    though half of the vertices."""
+    from clgs.shape.uncertainty import area_share_above
+
+    v = np.array([[0, 0, 0], [2, 0, 0], [0, 1, 0], [10, 0, 0], [13, 0, 0], [10, 2, 0]], np.float64)
+    f = np.array([[0, 1, 2], [3, 4, 5]])
+    values = np.array([3.0, 3.0, 3.0, 0.5, 0.5, 0.5])
+    assert area_share_above(v, f, values, 2.0) == pytest.approx(0.25)
+    assert area_share_above(v, f, values, 5.0) == 0.0 and area_share_above(v, f, values, 0.1) == pytest.approx(1.0)

@@ -72,7 +72,7 @@ from clgs.fit.outputs import write_outputs as write_common
 from clgs.fit.trainer import Backend, LossTerm, Trainer
 from clgs.fit.training_log import TrainingLog
 from clgs.io import atomic
-from clgs.io.mesh import save_mesh
+from clgs.io.mesh import load_mesh, save_mesh
 from clgs.io.scan import Scan
 from clgs.methods import Method, Option
 from clgs.methods.gaussian import RUN_OPTIONS, method_output
@@ -535,16 +535,21 @@ def choose_size(scan, cfg: ShapeGuidedConfig, init, tissue, centre_mm) -> float 
     return best
 
 
-def write_uncertainty(trainer, shape_set, template, moved, out_dir) -> dict:
+def write_uncertainty(trainer, shape_set, template, moved, out_dir, volume_surface=None) -> dict:
     """shape_uncertainty.ply and .vtk beside shape_surface.stl (``moved``: its (vertices, faces)),
-    from :func:`clgs.shape.uncertainty.shape_uncertainty`; their summary for the report."""
+    from :func:`clgs.shape.uncertainty.shape_uncertainty` (``volume_surface``: the surface.stl
+    written, read back; None where there is none); their summary for the report."""
     from clgs.shape import uncertainty as U
 
-    field = U.shape_uncertainty(trainer, shape_set, template.vertices, template.faces, surface=moved[0])
+    field = U.shape_uncertainty(trainer, shape_set, template.vertices, template.faces, surface=moved[0],
+                                volume_surface=volume_surface)
     U.write_uncertainty_files(out_dir, moved[0], moved[1], field["values"],
-                              parts={"posterior_mm": field["posterior"], "beyond_model_mm": field["beyond"]})
-    return U.summary(field, {"model": "sqrt(posterior^2 + beyond^2): Laplace posterior of alpha (prior N(0, I), "
-                                      "independent pixel noise) and the leave-one-out field beyond the modes"})
+                              parts={"posterior_mm": field["posterior"], "beyond_model_mm": field["beyond"],
+                                     "volume_mm": field["volume"]})
+    model = ("sqrt(posterior^2 + beyond^2 + volume^2): Laplace posterior of alpha (prior N(0, I), independent "
+             "pixel noise), the leave-one-out field beyond the modes, and the distance to the volume's bone surface "
+             + ("(surface.stl)" if volume_surface is not None else "(none written: 0)"))
+    return U.summary(field, {"model": model})
 
 
 def deformed_template_surface(template, shape_set) -> tuple | None:
@@ -676,18 +681,22 @@ def write_outputs(trainer, out_dir, value_scale, volume, template, alpha, level,
     size = shape_set.size if isinstance(shape_set, ShapeGuidedSet) and shape_set.fits_size else None
     split = displacement_report(template, shape_set)  # the surface's displacement: model and residual
     moved = deformed_template_surface(template, trainer.sets[0])
-    if moved is not None:
-        paths["shape_surface"] = save_mesh(out_dir / "shape_surface.stl", *moved)
-        if uncertainty and len(alpha):
-            paths["uncertainty"] = write_uncertainty(trainer, shape_set, template, moved, out_dir)
-    record = {"alpha": [float(a) for a in alpha], "size": size, **({"displacement": split} if split else {})}
-    if paths.get("uncertainty"):
-        record["uncertainty"] = paths["uncertainty"]
-    paths["alpha"] = atomic.write_json(out_dir / "alpha.json", record)
     surface = write_bone_surface(out_dir, volume, trainer.geometry, level)
     if surface["path"] is not None:
         paths["surface"] = Path(surface["path"])
         paths["surface_record"] = out_dir / "surface.json"
+    if moved is not None:
+        paths["shape_surface"] = save_mesh(out_dir / "shape_surface.stl", *moved)
+        if uncertainty and len(alpha):
+            volume_surface = None
+            if surface["path"] is not None:  # the surface measured is the surface written
+                written = load_mesh(surface["path"])
+                volume_surface = (written.vertices, written.faces)
+            paths["uncertainty"] = write_uncertainty(trainer, shape_set, template, moved, out_dir, volume_surface)
+    record = {"alpha": [float(a) for a in alpha], "size": size, **({"displacement": split} if split else {})}
+    if paths.get("uncertainty"):
+        record["uncertainty"] = paths["uncertainty"]
+    paths["alpha"] = atomic.write_json(out_dir / "alpha.json", record)
     paths["bone_surface"] = surface
     return paths
 
@@ -732,9 +741,11 @@ def run_method(scan, out_dir=None, iterations: int | None = None, anatomy=None, 
               file=sys.stderr)
     if result.uncertainty is not None:
         u = result.uncertainty
-        print(f"shape surface uncertainty: {u['mean_mm']:.3f} mm mean, {u['max_mm']:.3f} mm max along the normal "
-              f"(the views' posterior {u['posterior_mean_mm']:.3f} mm mean, beyond the model's modes "
-              f"{u['beyond_model_mean_mm']:.3f}; {u['file']}, {u['vtk_file']})", file=sys.stderr)
+        print(f"shape surface uncertainty: {u['mean_mm']:.3f} mm mean, {u['max_mm']:.3f} mm max along the normal, "
+              f"{100 * u['share_above_2mm']:.0f} % of the surface above 2 mm (the views' posterior "
+              f"{u['posterior_mean_mm']:.3f} mm mean, beyond the model's modes {u['beyond_model_mean_mm']:.3f}, "
+              f"to the volume's bone surface {u['volume_mean_mm']:.3f}; {u['file']}, {u['vtk_file']})",
+              file=sys.stderr)
     extra = {"uncertainty": result.uncertainty} if result.uncertainty is not None else {}
     return method_output(result, out_dir, files, seconds=result.seconds, alpha=[float(a) for a in result.alpha],
                          size=size, history=result.log.rows, displacement=split, **surface, **extra)

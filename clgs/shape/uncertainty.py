@@ -120,11 +120,25 @@ def beyond_sd(shape_model, vertices, normals, size: float = 1.0) -> np.ndarray:
     return float(size) * np.sqrt(np.clip(q, 0.0, None))
 
 
-def shape_uncertainty(trainer, shape_set, vertices, faces, step: float = STEP, surface=None) -> dict:
-    """{"values" (V,) mm, "posterior" (V,), "beyond" (V,), "vertices", "covariance" (M, M),
-    "noise_sd", "alpha_sd"} for the shape surface of the template ``vertices``/``faces`` (mm)
-    under the fitted ``shape_set`` (see the module doc); ``surface``: the shape surface's vertices
-    as written (its normals are used; None: the template's vertices carried by the map)."""
+def volume_disagreement(vertices, volume_surface) -> np.ndarray:
+    """(V,) mm: each of ``vertices``' distance to the reconstructed volume's bone surface
+    ``volume_surface`` ((vertices, faces) mm, the surface.stl a run writes), to its nearest point
+    (trimesh)."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(np.asarray(volume_surface[0], np.float64), np.asarray(volume_surface[1]), process=False)
+    _, d, _ = trimesh.proximity.closest_point(mesh, np.asarray(vertices, np.float64))
+    return np.asarray(d, np.float64)
+
+
+def shape_uncertainty(trainer, shape_set, vertices, faces, step: float = STEP, surface=None,
+                      volume_surface=None) -> dict:
+    """{"values" (V,) mm, "posterior" (V,), "beyond" (V,), "volume" (V,), "vertices", "faces",
+    "covariance" (M, M), "noise_sd", "alpha_sd"} for the shape surface of the template
+    ``vertices``/``faces`` (mm) under the fitted ``shape_set`` (see the module doc); ``surface``:
+    the shape surface's vertices as written (its normals are used; None: the template's vertices
+    carried by the map); ``volume_surface``: the volume's bone surface ((vertices, faces) mm), whose
+    distance is the third part (zeros without one)."""
     import trimesh
 
     if shape_set.alpha.numel() == 0:
@@ -139,9 +153,21 @@ def shape_uncertainty(trainer, shape_set, vertices, faces, step: float = STEP, s
     normals = trimesh.Trimesh(moved, np.asarray(faces), process=False).vertex_normals
     post = normal_sd(G, normals, cov)
     beyond = beyond_sd(shape_set.shape_model, vertices, normals, shape_set.size)
-    return {"values": np.sqrt(post ** 2 + beyond ** 2), "posterior": post, "beyond": beyond, "vertices": moved,
-            "covariance": cov, "noise_sd": float(np.sqrt(s2)),
-            "alpha_sd": [float(x) for x in np.sqrt(np.diag(cov))]}
+    volume = np.zeros(len(moved)) if volume_surface is None else volume_disagreement(moved, volume_surface)
+    return {"values": np.sqrt(post ** 2 + beyond ** 2 + volume ** 2), "posterior": post, "beyond": beyond,
+            "volume": volume, "vertices": moved, "faces": np.asarray(faces), "covariance": cov,
+            "noise_sd": float(np.sqrt(s2)), "alpha_sd": [float(x) for x in np.sqrt(np.diag(cov))]}
+
+
+def area_share_above(vertices, faces, values, threshold_mm: float) -> float:
+    """The share of a surface's area whose per-vertex ``values`` exceed ``threshold_mm`` (each
+    vertex standing for a third of the area of the faces around it)."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    per_vertex = np.bincount(f.reshape(-1), np.repeat(area / 3.0, 3), minlength=len(v))
+    total = per_vertex.sum()
+    return float(per_vertex[np.asarray(values) > threshold_mm].sum() / total) if total > 0 else 0.0
 
 
 def write_uncertainty_files(out_dir, vertices, faces, values, parts: dict | None = None) -> dict:
@@ -191,14 +217,17 @@ def read_uncertainty_ply(path) -> tuple:
 
 
 def summary(field: dict, extra: dict | None = None) -> dict:
-    """Mean and largest value (mm) of the field and of its two parts, for the run's report."""
+    """Mean and largest value (mm) of the field and of its three parts, and the share of the
+    surface's area above 2 mm, for the run's report."""
     def r4(x):
         return round(float(x), 4)
 
-    v, p, b = (np.asarray(field[k], np.float64) for k in ("values", "posterior", "beyond"))
+    v, p, b, d = (np.asarray(field[k], np.float64) for k in ("values", "posterior", "beyond", "volume"))
     out = {"file": FILE_NAME, "vtk_file": VTK_NAME, "mean_mm": r4(v.mean()), "max_mm": r4(v.max()),
+           "share_above_2mm": r4(area_share_above(field["vertices"], field["faces"], v, 2.0)),
            "posterior_mean_mm": r4(p.mean()), "posterior_max_mm": r4(p.max()),
            "beyond_model_mean_mm": r4(b.mean()), "beyond_model_max_mm": r4(b.max()),
+           "volume_mean_mm": r4(d.mean()), "volume_max_mm": r4(d.max()),
            "alpha_sd": [r4(x) for x in field["alpha_sd"]], "noise_sd": round(float(field["noise_sd"]), 6)}
     out.update(extra or {})
     return out
