@@ -141,7 +141,8 @@ class ShapeGuidedConfig(GaussianFitConfig):
     # the shape surface's per-vertex standard deviation (clgs.shape.uncertainty): written beside it
     uncertainty: str = setting("on", "--uncertainty",
                                "write shape_uncertainty.ply/.vtk: the shape surface's per-vertex standard deviation "
-                               "along its normal (mm, a Laplace approximation of the shape coefficients' posterior): "
+                               "along its normal (mm: the shape coefficients' Laplace posterior with the model's "
+                               "leave-one-out spread, or the distance to the volume's bone surface, the larger): "
                                "on, off")
     residual_points: int = setting(16, "--residual-points",
                                    "the residual's control points along the template's longest side", min=4)
@@ -546,9 +547,9 @@ def write_uncertainty(trainer, shape_set, template, moved, out_dir, volume_surfa
     U.write_uncertainty_files(out_dir, moved[0], moved[1], field["values"],
                               parts={"posterior_mm": field["posterior"], "beyond_model_mm": field["beyond"],
                                      "volume_mm": field["volume"]})
-    model = ("sqrt(posterior^2 + beyond^2 + volume^2): Laplace posterior of alpha (prior N(0, I), independent "
-             "pixel noise), the leave-one-out field beyond the modes, and the distance to the volume's bone surface "
-             + ("(surface.stl)" if volume_surface is not None else "(none written: 0)"))
+    model = ("max(sqrt(posterior^2 + beyond^2), volume): Laplace posterior of alpha (prior N(0, I), independent "
+             "pixel noise) with the leave-one-out field beyond the modes, or the distance to the volume's bone "
+             "surface " + ("(surface.stl)" if volume_surface is not None else "(none written: 0)") + ", the larger")
     return U.summary(field, {"model": model})
 
 

@@ -1,5 +1,6 @@
 """How sure a reconstruction is of its shape surface, vertex by vertex: the shape coefficients'
-posterior (a Laplace approximation) and what lies beyond the model's span.
+posterior (a Laplace approximation), what lies beyond the model's span, and how far the volume's
+own bone surface lies from it.
 
 The shape coefficients' posterior is approximated by a Gaussian about the fitted alpha: with the
 model's prior alpha ~ N(0, I) and the projections' pixels taken as independent Gaussian noise of
@@ -18,8 +19,16 @@ cannot correct through the modes at all: a new member of the population differs 
 M-mode approximation by a field whose covariance the model builder measured by leave-one-out
 (:func:`clgs.shape.builder.beyond_span_covariance`, ``ShapeModel.beyond_cov``), sampled at the
 template's vertex, ``sqrt(n^T S n)`` (times the fitted size). The two are independent, so the
-field written is ``uncertainty_mm = sqrt(posterior^2 + beyond^2)``; a model built without the
-covariance gives the posterior alone.
+model's field is ``sqrt(posterior^2 + beyond^2)``; a model built without the covariance gives the
+posterior alone.
+
+The third part (``volume_mm``) is this reconstruction's own say: each vertex's distance to the
+volume's bone surface (the ``surface.stl`` the run wrote, at its bone level). Where the densities
+and the free Gaussians put the bone's edge elsewhere than the shape, the shape is in doubt. It is
+not independent of the model's part (the model's misses are what the densities take up), so the
+field written is the larger of the two estimates of one error, ``uncertainty_mm = max(sqrt(
+posterior^2 + beyond^2), volume)``, not their root sum of squares (which, on the femur, came out
+twice the error, with 91 % of vertices within one standard deviation; docs/shape-model.md).
 
 The files: ``shape_uncertainty.ply``, the shape surface (as shape_surface.stl) with a per-vertex
 float property ``uncertainty_mm`` (binary PLY written by trimesh; trimesh reads it back as
@@ -154,7 +163,7 @@ def shape_uncertainty(trainer, shape_set, vertices, faces, step: float = STEP, s
     post = normal_sd(G, normals, cov)
     beyond = beyond_sd(shape_set.shape_model, vertices, normals, shape_set.size)
     volume = np.zeros(len(moved)) if volume_surface is None else volume_disagreement(moved, volume_surface)
-    return {"values": np.sqrt(post ** 2 + beyond ** 2 + volume ** 2), "posterior": post, "beyond": beyond,
+    return {"values": np.maximum(np.sqrt(post ** 2 + beyond ** 2), volume), "posterior": post, "beyond": beyond,
             "volume": volume, "vertices": moved, "faces": np.asarray(faces), "covariance": cov,
             "noise_sd": float(np.sqrt(s2)), "alpha_sd": [float(x) for x in np.sqrt(np.diag(cov))]}
 
