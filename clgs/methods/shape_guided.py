@@ -252,8 +252,9 @@ def registration_tissue(choice: str, angles) -> str:
 
     Why: the atlas's tissue has a hole the template's bone's shape, and a bone shorter than the
     template is fitted long to fill it (subject 24, 405 mm, 5 views: 421 mm, model surface 1.67 mm
-    after the registration); the FDK's tissue has no such pull (0.98 mm), but from AP + lateral
-    views the FDK is streaks, and the fit then does worse than against the atlas's tissue."""
+    after the registration); the FDK's tissue (capped, :func:`tissue_ceiling`) pulls it less (1.22
+    mm), but from AP + lateral views the FDK is streaks, and the fit then did worse than against the
+    atlas's tissue (docs/results.md)."""
     if choice != "auto":
         return choice
     return "fdk" if widest_view_gap_deg(angles) <= AUTO_FDK_GAP_DEG else "free"
@@ -383,9 +384,8 @@ def _registration(scan, shape_model, cfg, init, free, moving: dict, k: int, *, s
         if name not in moving:
             p.requires_grad_(False)
     sets: list = [bound]
-    for i, fixed in enumerate(free if isinstance(free, list) else [free]):
-        if fixed is not None and len(fixed) > 0:
-            sets.append(_Frozen(fixed, "fixed" if i == 0 else f"fixed{i}"))
+    if free is not None and len(free) > 0:
+        sets.append(_Frozen(free))
     image = L.ImageTerms(dssim=cfg.lambda_dssim > 0)
     losses = [LossTerm("l1", 1.0, image.l1),
               LossTerm("dssim", cfg.lambda_dssim, image.dssim)]
@@ -405,8 +405,8 @@ def _registration(scan, shape_model, cfg, init, free, moving: dict, k: int, *, s
 class _Frozen:
     """A Gaussian set seen through fixed (detached) tensors, with nothing to optimise."""
 
-    def __init__(self, gset, name: str = "fixed"):
-        self.name = name
+    def __init__(self, gset):
+        self.name = "fixed"
         with torch.no_grad():
             self._tensors = tuple(t.detach().clone() for t in gset.tensors())
 
