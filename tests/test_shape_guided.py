@@ -629,3 +629,31 @@ def test_the_registration_holds_the_fdks_tissue_only_where_the_views_cover_a_hal
                    np.linspace(0, np.pi, 4, endpoint=False), [0.0]):
         assert registration_tissue("auto", angles) == "free"
     assert registration_tissue("fdk", [0.0]) == "fdk" and registration_tissue("free", half[1]) == "free"
+
+
+def test_the_fdks_tissue_blanks_the_bone_at_a_larger_size_and_is_capped(template):
+    """The FDK's tissue leaves out the template's bone scaled by a size above 1 (a larger bone's
+    ends are not held as tissue), keeps it at the template's for a smaller size, and its values
+    are capped (bone outside the template is not held)."""
+    from clgs.methods.shape_guided import ShapeGuidedConfig, _free_init_volume, fdk_tissue
+
+    geo = geometry()
+    fdk = np.full(tuple(geo.nVoxel)[::-1], 0.05, np.float32)
+    centre = np.asarray(template.vertices, np.float64).mean(0)
+    pts = geo.volume_grid(scene=False).points().reshape(fdk.shape + (3,))
+    d1 = template.sdf_at(pts.reshape(-1, 3)).reshape(fdk.shape)
+    d12 = template.sdf_at((centre + (pts - centre) / 1.2).reshape(-1, 3)).reshape(fdk.shape)
+    for size, inside in ((None, d1 < 0), (0.8, d1 < 0), (1.2, d12 < 0)):
+        vol = _free_init_volume(fdk + 0.01 * (pts[..., 0] > 0), geo, template, size, centre)
+        assert np.all(vol[inside] == vol.min()) and np.all(vol[~inside] >= 0.05)
+    assert ((d12 < 0) & (d1 >= 0)).any()  # the larger bone blanks more
+    from clgs.fit.assembly import scale_bounds_for, volume_box
+    from clgs.fit.gaussians import r2gs_schedules
+
+    cfg = ShapeGuidedConfig(n_free=200, value_scale=1.0)
+    kw = dict(box=volume_box(geo), scale_bounds=scale_bounds_for(geo, cfg.scale_bounds, cfg.scale_floor),
+              schedules=r2gs_schedules(10), name="free", densify=True)
+    varied = fdk + 0.05 * (pts[..., 0] > 0)  # 0.05 and 0.10 /mm outside the bone
+    capped = fdk_tissue(varied, geo, template, cfg, kw, ceiling=0.06)
+    plain = fdk_tissue(varied, geo, template, cfg, kw)
+    assert capped.to_numpy()["densities"].max() < 0.8 * plain.to_numpy()["densities"].max()

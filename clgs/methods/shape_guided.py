@@ -285,7 +285,7 @@ def tissue_ceiling(bone, tissue, template, shell_mm=(3.0, 10.0)) -> float:
     outside the template (a femoral head moved 9 mm: neck_valgus10 of examples/femur_out_of_span.py)
     the FDK has bone there, which then explains that bone's projections so that the shape need not
     go there (model surface 3.36 mm after the registration, 5 views). Capped below the bone, the
-    tissue holds no bone (0.97 mm; 0.85 against the atlas's tissue)."""
+    tissue holds no bone (0.98 mm; 0.85 against the atlas's tissue)."""
     def atlas_values(s):
         return s.densities * np.maximum(s.overlap, 1.0)
 
