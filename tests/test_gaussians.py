@@ -111,6 +111,10 @@ def test_schedules():
     assert alpha(0) == 0 and alpha(49) == 0 and alpha(50) == pytest.approx(0.1) and alpha(500) == pytest.approx(1e-3)
     d = r2gs_schedules(30_000)
     assert d["means"](0) == pytest.approx(2e-4) and d["quats"](30_000) == pytest.approx(1e-4)
+    doubled = r2gs_schedules(30_000, 2.0)  # lr_factor: every rate and its decay's end, times the factor
+    for name in d:
+        for it in (0, 10_000, 30_000):
+            assert doubled[name](it) == pytest.approx(2 * d[name](it))
 
 
 # ---------------------------------------------------------------------- densification

@@ -68,6 +68,21 @@ def test_what_is_given_wins_over_the_schedule():
         run_config(R2GSConfig, None, {"schedule": "slow"}, False, None)
 
 
+def test_lr_factor_reaches_the_optimiser(scene):
+    """``lr_factor`` multiplies every learning rate the R2-Gaussian trainer's Adam steps with, and
+    is refused at 0 (a run that cannot move)."""
+    def rates(factor):
+        t = build_trainer(scene, R2GSConfig(**{**FAST, "iterations": 5, "lr_factor": factor}))
+        return {g["name"]: g["lr"] for g in t.optimizer.param_groups}
+
+    one, three = rates(1.0), rates(3.0)
+    assert set(one) == set(three) and len(one) == 4
+    for name, lr in one.items():
+        assert three[name] == pytest.approx(3 * lr)
+    with pytest.raises(InputError, match="lr_factor"):
+        run_config(R2GSConfig, None, {"lr_factor": 0}, False, None)
+
+
 def test_a_methods_fast_settings_apply_to_fast_runs_only_and_given_settings_win(monkeypatch):
     monkeypatch.setattr(R2GSConfig, "FAST_SETTINGS", {"tv_every": 4})
     assert run_config(R2GSConfig, None, {}, False, None)[0].tv_every == 4

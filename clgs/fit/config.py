@@ -137,6 +137,7 @@ class GaussianFitConfig(JsonConfig):
     checkpoint_every: int = setting(1000, "--checkpoint-every",
                                     "write a checkpoint every N iterations (0: only at the end / on Ctrl-C)")
     schedule_iterations: int | None = None  # length of the lr decays (default: iterations)
+    lr_factor: float = 1.0  # every learning rate of R2-Gaussian's schedules (the free Gaussians) times this
     # how the run spends its iterations (clgs.fit.schedule): "fast" (the default run) or "paper";
     # the fields above hold the paper's values, a run gets its schedule's from run_config
     schedule: str = setting("fast", "--schedule",
@@ -158,7 +159,7 @@ class GaussianFitConfig(JsonConfig):
     FAST_SETTINGS = {}  # settings the fast schedule changes from the paper's (each method sets its own)
 
     CHOICES = {"projector_mode": ("affine", "exact"), "backend": ("cl", "torch"), "schedule": ("fast", "paper")}
-    POSITIVE = frozenset({"value_scale"})
+    POSITIVE = frozenset({"value_scale", "lr_factor"})
     AT_LEAST = {"iterations": 1, "densify_interval": 1, "max_gaussians": 1, "tv_size": 2, "tv_every": 1,
                 "schedule_iterations": 1, "stop_patience": 1, "coarse_factor": 1}
     AT_MOST = {**JsonConfig.AT_MOST, "coarse_until": 1.0}

@@ -78,13 +78,15 @@ class Schedule:
                     frozen_before_start=self.frozen_before_start)
 
 
-def r2gs_schedules(iterations: int) -> dict:
-    """R2-Gaussian's learning rates, with the exponential decays spread over ``iterations``."""
+def r2gs_schedules(iterations: int, scale: float = 1.0) -> dict:
+    """R2-Gaussian's learning rates, with the exponential decays spread over ``iterations``, each
+    multiplied by ``scale``."""
+    k = float(scale)
     return {
-        "means": Schedule(2e-4, 2e-5, iterations),
-        "densities": Schedule(1e-2, 1e-3, iterations),
-        "scales": Schedule(5e-3, 5e-4, iterations),
-        "quats": Schedule(1e-3, 1e-4, iterations),
+        "means": Schedule(2e-4 * k, 2e-5 * k, iterations),
+        "densities": Schedule(1e-2 * k, 1e-3 * k, iterations),
+        "scales": Schedule(5e-3 * k, 5e-4 * k, iterations),
+        "quats": Schedule(1e-3 * k, 1e-4 * k, iterations),
     }
 
 

@@ -106,7 +106,7 @@ def build_trainer(scan, cfg: R2GSConfig, out_dir=None, *, progress=False, fdk=No
     """
     geo = scan.geometry
     box = volume_box(geo)
-    sched = r2gs_schedules(cfg.schedule_iterations or cfg.iterations)
+    sched = r2gs_schedules(cfg.schedule_iterations or cfg.iterations, cfg.lr_factor)
     kw = dict(box=box, scale_bounds=scale_bounds_for(geo, cfg.scale_bounds, cfg.scale_floor), schedules=sched,
               name="free", densify=True)
     if cfg.init == "sart" and gaussians is None and state is None and fdk is None:

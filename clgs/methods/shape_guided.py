@@ -195,7 +195,7 @@ def shape_schedules(cfg: ShapeGuidedConfig, iterations: int, *, free_means: bool
         "quats": Schedule(cfg.lr_rotation, cfg.lr_rotation * 0.1, iterations),
     }
     if free_means:
-        sched["means"] = r2gs_schedules(iterations)["means"]
+        sched["means"] = r2gs_schedules(iterations, cfg.lr_factor)["means"]
     return sched
 
 
@@ -458,7 +458,7 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
         cfg.value_scale = value_scale_from(need_fdk())
     bound = cfg.shape_prior and shape_model is not None
     sched = shape_schedules(cfg, iters, free_means=not bound)
-    fsched = r2gs_schedules(iters)
+    fsched = r2gs_schedules(iters, cfg.lr_factor)
     bounds = scale_bounds_for(geo, cfg.scale_bounds, cfg.scale_floor)
     free_kw = dict(box=box, scale_bounds=bounds, schedules=fsched, name="free", densify=True)
     free, alpha0, theta0, size, centre = None, None, None, None, size_centre(template)
