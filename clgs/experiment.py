@@ -86,7 +86,8 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
     before it existed count as ``"off"``), the shape prior's weight (``lambda_shape``: records
     made before it was named used the paper's 1e-4) and the tissue its registration held
     (``register_tissue``, ``"auto"`` resolved for the views at ``angles``, radians: records made
-    before it was named held the free set's start, ``"free"``); every Gaussian run names its schedule
+    before it was named held the free set's start, ``"free"``; with the FDK's, the registrations
+    in a row, ``register_passes``: records made before it was named made one); every Gaussian run names its schedule
     (``schedule``: records made before schedules existed ran the paper's, compressed to the
     iterations)."""
     sim = {} if simulation == "same" else {"simulation": simulation}
@@ -108,6 +109,9 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
             from clgs.methods.shape_guided import registration_tissue
 
             size["register_tissue"] = "free" if angles is None else registration_tissue("auto", angles)
+        passes = int(chosen.pop("register_passes", ShapeGuidedConfig.register_passes))
+        if size["register_tissue"] == "fdk":  # the passes repeat the FDK's tissue's registration only
+            size["register_passes"] = passes
     return {"iterations": iterations, "seed": seed,
             "settings": json.loads(json.dumps(chosen, sort_keys=True, default=str)), **sim, **size}
 
@@ -126,6 +130,7 @@ _OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings
            "simulation": "--simulation", "fit_size": "shape-guided setting fit_size",
            "residual": "shape-guided setting residual", "lambda_shape": "shape-guided setting lambda_shape",
            "register_tissue": "shape-guided setting register_tissue",
+           "register_passes": "shape-guided setting register_passes",
            "schedule": "the Gaussian runs' schedule (--set schedule=...)"}
 
 
@@ -152,7 +157,7 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
 
     defaults = {"seed": 0, "settings": {}, "detector_fov_mm": None, "simulation": "same", "fit_size": "off",
                 "residual": "off", "schedule": "paper", "lambda_shape": PAPER_LAMBDA_SHAPE,
-                "register_tissue": "free"}
+                "register_tissue": "free", "register_passes": 1}
     made_with = {"simulation": "same", **made_with}
     for key, want in made_with.items():
         had = row.get(key, defaults.get(key, want))

@@ -41,6 +41,7 @@ the atlas is converted the same way.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import sys
 import time
 import warnings
@@ -120,6 +121,10 @@ class ShapeGuidedConfig(GaussianFitConfig):
                                    "the free Gaussians' start (free), the FDK outside the template's bone (fdk), or "
                                    "auto: fdk where no two neighbouring views are more than 40 degrees apart, "
                                    "free otherwise")
+    # with the FDK's tissue: registrations in a row, each from the one before, each after the first
+    # holding the FDK outside the bone where the template's and every fitted one so far agree
+    # (fit_initial_alpha's docstring says why; docs/results.md has the figures)
+    register_passes: int = 3
     # alpha-only registration before training (0: start at alpha = 0)
     alpha_init_iterations: int = setting(100, "--alpha-init-iterations",
                                          "iterations registering alpha to the projections before training "
@@ -176,7 +181,7 @@ class ShapeGuidedConfig(GaussianFitConfig):
                "density_prior_field": ("all", "shape"),
                "fit_size": ("auto", "on", "off"), "residual": ("on", "off"), "uncertainty": ("on", "off")}
     POSITIVE = GaussianFitConfig.POSITIVE | {"tau", "density_s"}
-    AT_LEAST = {**GaussianFitConfig.AT_LEAST, "density_points": 2, "residual_points": 4}
+    AT_LEAST = {**GaussianFitConfig.AT_LEAST, "density_points": 2, "residual_points": 4, "register_passes": 1}
 
 
 # ---------------------------------------------------------------------- schedules
@@ -217,14 +222,23 @@ class ShapeGuidedResult:
     uncertainty: dict | None = None  # the shape surface's uncertainty summary (clgs.shape.uncertainty.summary)
 
 
-def _free_init_volume(fdk, geometry, template, size=None, centre_mm=None) -> np.ndarray:
+def _free_init_volume(fdk, geometry, template, size=None, centre_mm=None, to_template=None) -> np.ndarray:
     """The FDK volume with the template's bone blanked out (free Gaussians start outside it); with
-    ``size`` > 1, the bone scaled by it about ``centre_mm`` (a larger bone's ends stay blanked)."""
+    ``size`` > 1, the bone scaled by it about ``centre_mm`` (a larger bone's ends stay blanked);
+    with ``to_template`` (points (N, 3) mm -> the template's), the bone that map carries the
+    template's to (a fitted shape and size)."""
     pts = geometry.volume_grid(scene=False).points().reshape(-1, 3)
     k = max(float(size or 1.0), 1.0)
-    if k > 1.0:
-        pts = centre_mm + (pts - centre_mm) / k
-    inside = template.sdf_at(pts).reshape(fdk.shape) < 0
+    maps = to_template if isinstance(to_template, (list, tuple)) else [to_template]
+    inside = np.ones(fdk.shape, bool)
+    for m in maps:
+        if m is not None:
+            q = m(pts)
+        elif k > 1.0:
+            q = centre_mm + (pts - centre_mm) / k
+        else:
+            q = pts
+        inside &= template.sdf_at(q).reshape(fdk.shape) < 0
     vol = np.array(fdk, np.float32, copy=True)
     vol[inside] = float(vol.min())
     return vol
@@ -260,12 +274,13 @@ def registration_tissue(choice: str, angles) -> str:
     return "fdk" if widest_view_gap_deg(angles) <= AUTO_FDK_GAP_DEG else "free"
 
 
-def fdk_tissue(fdk, geometry, template, cfg, set_kw: dict, size=None, centre_mm=None, ceiling=None) -> GaussianSet:
+def fdk_tissue(fdk, geometry, template, cfg, set_kw: dict, size=None, centre_mm=None, ceiling=None,
+               to_template=None) -> GaussianSet:
     """Free Gaussians (``cfg.n_free``) on the FDK outside the template's bone (:func:`_free_init_volume`),
     its values capped at ``ceiling`` (1/mm; None: not capped): the free set's start with
     ``free_init="fdk"``, and the tissue held while alpha is registered with ``register_tissue="fdk"``
     (capped at :func:`tissue_ceiling`)."""
-    vol = _free_init_volume(fdk, geometry, template, size, centre_mm)
+    vol = _free_init_volume(fdk, geometry, template, size, centre_mm, to_template)
     if ceiling is not None:
         vol = np.minimum(vol, np.float32(ceiling))
     vol = vol * cfg.value_scale
@@ -273,6 +288,16 @@ def fdk_tissue(fdk, geometry, template, cfg, set_kw: dict, size=None, centre_mm=
         return init_from_volume(vol, geometry.volume_grid(scene=True), n_gaussians=cfg.n_free,
                                 threshold=cfg.init_threshold, density_factor=cfg.density_factor,
                                 seed=cfg.seed + 1, **set_kw)
+
+
+def _to_template_np(bound):
+    """Points (N, 3) mm of the subject -> the template's, through a registered shape set's map."""
+    def carry(pts):
+        with torch.no_grad():
+            out = [bound.to_template(torch.as_tensor(c, dtype=torch.float32)).numpy()
+                   for c in np.array_split(np.asarray(pts, np.float32), max(1, len(pts) // 500_000))]
+        return np.concatenate(out).astype(np.float64)
+    return carry
 
 
 def tissue_ceiling(bone, tissue, template, shell_mm=(3.0, 10.0)) -> float:
@@ -304,7 +329,7 @@ def field_sampler(backend: str):
 
 
 def fit_initial_alpha(scan, shape_model, cfg: ShapeGuidedConfig, init, free=None, size=None,
-                      centre_mm=None) -> tuple:
+                      centre_mm=None, alpha=None, with_set=False) -> tuple:
     """(alpha, size) of the atlas-based start registered to the projections: the shape set's start
     ``init`` (a ShapeInit, mm and atlas units) moves with alpha (and a size, starting from ``size``
     about ``centre_mm``, when one is fitted; None otherwise), the free set's start ``free`` stays
@@ -321,8 +346,32 @@ def fit_initial_alpha(scan, shape_model, cfg: ShapeGuidedConfig, init, free=None
     k = int(cfg.alpha_init_iterations)
     sched = {"alpha": Schedule(cfg.lr_alpha, cfg.lr_alpha * 0.1, k),
              "log_size": Schedule(2.5 * cfg.lr_size, 0.25 * cfg.lr_size, k)}
-    bound = _register(scan, shape_model, cfg, init, free, sched, k, size=size, centre_mm=centre_mm)
-    return bound.alpha.detach().numpy().copy(), (bound.size if bound.fits_size else None)
+    bound = _register(scan, shape_model, cfg, init, free, sched, k, size=size, centre_mm=centre_mm, alpha=alpha)
+    out = bound.alpha.detach().numpy().copy(), (bound.size if bound.fits_size else None)
+    return (*out, bound) if with_set else out
+
+
+def fit_alpha_in_passes(scan, shape_model, cfg: ShapeGuidedConfig, init, held, size, centre_mm, fdk_held=None):
+    """(alpha, size, the tissue last held) of :func:`fit_initial_alpha`, repeated
+    ``cfg.register_passes`` times when the tissue held is the FDK's (``fdk_held``: a list of maps,
+    points of the subject to the template's -> that tissue; None: once, against ``held``).
+
+    Why: the FDK's tissue leaves out the template's bone, and a femur shorter than the template
+    (subject 24: 405 mm, the template 434) is fitted long to fill that hole (413 mm, model surface
+    1.22 mm after one registration, 5 views). Each later pass starts from the alpha and size before
+    and holds the FDK outside the bone only where the template's bone and every bone fitted so far
+    agree: the hole shrinks to the bone (0.83 mm after two passes, 0.75 after three) and never grows,
+    since a hole that followed a bone fitted too large let it grow again at the next pass (the
+    lengthened shaft of examples/femur_out_of_span.py 1.25 -> 1.69 -> 2.74 mm)."""
+    alpha, size, fitted = fit_initial_alpha(scan, shape_model, cfg, init, held, size=size, centre_mm=centre_mm,
+                                            with_set=True)
+    maps: list = [None]
+    for _ in range(cfg.register_passes - 1 if fdk_held is not None else 0):
+        maps = maps + [_to_template_np(fitted)]
+        held = fdk_held(to_template=maps)
+        alpha, size, fitted = fit_initial_alpha(scan, shape_model, cfg, init, held, size=size, centre_mm=centre_mm,
+                                                alpha=alpha, with_set=True)
+    return alpha, size, held
 
 
 def fit_initial_residual(scan, shape_model, cfg: ShapeGuidedConfig, init, free, alpha, size=None,
@@ -487,11 +536,13 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
         held = free  # the tissue the registrations hold fixed
         registering = bound and (cfg.alpha_init_iterations > 0
                                  or (cfg.residual == "on" and cfg.residual_init_iterations > 0))
+        fdk_held = None  # to_template=[maps] -> the FDK's tissue outside the bone they agree on
         if registering and outside is not None and registration_tissue(cfg.register_tissue, geo.angles) == "fdk":
-            held = fdk_tissue(need_fdk(), geo, template, cfg, free_kw, size=size, centre_mm=centre,
-                              ceiling=tissue_ceiling(init, outside, template))
+            fdk_held = functools.partial(fdk_tissue, need_fdk(), geo, template, cfg, free_kw, size=size,
+                                         centre_mm=centre, ceiling=tissue_ceiling(init, outside, template))
+            held = fdk_held(to_template=[None])
         if bound and cfg.alpha_init_iterations > 0:
-            alpha0, size = fit_initial_alpha(scan, shape_model, cfg, init, held, size=size, centre_mm=centre)
+            alpha0, size, held = fit_alpha_in_passes(scan, shape_model, cfg, init, held, size, centre, fdk_held)
         if bound and cfg.residual == "on" and cfg.residual_init_iterations > 0:
             theta0 = fit_initial_residual(scan, shape_model, cfg, init, held, alpha0, size=size, centre_mm=centre)
     else:
