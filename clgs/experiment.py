@@ -110,7 +110,7 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
 
             size["register_tissue"] = "free" if angles is None else registration_tissue("auto", angles)
         passes = int(chosen.pop("register_passes", ShapeGuidedConfig.register_passes))
-        if size["register_tissue"] == "fdk":  # the passes repeat the FDK's tissue's registration only
+        if size["register_tissue"] == "fdk" and passes != 1:  # they repeat the FDK's tissue's registration only
             size["register_passes"] = passes
     return {"iterations": iterations, "seed": seed,
             "settings": json.loads(json.dumps(chosen, sort_keys=True, default=str)), **sim, **size}

@@ -288,18 +288,20 @@ def test_experiment_records_made_before_the_registrations_tissue_was_named_count
 
 def test_experiment_records_name_the_fdk_registrations_passes_only_where_they_run(tmp_path):
     """The FDK's tissue's registrations in a row (register_passes) change the fitted shape: a
-    5-view record made with one pass (before they were named) is refused beside the default's
-    three; where the free set's start is held the passes do not run and are not recorded."""
+    5-view record made with one pass (the default, and every record before they were named) is
+    refused beside a run of three; where the free set's start is held the passes do not run and
+    are not recorded."""
     from clgs.errors import InputError
     from clgs.experiment import _check_same_run, _made_with
 
     five = np.linspace(0, np.pi, 5, endpoint=False)
     one_pass = {"iterations": 1000, "seed": 0, "settings": {}, "fit_size": "on", "schedule": "fast",
                 "lambda_shape": 0.0, "register_tissue": "fdk"}
-    want = _made_with("shape", 1000, 0, {}, "same", five)
+    want = _made_with("shape", 1000, 0, {"shape": {"register_passes": 3}}, "same", five)
     assert want["register_passes"] == 3 and want["settings"] == {}
     with pytest.raises(InputError, match="register_passes 1, this run asks for 3"):
         _check_same_run(tmp_path / "run.json", one_pass, want)
+    _check_same_run(tmp_path / "run.json", one_pass, _made_with("shape", 1000, 0, {}, "same", five))
     _check_same_run(tmp_path / "run.json", one_pass, _made_with("shape", 1000, 0, {"shape": {"register_passes": 1}},
                                                                 "same", five))
     ap_lat = _made_with("shape", 1000, 0, {"shape": {"register_passes": 2}}, "same", np.radians([0.0, 90.0]))
