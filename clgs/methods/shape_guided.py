@@ -123,8 +123,8 @@ class ShapeGuidedConfig(GaussianFitConfig):
                                    "free otherwise")
     # with the FDK's tissue: registrations in a row, each from the one before, each after the first
     # holding the FDK outside the bone where the template's and every fitted one so far agree
-    # (fit_alpha_in_passes says why; docs/results.md has the figures: 3 brought every held-out
-    # femur under 1 mm at 5 views, but one astray at 10 before LATER_PASS_LR; one stays the default)
+    # (fit_alpha_in_passes says why; docs/results.md has the figures: 3 brings every held-out
+    # femur under 1 mm at 5 views but costs the out-of-span shafts, so one stays the default)
     register_passes: int = 1
     # alpha-only registration before training (0: start at alpha = 0)
     alpha_init_iterations: int = setting(100, "--alpha-init-iterations",
@@ -364,9 +364,9 @@ def fit_alpha_in_passes(scan, shape_model, cfg: ShapeGuidedConfig, init, held, s
     agree: the hole shrinks to the bone (0.83 mm after two passes, 0.75 after three) and never grows,
     since a hole that followed a bone fitted too large let it grow again at the next pass (the
     lengthened shaft of examples/femur_out_of_span.py 1.25 -> 1.69 -> 2.74 mm). A later pass runs
-    at a tenth of the first's learning rates (``LATER_PASS_LR``). Not the default yet: the trained
-    figures (docs/results.md) were made before the later passes' rates were lowered, and with the
-    first's rates one held-out femur went astray from 10 views."""
+    at a tenth of the first's learning rates (``LATER_PASS_LR``). Not the default: it brings every
+    held-out femur under 1 mm from 5 views (0.66 mm mean) but costs the shapes the model cannot
+    reach (a bowed shaft 1.08 -> 1.20 mm; docs/results.md)."""
     passes = cfg.register_passes if fdk_held is not None else 1
     if passes == 1:
         alpha, size = fit_initial_alpha(scan, shape_model, cfg, init, held, size=size, centre_mm=centre_mm)
