@@ -81,6 +81,12 @@ def test_lr_factor_reaches_the_optimiser(scene):
         assert three[name] == pytest.approx(3 * lr)
     with pytest.raises(InputError, match="lr_factor"):
         run_config(R2GSConfig, None, {"lr_factor": 0}, False, None)
+    # a shape-guided run's free means take it too (the other free rates come from the same schedules)
+    from clgs.methods.shape_guided import shape_schedules
+
+    base = shape_schedules(ShapeGuidedConfig(), 1000, free_means=True)["means"]
+    tripled = shape_schedules(ShapeGuidedConfig(lr_factor=3.0), 1000, free_means=True)["means"]
+    assert tripled(0) == pytest.approx(3 * base(0)) and tripled(1000) == pytest.approx(3 * base(1000))
 
 
 def test_a_methods_fast_settings_apply_to_fast_runs_only_and_given_settings_win(monkeypatch):

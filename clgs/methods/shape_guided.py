@@ -226,8 +226,9 @@ class ShapeGuidedResult:
 def _free_init_volume(fdk, geometry, template, size=None, centre_mm=None, to_template=None) -> np.ndarray:
     """The FDK volume with the template's bone blanked out (free Gaussians start outside it); with
     ``size`` > 1, the bone scaled by it about ``centre_mm`` (a larger bone's ends stay blanked);
-    with ``to_template`` (points (N, 3) mm -> the template's), the bone that map carries the
-    template's to (a fitted shape and size)."""
+    with ``to_template`` (a map of points (N, 3) mm to the template's, or a list of them, None in
+    it standing for the template's own bone as above), only where every map's bone lies (the bones
+    fitted so far: :func:`fit_alpha_in_passes`)."""
     pts = geometry.volume_grid(scene=False).points().reshape(-1, 3)
     k = max(float(size or 1.0), 1.0)
     maps = to_template if isinstance(to_template, (list, tuple)) else [to_template]
