@@ -643,14 +643,23 @@ def test_later_registration_passes_refine_from_the_last_fit_at_a_tenth_of_the_ra
 
     calls, held_maps = [], []
 
-    def fake_fit(scan, model, cfg, init, held, size=None, centre_mm=None, alpha=None, with_set=False):
+    class Fitted(str):
+        """A registered set's stand-in: its name, alpha and size."""
+
+    def fake_register(scan, model, cfg, init, held, size=None, centre_mm=None, alpha=None):
         k = len(calls)
         calls.append((cfg.lr_alpha, cfg.lr_size, None if alpha is None else float(alpha[0]), size, held))
-        out = np.array([k + 1.0]), size * 1.01
-        return (*out, f"fit{k}") if with_set else out
+        fitted = Fitted(f"fit{k}")
+        fitted.out = (np.array([k + 1.0]), size * 1.01)
+        return fitted
 
+    def fake_fit(*a, **k):
+        return S._alpha_and_size(fake_register(*a, **k))
+
+    monkeypatch.setattr(S, "register_alpha", fake_register)
     monkeypatch.setattr(S, "fit_initial_alpha", fake_fit)
-    monkeypatch.setattr(S, "_to_template_np", lambda fitted: fitted)
+    monkeypatch.setattr(S, "_alpha_and_size", lambda fitted: fitted.out)
+    monkeypatch.setattr(S, "_to_template_np", str)
 
     def fdk_held(to_template):
         held_maps.append(list(to_template))
@@ -670,9 +679,10 @@ def test_later_registration_passes_refine_from_the_last_fit_at_a_tenth_of_the_ra
 
 def test_the_fdks_tissue_blanks_only_where_every_map_puts_the_bone(template):
     """A later registration's held tissue leaves out the bone where the template's bone (the first
-    map) and the fitted bone (the next) agree: a hole that can only shrink, so a bone fitted too
-    large is not held larger the next time."""
-    from clgs.methods.shape_guided import _free_init_volume
+    map) and the fitted bone (the next, grown by FITTED_HOLE_MARGIN_MM) agree: a hole that can only
+    shrink, so a bone fitted too large is not held larger the next time, and that shrinks only where
+    the fitted bone lies clearly inside the template's."""
+    from clgs.methods.shape_guided import FITTED_HOLE_MARGIN_MM, _free_init_volume
 
     geo = geometry()
     fdk = np.full(tuple(geo.nVoxel)[::-1], 0.05, np.float32)
@@ -688,7 +698,9 @@ def test_the_fdks_tissue_blanks_only_where_every_map_puts_the_bone(template):
     assert ((d1 < 0) & (d2 >= 0)).any() and ((d2 < 0) & (d1 >= 0)).any()
     fdk[0, 0, 0] = 0.0  # the FDK's lowest value, outside the bone: what the hole is set to
     assert d1[0, 0, 0] > 0 and d2[0, 0, 0] > 0
-    for maps, inside in (([shifted], d2 < 0), ([None, shifted], (d1 < 0) & (d2 < 0)), (None, d1 < 0)):
+    grown = d2 < FITTED_HOLE_MARGIN_MM
+    assert FITTED_HOLE_MARGIN_MM > 0 and (grown & ~(d2 < 0) & (d1 < 0)).any()  # the margin blanks more
+    for maps, inside in (([shifted], grown), ([None, shifted], (d1 < 0) & grown), (None, d1 < 0)):
         vol = _free_init_volume(fdk, geo, template, None, centre, maps)
         blank = vol == 0.0
         blank[0, 0, 0] = False
