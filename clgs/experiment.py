@@ -87,7 +87,8 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
     made before it was named used the paper's 1e-4) and the tissue its registration held
     (``register_tissue``, ``"auto"`` resolved for the views at ``angles``, radians: records made
     before it was named held the free set's start, ``"free"``; with the FDK's, the registrations
-    in a row, ``register_passes``: records made before it was named made one); every Gaussian run names its schedule
+    in a row, ``register_passes``: records made before it was named made one, and the margin of a
+    later pass's hole, ``pass_hole_margin_mm``: records made before it had none); every Gaussian run names its schedule
     (``schedule``: records made before schedules existed ran the paper's, compressed to the
     iterations)."""
     sim = {} if simulation == "same" else {"simulation": simulation}
@@ -110,8 +111,9 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
 
             size["register_tissue"] = "free" if angles is None else registration_tissue("auto", angles)
         passes = int(chosen.pop("register_passes", ShapeGuidedConfig.register_passes))
+        margin = float(chosen.pop("pass_hole_margin_mm", ShapeGuidedConfig.pass_hole_margin_mm))
         if size["register_tissue"] == "fdk" and passes != 1:  # they repeat the FDK's tissue's registration only
-            size["register_passes"] = passes
+            size.update(register_passes=passes, pass_hole_margin_mm=margin)  # (the margin: of a later pass's hole)
     return {"iterations": iterations, "seed": seed,
             "settings": json.loads(json.dumps(chosen, sort_keys=True, default=str)), **sim, **size}
 
@@ -131,6 +133,7 @@ _OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings
            "residual": "shape-guided setting residual", "lambda_shape": "shape-guided setting lambda_shape",
            "register_tissue": "shape-guided setting register_tissue",
            "register_passes": "shape-guided setting register_passes",
+           "pass_hole_margin_mm": "shape-guided setting pass_hole_margin_mm",
            "schedule": "the Gaussian runs' schedule (--set schedule=...)"}
 
 
@@ -157,7 +160,7 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
 
     defaults = {"seed": 0, "settings": {}, "detector_fov_mm": None, "simulation": "same", "fit_size": "off",
                 "residual": "off", "schedule": "paper", "lambda_shape": PAPER_LAMBDA_SHAPE,
-                "register_tissue": "free", "register_passes": 1}
+                "register_tissue": "free", "register_passes": 1, "pass_hole_margin_mm": 0.0}
     made_with = {"simulation": "same", **made_with}
     for key, want in made_with.items():
         had = row.get(key, defaults.get(key, want))

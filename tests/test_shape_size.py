@@ -288,9 +288,9 @@ def test_experiment_records_made_before_the_registrations_tissue_was_named_count
 
 def test_experiment_records_name_the_fdk_registrations_passes_only_where_they_run(tmp_path):
     """The FDK's tissue's registrations in a row (register_passes) change the fitted shape: a
-    5-view record made with one pass (the default, and every record before they were named) is
-    refused beside a run of three; where the free set's start is held the passes do not run and
-    are not recorded."""
+    5-view record made with one pass (every record before they were named) is refused beside a
+    run of three (the default), and so is one of three passes made before a later pass's hole had
+    its margin; where the free set's start is held the passes do not run and are not recorded."""
     from clgs.errors import InputError
     from clgs.experiment import _check_same_run, _made_with
 
@@ -298,12 +298,21 @@ def test_experiment_records_name_the_fdk_registrations_passes_only_where_they_ru
     one_pass = {"iterations": 1000, "seed": 0, "settings": {}, "fit_size": "on", "schedule": "fast",
                 "lambda_shape": 0.0, "register_tissue": "fdk"}
     want = _made_with("shape", 1000, 0, {"shape": {"register_passes": 3}}, "same", five)
-    assert want["register_passes"] == 3 and want["settings"] == {}
+    assert want["register_passes"] == 3 and want["settings"] == {} and want["pass_hole_margin_mm"] == 3.0
+    assert _made_with("shape", 1000, 0, {}, "same", five) == want  # three: the default
     with pytest.raises(InputError, match="register_passes 1, this run asks for 3"):
         _check_same_run(tmp_path / "run.json", one_pass, want)
-    _check_same_run(tmp_path / "run.json", one_pass, _made_with("shape", 1000, 0, {}, "same", five))
-    _check_same_run(tmp_path / "run.json", one_pass, _made_with("shape", 1000, 0, {"shape": {"register_passes": 1}},
-                                                                "same", five))
+    with pytest.raises(InputError, match="pass_hole_margin_mm 0.0, this run asks for 3.0"):
+        _check_same_run(tmp_path / "run.json", {**one_pass, "register_passes": 3}, want)
+    _check_same_run(tmp_path / "run.json", {**one_pass, "register_passes": 3, "pass_hole_margin_mm": 3.0}, want)
+    no_margin = _made_with("shape", 1000, 0, {"shape": {"pass_hole_margin_mm": 0}}, "same", five)
+    assert no_margin["pass_hole_margin_mm"] == 0.0 and no_margin["settings"] == {}
+    _check_same_run(tmp_path / "run.json", {**one_pass, "register_passes": 3}, no_margin)  # as made before it
+    one = _made_with("shape", 1000, 0, {"shape": {"register_passes": 1}}, "same", five)
+    assert "register_passes" not in one and "pass_hole_margin_mm" not in one
+    assert _made_with("shape", 1000, 0, {"shape": {"register_passes": 1, "pass_hole_margin_mm": 5}}, "same",
+                      five)["settings"] == {}  # no later pass: the margin changes nothing
+    _check_same_run(tmp_path / "run.json", one_pass, one)
     ap_lat = _made_with("shape", 1000, 0, {"shape": {"register_passes": 2}}, "same", np.radians([0.0, 90.0]))
     assert "register_passes" not in ap_lat and ap_lat["settings"] == {}
 

@@ -122,10 +122,15 @@ class ShapeGuidedConfig(GaussianFitConfig):
                                    "auto: fdk where no two neighbouring views are more than 40 degrees apart, "
                                    "free otherwise")
     # with the FDK's tissue: registrations in a row, each from the one before, each after the first
-    # holding the FDK outside the bone where the template's and every fitted one so far agree
-    # (fit_alpha_in_passes says why; docs/results.md has the figures: 3 brings every held-out
-    # femur under 1 mm at 5 views but costs the out-of-span shafts, so one stays the default)
-    register_passes: int = 1
+    # holding the FDK outside the bone where the template's and every fitted one so far (grown by
+    # pass_hole_margin_mm) agree (fit_alpha_in_passes says why; docs/results.md has the figures:
+    # 3 brings every held-out femur under 1 mm at 5 views and leaves the out-of-span ones as one
+    # pass did; 1: the registration before passes existed)
+    register_passes: int = 3
+    # how far (mm, the template's frame) outside a fitted bone a later pass still leaves the FDK out
+    # of the tissue it holds (_free_init_volume; 0: the hole follows the fitted bones' surfaces,
+    # as the passes first did)
+    pass_hole_margin_mm: float = 3.0
     # alpha-only registration before training (0: start at alpha = 0)
     alpha_init_iterations: int = setting(100, "--alpha-init-iterations",
                                          "iterations registering alpha to the projections before training "
@@ -223,35 +228,34 @@ class ShapeGuidedResult:
     uncertainty: dict | None = None  # the shape surface's uncertainty summary (clgs.shape.uncertainty.summary)
 
 
-def _free_init_volume(fdk, geometry, template, size=None, centre_mm=None, to_template=None) -> np.ndarray:
+def _free_init_volume(fdk, geometry, template, size=None, centre_mm=None, to_template=None,
+                      margin_mm=0.0) -> np.ndarray:
     """The FDK volume with the template's bone blanked out (free Gaussians start outside it); with
     ``size`` > 1, the bone scaled by it about ``centre_mm`` (a larger bone's ends stay blanked);
     with ``to_template`` (a map of points (N, 3) mm to the template's, or a list of them, None in
     it standing for the template's own bone as above), only where every map's bone lies (the bones
-    fitted so far: :func:`fit_alpha_in_passes`), a fitted bone's grown by
-    :data:`FITTED_HOLE_MARGIN_MM`."""
+    fitted so far: :func:`fit_alpha_in_passes`), a fitted bone's grown by ``margin_mm`` (mm in the
+    template's frame).
+
+    Why the margin (``pass_hole_margin_mm``, 3): where a fitted bone's surface lies a little inside
+    the true bone, a hole that follows it holds the FDK's bone there as tissue, which pushes the
+    bone further off (the lengthened shaft of examples/femur_out_of_span.py, 5 views,
+    registration alone: 1.25 -> 1.49 mm after three passes; 1.27 with 3 mm); grown, the hole
+    shrinks only where a fitted bone lies clearly inside the template's (subject 24's ends: 0.74
+    mm after three passes, 1.22 after one; docs/results.md)."""
     pts = geometry.volume_grid(scene=False).points().reshape(-1, 3)
     k = max(float(size or 1.0), 1.0)
     maps = to_template if isinstance(to_template, (list, tuple)) else [to_template]
     inside = np.ones(fdk.shape, bool)
     for m in maps:
         if m is not None:
-            inside &= template.sdf_at(m(pts)).reshape(fdk.shape) < FITTED_HOLE_MARGIN_MM
+            inside &= template.sdf_at(m(pts)).reshape(fdk.shape) < margin_mm
             continue
         q = centre_mm + (pts - centre_mm) / k if k > 1.0 else pts
         inside &= template.sdf_at(q).reshape(fdk.shape) < 0
     vol = np.array(fdk, np.float32, copy=True)
     vol[inside] = float(vol.min())
     return vol
-
-
-#: how far (mm, in the template's frame) outside a fitted bone a later registration pass still
-#: leaves the FDK out of the tissue it holds: the hole shrinks only where a fitted bone lies clearly
-#: inside the template's. Without it the hole followed the fitted bone's surface, and where that
-#: lay inside the true bone the FDK's bone there was held as tissue and the bone pushed further
-#: off (the lengthened shaft of examples/femur_out_of_span.py, 5 views, registration alone: 1.25
-#: -> 1.49 mm after three passes; 1.27 with 3 mm; subject 24 0.69 and 0.74; docs/results.md)
-FITTED_HOLE_MARGIN_MM = 3.0
 
 
 #: ``register_tissue="auto"`` registers against the FDK's tissue where no gap between neighbouring
@@ -290,7 +294,7 @@ def fdk_tissue(fdk, geometry, template, cfg, set_kw: dict, size=None, centre_mm=
     its values capped at ``ceiling`` (1/mm; None: not capped): the free set's start with
     ``free_init="fdk"``, and the tissue held while alpha is registered with ``register_tissue="fdk"``
     (capped at :func:`tissue_ceiling`)."""
-    vol = _free_init_volume(fdk, geometry, template, size, centre_mm, to_template)
+    vol = _free_init_volume(fdk, geometry, template, size, centre_mm, to_template, cfg.pass_hole_margin_mm)
     if ceiling is not None:
         vol = np.minimum(vol, np.float32(ceiling))
     vol = vol * cfg.value_scale
@@ -382,9 +386,11 @@ def fit_alpha_in_passes(scan, shape_model, cfg: ShapeGuidedConfig, init, held, s
     agree: the hole shrinks to the bone (0.83 mm after two passes, 0.75 after three) and never grows,
     since a hole that followed a bone fitted too large let it grow again at the next pass (the
     lengthened shaft of examples/femur_out_of_span.py 1.25 -> 1.69 -> 2.74 mm). A later pass runs
-    at a tenth of the first's learning rates (``LATER_PASS_LR``). Not the default: it brings every
-    held-out femur under 1 mm from 5 views (0.66 mm mean) but costs the shapes the model cannot
-    reach (a bowed shaft 1.08 -> 1.20 mm; docs/results.md)."""
+    at a tenth of the first's learning rates (``LATER_PASS_LR``), and a fitted bone's hole is
+    grown by ``cfg.pass_hole_margin_mm`` so that the FDK of bone the fit just misses is not held as
+    tissue (without the margin the shapes the model cannot reach lost: a bowed shaft 1.08 -> 1.20
+    mm, trained; with it 1.06, and every held-out femur under 1 mm from 5 views, 0.68 mm mean;
+    docs/results.md)."""
     passes = cfg.register_passes if fdk_held is not None else 1
     if passes == 1:
         alpha, size = fit_initial_alpha(scan, shape_model, cfg, init, held, size=size, centre_mm=centre_mm)
