@@ -113,7 +113,7 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
         passes = int(chosen.pop("register_passes", ShapeGuidedConfig.register_passes))
         margin = float(chosen.pop("pass_hole_margin_mm", ShapeGuidedConfig.pass_hole_margin_mm))
         if size["register_tissue"] == "fdk" and passes != 1:  # they repeat the FDK's tissue's registration only
-            size.update(register_passes=passes, pass_hole_margin_mm=margin)  # (the margin: of a later pass's hole)
+            size.update(register_passes=passes, pass_hole_margin_mm=margin)
     return {"iterations": iterations, "seed": seed,
             "settings": json.loads(json.dumps(chosen, sort_keys=True, default=str)), **sim, **size}
 

@@ -383,7 +383,7 @@ def fit_alpha_in_passes(scan, shape_model, cfg: ShapeGuidedConfig, init, held, s
     (subject 24: 405 mm, the template 434) is fitted long to fill that hole (413 mm, model surface
     1.22 mm after one registration, 5 views). Each later pass starts from the alpha and size before
     and holds the FDK outside the bone only where the template's bone and every bone fitted so far
-    agree: the hole shrinks to the bone (0.83 mm after two passes, 0.75 after three) and never grows,
+    agree: the hole shrinks to the bone (registration alone: 0.74 mm after three passes) and never grows,
     since a hole that followed a bone fitted too large let it grow again at the next pass (the
     lengthened shaft of examples/femur_out_of_span.py 1.25 -> 1.69 -> 2.74 mm). A later pass runs
     at a tenth of the first's learning rates (``LATER_PASS_LR``), and a fitted bone's hole is
