@@ -88,7 +88,9 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
     (``register_tissue``, ``"auto"`` resolved for the views at ``angles``, radians: records made
     before it was named held the free set's start, ``"free"``; with the FDK's, the registrations
     in a row, ``register_passes``: records made before it was named made one, and the margin of a
-    later pass's hole, ``pass_hole_margin_mm``: records made before it had none); every Gaussian run names its schedule
+    later pass's hole, ``pass_hole_margin_mm``: records made before it had none) and whether the
+    atlas was scaled to the scan (``atlas_calibration``: records made before it existed count as
+    ``"off"``); every Gaussian run names its schedule
     (``schedule``: records made before schedules existed ran the paper's, compressed to the
     iterations)."""
     sim = {} if simulation == "same" else {"simulation": simulation}
@@ -110,6 +112,7 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
             from clgs.methods.shape_guided import registration_tissue
 
             size["register_tissue"] = "free" if angles is None else registration_tissue("auto", angles)
+        size["atlas_calibration"] = str(chosen.pop("atlas_calibration", ShapeGuidedConfig.atlas_calibration))
         passes = int(chosen.pop("register_passes", ShapeGuidedConfig.register_passes))
         margin = float(chosen.pop("pass_hole_margin_mm", ShapeGuidedConfig.pass_hole_margin_mm))
         if size["register_tissue"] == "fdk" and passes != 1:  # they repeat the FDK's tissue's registration only
@@ -134,6 +137,7 @@ _OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings
            "register_tissue": "shape-guided setting register_tissue",
            "register_passes": "shape-guided setting register_passes",
            "pass_hole_margin_mm": "shape-guided setting pass_hole_margin_mm",
+           "atlas_calibration": "shape-guided setting atlas_calibration",
            "schedule": "the Gaussian runs' schedule (--set schedule=...)"}
 
 
@@ -160,7 +164,8 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
 
     defaults = {"seed": 0, "settings": {}, "detector_fov_mm": None, "simulation": "same", "fit_size": "off",
                 "residual": "off", "schedule": "paper", "lambda_shape": PAPER_LAMBDA_SHAPE,
-                "register_tissue": "free", "register_passes": 1, "pass_hole_margin_mm": 0.0}
+                "register_tissue": "free", "register_passes": 1, "pass_hole_margin_mm": 0.0,
+                "atlas_calibration": "off"}
     made_with = {"simulation": "same", **made_with}
     for key, want in made_with.items():
         had = row.get(key, defaults.get(key, want))

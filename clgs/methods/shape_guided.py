@@ -167,6 +167,16 @@ class ShapeGuidedConfig(GaussianFitConfig):
                                   "weight of the shape prior |alpha|^2 against the mean projection loss "
                                   "(the paper: 1e-4)")
     lambda_density: float = 0.5
+    # the atlas's densities scaled to the scan (clgs.shape.calibration): "fit" a factor for the bone
+    # and one for the rest from the registered start's projections, "off" the atlas as it is (the
+    # paper); the factors (fitted, or given with --set) are kept in the run's settings, so a resumed
+    # run holds the field to the same atlas
+    atlas_calibration: str = setting("off", "--atlas-calibration",
+                                     "scale the density atlas to the scan: fit one factor for the bone and one for "
+                                     "the tissue around it from the registered start's projections (fit), or use "
+                                     "the atlas as it is (off, the paper)")
+    atlas_bone_factor: float | None = None
+    atlas_rest_factor: float | None = None
     density_s: float = 0.05
     density_points: int = 32  # sub-grid points per axis for L_density
     lr_alpha: float = 0.1
@@ -179,14 +189,15 @@ class ShapeGuidedConfig(GaussianFitConfig):
     CLI = ("iterations", "schedule", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every",
            "log_early", "checkpoint_every", "max_gaussians", "n_shape", "n_free", "tau", "shape_prior", "density_prior",
            "density_prior_field", "free_init", "register_tissue", "alpha_init_iterations", "fit_size", "residual",
-           "residual_points", "uncertainty", "lambda_shape")
+           "residual_points", "uncertainty", "lambda_shape", "atlas_calibration")
     KIND = "shape-guided"
     FAST_ITERATIONS = 4_000  # the fast schedule's run (clgs.fit.schedule; docs/schedules.md)
     FAST_STOP_EVERY = 250
     CHOICES = {**GaussianFitConfig.CHOICES, "free_init": ("atlas", "fdk"), "register_tissue": ("auto", "free", "fdk"),
                "density_prior_field": ("all", "shape"),
-               "fit_size": ("auto", "on", "off"), "residual": ("on", "off"), "uncertainty": ("on", "off")}
-    POSITIVE = GaussianFitConfig.POSITIVE | {"tau", "density_s"}
+               "fit_size": ("auto", "on", "off"), "residual": ("on", "off"), "uncertainty": ("on", "off"),
+               "atlas_calibration": ("fit", "off")}
+    POSITIVE = GaussianFitConfig.POSITIVE | {"tau", "density_s", "atlas_bone_factor", "atlas_rest_factor"}
     AT_LEAST = {**GaussianFitConfig.AT_LEAST, "density_points": 2, "residual_points": 4, "register_passes": 1}
 
 
@@ -625,12 +636,52 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
         losses.append(LossTerm("residual", cfg.lambda_residual,
                                residual_prior_term(cfg.residual_bending, cfg.residual_bending_start,
                                                    max(iters // 2, 1))))
-    if cfg.density_prior and atlas is not None:
+    if atlas is not None:
         with phase("the density prior's atlas on the scan's grid"):
             prior = DensityPrior(atlas, template, geo, cfg.value_scale, cfg.density_s, cfg.density_points,
-                                 field=prior_field)
-        losses.append(LossTerm("density", cfg.lambda_density, prior))
+                                 field=prior_field, factors=atlas_factors(cfg))
+        if state is None:
+            calibrate_atlas(scan, cfg, prior, shape_set, free if outside is not None else None)
+        if cfg.density_prior:
+            losses.append(LossTerm("density", cfg.lambda_density, prior))
     return make_trainer(scan, cfg, sets, losses, out_dir, progress)
+
+
+def atlas_factors(cfg: ShapeGuidedConfig) -> tuple[float, float]:
+    """(bone, rest) factors the atlas is scaled by (1 where none was fitted or given)."""
+    return (1.0 if cfg.atlas_bone_factor is None else float(cfg.atlas_bone_factor),
+            1.0 if cfg.atlas_rest_factor is None else float(cfg.atlas_rest_factor))
+
+
+def calibrate_atlas(scan, cfg: ShapeGuidedConfig, reader: DensityPrior, shape_set, tissue) -> None:
+    """A new run's atlas scaled to the scan (:mod:`clgs.shape.calibration`): with
+    ``atlas_calibration="fit"`` and no factor given, the factors fitted to every training view from
+    the atlas as ``reader`` (a :class:`DensityPrior`) reads it for the registered ``shape_set``,
+    stored in ``cfg``; then the start's densities scaled by them (the bone's Gaussians by the
+    bone's factor, ``tissue``, the free set when it starts on the atlas's tissue, by the rest's)."""
+    from clgs.ops.ct_projector import CTProjector
+    from clgs.shape import calibration as C
+
+    if cfg.atlas_calibration == "fit" and cfg.atlas_bone_factor is None and cfg.atlas_rest_factor is None:
+        geo = scan.geometry
+        with phase("scaling the density atlas to the scan"):
+            bone, rest = reader.atlas_parts(shape_set, geo.volume_grid(scene=True))
+            pb, pt = C.atlas_projections(CTProjector(geo), bone, rest)
+            b, t = C.fit_factors(pb, pt, np.asarray(scan.projections, np.float32))
+        cfg.atlas_bone_factor, cfg.atlas_rest_factor = b, (b if t is None else t)
+        if any(f in C.FACTOR_RANGE for f in (cfg.atlas_bone_factor, cfg.atlas_rest_factor)):
+            warnings.warn(f"the scan's densities are more than {C.FACTOR_RANGE[1]:g} times apart from the density "
+                          f"atlas's (the factors were clipped to {C.FACTOR_RANGE}): are the projections line "
+                          "integrals of attenuation per mm, and is the bone in the views? --set "
+                          "atlas_calibration=off runs on the atlas as it is", stacklevel=2)
+        print(f"density atlas scaled to the scan: bone x{b:.3f}, the tissue around it x{cfg.atlas_rest_factor:.3f}"
+              + ("" if t is not None else " (the atlas holds no tissue apart from the bone: one factor)"),
+              file=sys.stderr)
+    b, t = atlas_factors(cfg)
+    C.scale_densities(shape_set, b)
+    if tissue is not None:
+        C.scale_densities(tissue, t)
+    reader.factors = (b, t)
 
 
 def choose_size(scan, cfg: ShapeGuidedConfig, init, tissue, centre_mm) -> float | None:
@@ -864,6 +915,9 @@ def run_method(scan, out_dir=None, iterations: int | None = None, anatomy=None, 
               f"to the volume's bone surface {u['volume_mean_mm']:.3f}; {u['file']}, {u['vtk_file']})",
               file=sys.stderr)
     extra = {"uncertainty": result.uncertainty} if result.uncertainty is not None else {}
+    config = result.trainer.config
+    if config.get("atlas_bone_factor") is not None:  # the atlas scaled to the scan (calibrate_atlas)
+        extra["atlas_factors"] = {"bone": config["atlas_bone_factor"], "rest": config["atlas_rest_factor"]}
     return method_output(result, out_dir, files, seconds=result.seconds, alpha=[float(a) for a in result.alpha],
                          size=size, history=result.log.rows, displacement=split, **surface, **extra)
 

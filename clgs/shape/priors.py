@@ -64,7 +64,7 @@ class DensityPrior:
     few views leave them undetermined (docs/methods.md)."""
 
     def __init__(self, atlas, template, geometry, value_scale: float, s: float, n_points: int,
-                 set_name: str = "shape", field: str = "shape"):
+                 set_name: str = "shape", field: str = "shape", factors: tuple = (1.0, 1.0)):
         if field not in ("shape", "all"):
             raise InputError(f"density prior field must be 'shape' or 'all', got {field!r}")
         self.atlas, self.template, self.geometry = atlas, template, geometry
@@ -73,6 +73,9 @@ class DensityPrior:
         self.n_points = int(n_points)
         self.set_name = set_name
         self.field = field
+        # the atlas scaled to the scan (clgs.shape.calibration): inside the template's bone by the
+        # first, outside it by the second
+        self.factors = (float(factors[0]), float(factors[1]))
         lo, hi = template.bounds()
         self._lo, self._hi = torch.as_tensor(lo, dtype=torch.float32), torch.as_tensor(hi, dtype=torch.float32)
         self._label = torch.as_tensor(template.label.astype(np.float32))[None, None]
@@ -111,6 +114,65 @@ class DensityPrior:
         """The atlas's mean and variance at template points, from one trilinear pass."""
         return self.atlas.mean_var_at(x_t)
 
+    def _points_mm(self, grid) -> torch.Tensor:
+        """A scene-unit grid's points in mm (world), (N, 3) float32."""
+        pts = torch.as_tensor(grid.points().reshape(-1, 3), dtype=torch.float32)
+        return pts / self.geometry.scale + torch.as_tensor(self.geometry.centre_xyz, dtype=torch.float32)
+
+    def _read(self, s, pts_mm: torch.Tensor):
+        """(mean, var, the template points read, a 0/1 mask of the points held or None) of the
+        atlas at points of the subject (mm), carried to the template by the set ``s`` (its fitted
+        size as :meth:`_sized_atlas` reads it, with ``field="all"``); scaled by ``factors``."""
+        x_t = s.to_template(pts_mm) if isinstance(s, ShapeGuidedSet) else pts_mm
+        if isinstance(s, ShapeGuidedSet) and s.fits_size and self.field == "all":
+            mean, var, x_t, keep = self._sized_atlas(s, pts_mm, x_t)
+        else:
+            mean, var = self._atlas_at(x_t.double())
+            keep = None
+        if self.factors != (1.0, 1.0):
+            (bm, bv), (rm, rv) = (a.mean_var_at(x_t.double()) for a in self.split_atlas())
+            b, t = self.factors
+            mean, var = b * bm + t * rm, b * b * bv + t * t * rv
+        return mean, var, x_t, keep
+
+    def split_atlas(self) -> tuple:
+        """(the atlas inside the template's bone, the atlas outside it): two atlases on the atlas's
+        grid whose sum is the atlas (split at its voxels, so that each read, trilinear, is the
+        atlas's read in two parts); what the factors scale."""
+        if getattr(self, "_split", None) is None:
+            from clgs.shape.model import DensityAtlas
+
+            a, tpl = self.atlas, self.template
+            if (a.shape == tuple(tpl.label.shape) and np.allclose(a.spacing, tpl.spacing)
+                    and np.allclose(a.origin, tpl.origin)):
+                label = np.asarray(tpl.label, np.float32)
+            else:
+                pts = torch.as_tensor(a.grid().points().reshape(-1, 3), dtype=torch.float32)
+                label = (self._inside_template(pts) > 0.5).numpy().reshape(a.shape).astype(np.float32)
+            self._split = tuple(DensityAtlas(a.mean * m, a.var * m, a.spacing, a.origin)
+                                for m in (label, 1.0 - label))
+        return self._split
+
+    def atlas_parts(self, shape_set, grid, chunk: int = 1 << 20) -> tuple[np.ndarray, np.ndarray]:
+        """The atlas's mean as this prior reads it for ``shape_set``'s fit, on ``grid`` (scene
+        units), split into the template bone's part and the rest's: two (Z, Y, X) float32 volumes
+        in the atlas's units, unscaled (what :mod:`clgs.shape.calibration` projects)."""
+        pts_mm = self._points_mm(grid)
+        bone = np.empty(len(pts_mm), np.float32)
+        rest = np.empty(len(pts_mm), np.float32)
+        factors, self.factors = self.factors, (1.0, 1.0)
+        inside, outside = self.split_atlas()
+        try:
+            with torch.no_grad():
+                for i in range(0, len(pts_mm), chunk):
+                    _, _, x_t, _ = self._read(shape_set, pts_mm[i:i + chunk])
+                    bone[i:i + chunk] = inside.mean_at(x_t.double()).numpy()
+                    rest[i:i + chunk] = outside.mean_at(x_t.double()).numpy()
+        finally:
+            self.factors = factors
+        shape = tuple(grid.shape)
+        return bone.reshape(shape), rest.reshape(shape)
+
     def __call__(self, ctx):
         trainer = ctx.trainer
         s = _set(trainer, self.set_name)
@@ -127,19 +189,12 @@ class DensityPrior:
             tensors = tuple(t[offset:offset + n] for t in ctx.tensors)
         v = ctx.voxelize(grid, tensors).reshape(-1)
         with torch.no_grad():
-            pts = torch.as_tensor(grid.points().reshape(-1, 3), dtype=torch.float32)
-            pts_mm = pts / self.geometry.scale + torch.as_tensor(self.geometry.centre_xyz,
-                                                                 dtype=torch.float32)
-            x_t = s.to_template(pts_mm) if isinstance(s, ShapeGuidedSet) else pts_mm
-            fitted = isinstance(s, ShapeGuidedSet) and s.fits_size
-            if fitted and self.field == "all":
-                mean, var, x_t, keep = self._sized_atlas(s, pts_mm, x_t)
-            else:
-                mean, var = self._atlas_at(x_t.double())
+            pts_mm = self._points_mm(grid)
+            mean, var, x_t, keep = self._read(s, pts_mm)
             mean = mean.float() * self.value_scale
             var = var.float() * self.value_scale ** 2
             w = torch.exp(-var / self.s2)
-            if fitted and self.field == "all":
+            if keep is not None:
                 w = w * keep
             # the atlas says nothing beyond its grid (the template's): where a larger scan (a longer
             # bone) reaches past it, the field is left to the projections, not pulled to the zeros
@@ -147,6 +202,7 @@ class DensityPrior:
             # point is inside)
             # (with a fitted size the atlas is read at x_t, in the model's frame and size: that is
             # the point tested)
+            fitted = isinstance(s, ShapeGuidedSet) and s.fits_size
             w = w * self._inside_atlas(x_t if fitted else pts_mm)
             if self.field == "shape":
                 w = w * self._inside_template(x_t)
