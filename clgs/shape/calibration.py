@@ -37,8 +37,7 @@ def atlas_projections(projector, bone: np.ndarray, rest: np.ndarray) -> tuple[np
 def fit_factors(bone, rest, target) -> tuple[float, float | None]:
     """(b, t) minimising ``|b bone + t rest - target|^2`` over every pixel (float64 normal
     equations); ``rest`` None, or holding nothing, or parallel to ``bone``: ``t`` is None and ``b``
-    fits the bone alone against what the rest does not explain (``target`` minus ``rest``, when
-    given). Both clipped to :data:`FACTOR_RANGE`."""
+    is the one factor of the bone alone. Both clipped to :data:`FACTOR_RANGE`."""
     lo, hi = FACTOR_RANGE
     pb = np.asarray(bone, np.float64).reshape(-1)
     y = np.asarray(target, np.float64).reshape(-1)

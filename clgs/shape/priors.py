@@ -76,6 +76,7 @@ class DensityPrior:
         # the atlas scaled to the scan (clgs.shape.calibration): inside the template's bone by the
         # first, outside it by the second
         self.factors = (float(factors[0]), float(factors[1]))
+        self._split: tuple | None = None  # split_atlas's two parts, made on first use
         lo, hi = template.bounds()
         self._lo, self._hi = torch.as_tensor(lo, dtype=torch.float32), torch.as_tensor(hi, dtype=torch.float32)
         self._label = torch.as_tensor(template.label.astype(np.float32))[None, None]
@@ -119,17 +120,18 @@ class DensityPrior:
         pts = torch.as_tensor(grid.points().reshape(-1, 3), dtype=torch.float32)
         return pts / self.geometry.scale + torch.as_tensor(self.geometry.centre_xyz, dtype=torch.float32)
 
-    def _read(self, s, pts_mm: torch.Tensor):
+    def _read(self, s, pts_mm: torch.Tensor, scaled: bool = True):
         """(mean, var, the template points read, a 0/1 mask of the points held or None) of the
         atlas at points of the subject (mm), carried to the template by the set ``s`` (its fitted
-        size as :meth:`_sized_atlas` reads it, with ``field="all"``); scaled by ``factors``."""
+        size as :meth:`_sized_atlas` reads it, with ``field="all"``); scaled by ``factors`` unless
+        ``scaled`` is False."""
         x_t = s.to_template(pts_mm) if isinstance(s, ShapeGuidedSet) else pts_mm
         if isinstance(s, ShapeGuidedSet) and s.fits_size and self.field == "all":
             mean, var, x_t, keep = self._sized_atlas(s, pts_mm, x_t)
         else:
             mean, var = self._atlas_at(x_t.double())
             keep = None
-        if self.factors != (1.0, 1.0):
+        if scaled and self.factors != (1.0, 1.0):
             (bm, bv), (rm, rv) = (a.mean_var_at(x_t.double()) for a in self.split_atlas())
             b, t = self.factors
             mean, var = b * bm + t * rm, b * b * bv + t * t * rv
@@ -139,7 +141,7 @@ class DensityPrior:
         """(the atlas inside the template's bone, the atlas outside it): two atlases on the atlas's
         grid whose sum is the atlas (split at its voxels, so that each read, trilinear, is the
         atlas's read in two parts); what the factors scale."""
-        if getattr(self, "_split", None) is None:
+        if self._split is None:
             from clgs.shape.model import DensityAtlas
 
             a, tpl = self.atlas, self.template
@@ -160,16 +162,12 @@ class DensityPrior:
         pts_mm = self._points_mm(grid)
         bone = np.empty(len(pts_mm), np.float32)
         rest = np.empty(len(pts_mm), np.float32)
-        factors, self.factors = self.factors, (1.0, 1.0)
         inside, outside = self.split_atlas()
-        try:
-            with torch.no_grad():
-                for i in range(0, len(pts_mm), chunk):
-                    _, _, x_t, _ = self._read(shape_set, pts_mm[i:i + chunk])
-                    bone[i:i + chunk] = inside.mean_at(x_t.double()).numpy()
-                    rest[i:i + chunk] = outside.mean_at(x_t.double()).numpy()
-        finally:
-            self.factors = factors
+        with torch.no_grad():
+            for i in range(0, len(pts_mm), chunk):
+                _, _, x_t, _ = self._read(shape_set, pts_mm[i:i + chunk], scaled=False)
+                bone[i:i + chunk] = inside.mean_at(x_t.double()).numpy()
+                rest[i:i + chunk] = outside.mean_at(x_t.double()).numpy()
         shape = tuple(grid.shape)
         return bone.reshape(shape), rest.reshape(shape)
 
