@@ -662,3 +662,26 @@ def test_npy_axis_order_is_explicit(tmp_path):
     assert "inf" in res.output or "PSNR" in res.output
     res = run("evaluate", tmp_path / "pred_xyz.npy", "--spacing", 2, "--truth", tmp_path / "s", ok=False)
     assert res.exit_code == 2 and "different shapes" in res.output
+
+
+def test_the_shape_method_takes_its_anatomy_from_the_command_line(scan_dir, tmp_path, monkeypatch):
+    """`clgs reconstruct SCAN --method shape --anatomy NAME` gives the run that anatomy (the option
+    is not a setting of the method): an unknown name is the anatomy's error, and a known one reaches
+    the run as its anatomy, not among its settings."""
+    res = run("reconstruct", scan_dir / "scan", "--method", "shape", "--anatomy", "no_such_bone",
+              "--out", tmp_path / "x", ok=False)
+    assert res.exit_code != 0
+    assert "no_such_bone" in res.output and "unknown setting" not in res.output
+    import clgs.methods.run as R
+
+    seen = {}
+
+    def fake(method, scan, folder, settings=None, **kw):
+        seen.update(settings=dict(settings or {}), **kw)
+        return {"volume": np.zeros(scan.geometry.nVoxel, np.float32)}
+
+    monkeypatch.setattr(R, "run_method", fake)
+    run("reconstruct", scan_dir / "scan", "--method", "shape", "--anatomy", "femur", "--set", "iterations=3",
+        "--out", tmp_path / "y")
+    assert seen["anatomy"] == "femur" and "anatomy" not in seen["settings"]
+    assert seen["settings"]["iterations"] == 3

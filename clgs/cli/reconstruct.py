@@ -307,8 +307,10 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
             from clgs.methods.run import run_method
 
             def run(scan_, folder):
-                """The one way to run a method (the settings were checked above)."""
-                return run_method(method, scan_, folder, kwargs)
+                """The one way to run a method (the settings were checked above); ``--anatomy``
+                is no setting but the anatomy the run is given (the shape method's option)."""
+                settings = dict(kwargs)
+                return run_method(method, scan_, folder, settings, anatomy=settings.pop("anatomy", None))
 
             if is_volume_path(out):
                 t0 = time.perf_counter()
