@@ -242,7 +242,7 @@ class ShapeGuidedSet(GaussianSet):
         """Points of the subject carried back to the template: the size undone, then x' = x - u(x'),
         two fixed-point steps (``u`` the model's displacement plus the residual). ``tissue``: the
         size undone as the tissue around the bone takes it: a larger bone's, not a smaller one's (a
-        limb has a girth of its own; see :meth:`clgs.shape.priors.DensityPrior._sized_atlas`)."""
+        limb has a girth of its own; see :meth:`clgs.shape.priors.DensityPrior._sized_points`)."""
         total = self.total_displacement()
         if self.fits_size:
             s = torch.exp(self.params["log_size"].detach())

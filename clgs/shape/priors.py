@@ -95,21 +95,25 @@ class DensityPrior:
 
     def _sized_atlas(self, s, pts_mm, x_bone):
         """The atlas for a bone fitted at another size ``s`` than the model's: (mean, var, the
-        points read, a 0/1 mask of the points held). The bone takes the size (the atlas read at
-        ``x_bone``, the similarity undone); the tissue around it takes a larger size but not a
-        smaller one (a limb has a girth of its own beside its bone's). Points outside the scaled
-        bone that the tissue's read would place inside the template's bone (a ring around a
-        smaller bone) are not held (why: docs/methods.md, "The bone's size")."""
+        points read, a 0/1 mask of the points held), read where :meth:`_sized_points` says."""
+        at, keep = self._sized_points(s, pts_mm, x_bone)
+        mean, var = self._atlas_at(at.double())
+        return mean, var, at, keep
+
+    def _sized_points(self, s, pts_mm, x_bone):
+        """(the template points to read, a 0/1 mask of the points held) for a bone fitted at
+        another size ``s`` than the model's. The bone takes the size (the atlas read at ``x_bone``,
+        the similarity undone); the tissue around it takes a larger size but not a smaller one (a
+        limb has a girth of its own beside its bone's). Points outside the scaled bone that the
+        tissue's read would place inside the template's bone (a ring around a smaller bone) are
+        not held (why: docs/methods.md, "The bone's size")."""
         if s.size >= 1.0:  # the tissue takes the bone's size: one read, every point held
-            mean, var = self.atlas.mean_var_at(x_bone.double())
-            return mean, var, x_bone, torch.ones(len(pts_mm), dtype=pts_mm.dtype)
+            return x_bone, torch.ones(len(pts_mm), dtype=pts_mm.dtype)
         x_tissue = s.to_template(pts_mm, tissue=True)
         in_bone = self._inside_template(x_bone) > 0.5
         in_tissue_read = self._inside_template(x_tissue) > 0.5
         at = torch.where(in_bone[:, None], x_bone, x_tissue)
-        mean, var = self.atlas.mean_var_at(at.double())
-        keep = (in_bone | ~in_tissue_read).to(pts_mm.dtype)
-        return mean, var, at, keep
+        return at, (in_bone | ~in_tissue_read).to(pts_mm.dtype)
 
     def _atlas_at(self, x_t: torch.Tensor):
         """The atlas's mean and variance at template points, from one trilinear pass."""
@@ -120,18 +124,23 @@ class DensityPrior:
         pts = torch.as_tensor(grid.points().reshape(-1, 3), dtype=torch.float32)
         return pts / self.geometry.scale + torch.as_tensor(self.geometry.centre_xyz, dtype=torch.float32)
 
-    def _read(self, s, pts_mm: torch.Tensor, scaled: bool = True):
-        """(mean, var, the template points read, a 0/1 mask of the points held or None) of the
-        atlas at points of the subject (mm), carried to the template by the set ``s`` (its fitted
-        size as :meth:`_sized_atlas` reads it, with ``field="all"``); scaled by ``factors`` unless
-        ``scaled`` is False."""
+    def _points(self, s, pts_mm: torch.Tensor):
+        """(the template points the atlas is read at, a 0/1 mask of the points held or None) for
+        points of the subject (mm), carried to the template by the set ``s`` (its fitted size as
+        :meth:`_sized_points` places them, with ``field="all"``)."""
         x_t = s.to_template(pts_mm) if isinstance(s, ShapeGuidedSet) else pts_mm
         if isinstance(s, ShapeGuidedSet) and s.fits_size and self.field == "all":
-            mean, var, x_t, keep = self._sized_atlas(s, pts_mm, x_t)
-        else:
+            return self._sized_points(s, pts_mm, x_t)
+        return x_t, None
+
+    def _read(self, s, pts_mm: torch.Tensor):
+        """(mean, var, the template points read, the mask of :meth:`_points`) of the atlas at
+        points of the subject (mm), scaled by ``factors`` (one read of the atlas, or of its two
+        parts when they are scaled apart)."""
+        x_t, keep = self._points(s, pts_mm)
+        if self.factors == (1.0, 1.0):
             mean, var = self._atlas_at(x_t.double())
-            keep = None
-        if scaled and self.factors != (1.0, 1.0):
+        else:
             (bm, bv), (rm, rv) = (a.mean_var_at(x_t.double()) for a in self.split_atlas())
             b, t = self.factors
             mean, var = b * bm + t * rm, b * b * bv + t * t * rv
@@ -165,7 +174,7 @@ class DensityPrior:
         inside, outside = self.split_atlas()
         with torch.no_grad():
             for i in range(0, len(pts_mm), chunk):
-                _, _, x_t, _ = self._read(shape_set, pts_mm[i:i + chunk], scaled=False)
+                x_t, _ = self._points(shape_set, pts_mm[i:i + chunk])
                 bone[i:i + chunk] = inside.mean_at(x_t.double()).numpy()
                 rest[i:i + chunk] = outside.mean_at(x_t.double()).numpy()
         shape = tuple(grid.shape)
