@@ -81,12 +81,13 @@ def tv_term(size: int, every: int = 1):
 
 
 def projection_losses(cfg) -> list:
-    """R2-Gaussian's terms: L1 + ``lambda_dssim`` D-SSIM on the rendered view, ``lambda_tv`` TV on a
-    random block of the volume (``cfg``: a :class:`clgs.fit.config.GaussianFitConfig`)."""
+    """R2-Gaussian's terms: L1 + ``lambda_dssim`` D-SSIM on the rendered view (each view of a
+    multi-view step, averaged), ``lambda_tv`` TV on a random block of the volume (once a step;
+    ``cfg``: a :class:`clgs.fit.config.GaussianFitConfig`)."""
     image = L.ImageTerms(dssim=cfg.lambda_dssim > 0)  # L1 and D-SSIM from one pass on the OpenCL backend
     return [
-        LossTerm("l1", 1.0, image.l1),
-        LossTerm("dssim", cfg.lambda_dssim, image.dssim),
+        LossTerm("l1", 1.0, image.l1, per_view=True),
+        LossTerm("dssim", cfg.lambda_dssim, image.dssim, per_view=True),
         LossTerm("tv", cfg.lambda_tv, tv_term(cfg.tv_size, cfg.tv_every)),
     ]
 
@@ -110,7 +111,7 @@ def make_trainer(scan, cfg, sets, losses, out_dir=None, progress=False) -> Train
         evaluate=make_evaluator(scan, cfg.value_scale), log_every=cfg.log_every,
         log_early=cfg.log_early, checkpoint_every=cfg.checkpoint_every if out_dir is not None else 0,
         checkpoint_path=None if out_dir is None else out_dir / CHECKPOINT, progress=progress,
-        config=cfg.to_json(),
+        config=cfg.to_json(), views_per_step=cfg.views_per_step,
     )
     coarse = coarse_hook(trainer, cfg)  # early iterations on a binned detector, when asked for
     if coarse is not None:

@@ -153,6 +153,11 @@ class GaussianFitConfig(JsonConfig):
     # detector binned by coarse_factor (0: full resolution throughout)
     coarse_until: float = 0.0
     coarse_factor: int = 2
+    # views rendered per iteration: their projection losses averaged, one TV patch and one Adam
+    # step for all of them (R2-Gaussian: 1; docs/schedules.md measures more)
+    views_per_step: int = setting(1, "--views-per-step",
+                                  "views rendered per iteration, their projection losses averaged under one TV patch "
+                                  "and one Adam step (R2-Gaussian: 1; at most the number of views)")
 
     FAST_ITERATIONS = 30_000  # the fast schedule's run length (each method sets its own)
     FAST_STOP_EVERY = 500  # the fast schedule's plateau checks
@@ -161,7 +166,7 @@ class GaussianFitConfig(JsonConfig):
     CHOICES = {"projector_mode": ("affine", "exact"), "backend": ("cl", "torch"), "schedule": ("fast", "paper")}
     POSITIVE = frozenset({"value_scale", "lr_factor"})
     AT_LEAST = {"iterations": 1, "densify_interval": 1, "max_gaussians": 1, "tv_size": 2, "tv_every": 1,
-                "schedule_iterations": 1, "stop_patience": 1, "coarse_factor": 1}
+                "schedule_iterations": 1, "stop_patience": 1, "coarse_factor": 1, "views_per_step": 1}
     AT_MOST = {**JsonConfig.AT_MOST, "coarse_until": 1.0}
 
     def __post_init__(self):

@@ -333,27 +333,37 @@ class Densifier:
         for s in trainer.sets:
             offsets[s.name] = start
             start += len(s)
-        render_grad = getattr(ctx, "render_means_grad", None)
+        group = getattr(ctx, "group", [ctx])
+        # each view of the step contributes its own statistic, as if it had had a step of its own:
+        # a multi-view step averages the views' losses, so a view's projection gradient is 1/k of it
+        grads = [(c.view, getattr(c, "render_means_grad", None)) for c in group]
+        if any(g is None or g.shape[0] != start for _, g in grads):  # no render: the parameters' gradient
+            grads = [(ctx.view, None)]
+        k = float(len(grads))
         for s in self._sets(trainer):
-            if render_grad is not None and render_grad.shape[0] == start:
-                # the projection's share only, as R2-Gaussian's view-space gradient
-                g = render_grad[offsets[s.name]:offsets[s.name] + len(s)]
-            else:
-                g = s.params["means"].grad
-            if g is None:
-                continue
             n = len(s)
             acc, cnt = self.stats.get(s.name, (None, None))
-            if acc is None or acc.shape[0] != n:
-                acc, cnt = torch.zeros(n, dtype=g.dtype), torch.zeros(n, dtype=g.dtype)
-            gt = _transposed(g)
-            seen = (gt[0] != 0) | (gt[1] != 0) | (gt[2] != 0)
-            if render_grad is None and s.params["densities"].grad is not None:
-                seen |= s.params["densities"].grad != 0
-            # a Gaussian with a zero mean gradient adds exactly 0, so no mask is needed here
-            acc = acc + self._view_space_grad(s.params["means"], gt, ctx.view)
-            cnt = cnt + seen.to(g.dtype)
-            self.stats[s.name] = (acc, cnt)
+            for view, render_grad in grads:
+                if render_grad is not None:
+                    # the projection's share only, as R2-Gaussian's view-space gradient
+                    g = render_grad[offsets[s.name]:offsets[s.name] + n]
+                    if k > 1:
+                        g = g * k
+                else:
+                    g = s.params["means"].grad
+                if g is None:
+                    continue
+                if acc is None or acc.shape[0] != n:
+                    acc, cnt = torch.zeros(n, dtype=g.dtype), torch.zeros(n, dtype=g.dtype)
+                gt = _transposed(g)
+                seen = (gt[0] != 0) | (gt[1] != 0) | (gt[2] != 0)
+                if render_grad is None and s.params["densities"].grad is not None:
+                    seen |= s.params["densities"].grad != 0
+                # a Gaussian with a zero mean gradient adds exactly 0, so no mask is needed here
+                acc = acc + self._view_space_grad(s.params["means"], gt, view)
+                cnt = cnt + seen.to(g.dtype)
+            if acc is not None:
+                self.stats[s.name] = (acc, cnt)
 
     def due(self, iteration: int) -> bool:
         """True after iteration ``iteration`` (1-based count of completed steps) when densifying."""

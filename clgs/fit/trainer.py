@@ -6,13 +6,17 @@ The loop knows nothing about a particular method. It takes
   densities) differentiable to its leaves, ``parameters()`` -> [(name, tensor, Schedule)],
   ``state_dict()`` / ``load_state_dict()`` and ``__len__``. The rendered scene is all sets together.
 * ``losses``: :class:`LossTerm` (name, weight, fn(ctx) -> scalar). A term with weight 0 is never
-  called, so it costs nothing (no projection, no voxelised patch).
+  called, so it costs nothing (no projection, no voxelised patch). A term marked ``per_view``
+  (the projection terms) is taken on each view of a step and averaged; the others (TV, priors)
+  once per step.
 * ``hooks``: objects with any of ``after_backward(trainer, ctx)`` (gradients are there, the
   step has not happened), ``on_iteration(trainer)`` (after the step; densification lives here),
   ``state_dict()`` / ``load_state_dict()`` (checkpointed with the run).
 
 One iteration: set each parameter's learning rate from its schedule, take the next view of a
-reshuffled stack, evaluate the loss terms on a lazily-built :class:`Context`, backward, Adam
+reshuffled stack (``views_per_step`` > 1: the next that many, each the context of the per-view
+terms, all sharing the step's activations, TV patch and Adam update; R2-Gaussian takes one),
+evaluate the loss terms on a lazily-built :class:`Context`, backward, Adam
 (eps 1e-15) on the parameters whose learning rate is not 0, count the iteration, run hooks.
 Every ``log_every`` iterations (and, with ``log_early``, at 10, 20, 50, 100, ... before the first)
 the optional ``evaluate(trainer) -> dict`` adds a row to the log.
@@ -70,6 +74,7 @@ class LossTerm:
     name: str
     weight: float
     fn: Callable
+    per_view: bool = False  # taken on each view of a multi-view step and averaged (projection terms)
 
 
 class Backend:
@@ -172,15 +177,23 @@ class Backend:
 class Context:
     """What loss terms see during one iteration; costly pieces are built on first use."""
 
-    def __init__(self, trainer: Trainer, view: int):
+    def __init__(self, trainer: Trainer, view: int, views=None, _box=None):
         self.trainer = trainer
         self.view = view
         self.iteration = trainer.iteration
         self.generator = trainer.generator
         self.geometry = trainer.geometry
-        self._tensors = None
+        # the scene's tensors, built on first use; one box for every view of a step, so a step's
+        # activations are computed once (no reference back to the first context: no cycle)
+        self._box = [None] if _box is None else _box
         self._render = None
         self._render_grad_box: list = []
+        self._others = [Context(trainer, int(v), _box=self._box) for v in (views or [])[1:]]
+
+    @property
+    def group(self) -> list:
+        """The contexts of every view of this step, this one first (one view: just this one)."""
+        return [self, *self._others]
 
     @property
     def target(self) -> torch.Tensor:
@@ -190,9 +203,9 @@ class Context:
     @property
     def tensors(self):
         """(means, scales, quats, densities) of all sets, concatenated."""
-        if self._tensors is None:
-            self._tensors = self.trainer.scene_tensors()
-        return self._tensors
+        if self._box[0] is None:
+            self._box[0] = self.trainer.scene_tensors()
+        return self._box[0]
 
     @property
     def render(self) -> torch.Tensor:
@@ -230,13 +243,14 @@ def early_log_points(below: int) -> set:
 
 
 class Trainer:
-    """Adam over named Gaussian sets, one view per iteration; see the module doc."""
+    """Adam over named Gaussian sets, one view per iteration (or ``views_per_step``); see the
+    module doc."""
 
     def __init__(self, sets, geometry, projections, losses, *, iterations: int, backend="cl",
                  render_scale: float = 1.0, seed: int = 0, hooks=(), evaluate=None, log_every: int = 500,
                  log_early: bool = False, checkpoint_every: int = 0, checkpoint_path=None, progress: bool = False,
                  views=None, config: dict | None = None, torch_threads: int | None = -1, desc: str = "train",
-                 estimate: bool | None = None):
+                 estimate: bool | None = None, views_per_step: int = 1):
         self.sets = list(sets)
         names = [s.name for s in self.sets]
         if len(set(names)) != len(names):
@@ -262,6 +276,10 @@ class Trainer:
         self.estimate_enabled = progress if estimate is None else bool(estimate)
         self.expected = None  # the Estimate made, if any
         self.views = list(range(geometry.n_views)) if views is None else [int(v) for v in views]
+        self.views_per_step = int(views_per_step)
+        if not 1 <= self.views_per_step <= len(self.views):
+            raise InputError(f"views_per_step must be between 1 and the {len(self.views)} training views, got "
+                             f"{views_per_step}")
         self.config = dict(config or {})
         self.seed = int(seed)
         # -1: automatic. With the OpenCL backend the torch side of an iteration is small element-wise
@@ -318,12 +336,17 @@ class Trainer:
         it = self.iteration
         for group, schedule in zip(self.optimizer.param_groups, self._schedules):
             group["lr"] = schedule(it)
-        ctx = Context(self, self.next_view())
+        views = [self.next_view() for _ in range(self.views_per_step)]
+        ctx = Context(self, views[0], views)
         total, values = None, {}
         for term in self.losses:
             if term.weight == 0:
                 continue
-            v = term.fn(ctx)
+            if term.per_view and len(ctx.group) > 1:
+                parts = [term.fn(c) for c in ctx.group]
+                v = None if any(p is None for p in parts) else sum(parts) / len(parts)
+            else:
+                v = term.fn(ctx)
             if v is None:  # the term sits this iteration out (e.g. a TV patch every k-th iteration)
                 continue
             values[term.name] = v.detach()
@@ -332,7 +355,8 @@ class Trainer:
         if total is not None:
             if not torch.isfinite(total):
                 raise FloatingPointError(
-                    f"the loss became {float(total.detach())} at iteration {it} (view {ctx.view}); lower the learning "
+                    f"the loss became {float(total.detach())} at iteration {it} "
+                    f"(view{'s' if len(views) > 1 else ''} {', '.join(map(str, views))}); lower the learning "
                     "rates or check the projections for NaN/Inf")
             total.backward()
         for h in self.hooks:

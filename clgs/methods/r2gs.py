@@ -70,7 +70,7 @@ class R2GSConfig(GaussianFitConfig):
     init_sart_iterations: int = 10  # OS-SART iterations of the "sart" start (5 subsets)
 
     CLI = ("iterations", "schedule", "n_gaussians", "max_gaussians", "init", "seed", "backend", "projector_mode",
-           "scale_floor", "lambda_tv", "lambda_dssim", "log_every", "log_early", "checkpoint_every")
+           "scale_floor", "lambda_tv", "lambda_dssim", "views_per_step", "log_every", "log_early", "checkpoint_every")
     KIND = "r2gs"
     FAST_ITERATIONS = 10_000  # the fast schedule's run (clgs.fit.schedule; docs/schedules.md)
     # no plateau rule by default: on the thorax the projection loss stops setting records at 3 000

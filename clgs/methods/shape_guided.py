@@ -486,8 +486,8 @@ def _registration(scan, shape_model, cfg, init, free, moving: dict, k: int, *, s
     if free is not None and len(free) > 0:
         sets.append(_Frozen(free))
     image = L.ImageTerms(dssim=cfg.lambda_dssim > 0)
-    losses = [LossTerm("l1", 1.0, image.l1),
-              LossTerm("dssim", cfg.lambda_dssim, image.dssim)]
+    losses = [LossTerm("l1", 1.0, image.l1, per_view=True),
+              LossTerm("dssim", cfg.lambda_dssim, image.dssim, per_view=True)]
     if "alpha" in moving:
         losses.append(LossTerm("shape", cfg.lambda_shape, shape_prior_term("registration")))
     if "residual" in moving:
