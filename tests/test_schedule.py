@@ -314,3 +314,31 @@ def test_tv_every_k_runs_the_patch_on_every_kth_iteration_weighted_k(scene):
     assert seen == [(i, i % 3 == 0) for i in range(7)]
     with pytest.raises(InputError, match="tv_every"):
         R2GSConfig(tv_every=0)
+
+
+def test_many_view_scans_get_four_views_a_step_under_the_fast_schedule_only():
+    """On 20 views or more R2-Gaussian mode's fast run takes 6 000 steps of four views at twice the
+    learning rates (docs/schedules.md); fewer views, the paper's schedule, the shape-guided method
+    and settings given keep theirs."""
+    def run(config=R2GSConfig, n=25, iterations=None, **kw):
+        cfg, _ = run_config(config, iterations, kw, False, None, n_views=n)
+        return cfg.iterations, cfg.views_per_step, cfg.lr_factor
+
+    assert run(n=25) == run(n=20) == (6000, 4, 2.0)
+    assert run(n=19) == run(n=5) == run(n=None) == (R2GSConfig.FAST_ITERATIONS, 1, 1.0)
+    assert run(n=25, schedule="paper") == (30_000, 1, 1.0)
+    assert run(n=25, iterations=3000) == (3000, 4, 2.0)
+    assert run(n=25, views_per_step=1, lr_factor=1.0) == (6000, 1, 1.0)
+    assert run(ShapeGuidedConfig, n=25)[1:] == (1, 1.0)
+
+
+def test_a_many_view_run_trains_and_records_its_views_per_step(scene, tmp_path, monkeypatch):
+    import json
+
+    monkeypatch.setattr(R2GSConfig, "MANY_VIEWS", scene.geometry.n_views)  # this 8-view scene counts as many
+    res = reconstruct_r2gs(scene, tmp_path / "run", 4, progress=False, fdk=scene.truth, **FAST)
+    assert res.trainer.views_per_step == 4
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert saved["views_per_step"] == 4 and saved["lr_factor"] == 2.0
+    again = reconstruct_r2gs(scene, tmp_path / "run", resume=True, progress=False, fdk=scene.truth)
+    assert again.trainer.views_per_step == 4

@@ -66,7 +66,7 @@ def run_schedule(scan, method: str, schedule: str, settings: dict, iterations: i
     else:
         from clgs.methods.r2gs import R2GSConfig, build_trainer
 
-        cfg, _ = run_config(R2GSConfig, iterations, settings, False, None)
+        cfg, _ = run_config(R2GSConfig, iterations, settings, False, None, n_views=scan.geometry.n_views)
         trainer = build_trainer(scan, cfg, out_dir, progress=False)
     restore(trainer, None, cfg)
     setup = time.perf_counter() - t0

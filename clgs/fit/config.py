@@ -162,6 +162,9 @@ class GaussianFitConfig(JsonConfig):
     FAST_ITERATIONS = 30_000  # the fast schedule's run length (each method sets its own)
     FAST_STOP_EVERY = 500  # the fast schedule's plateau checks
     FAST_SETTINGS = {}  # settings the fast schedule changes from the paper's (each method sets its own)
+    # ... and on scans of at least MANY_VIEWS views (may hold its own "iterations": the run's length)
+    FAST_MANY_VIEWS = {}  # type: ignore[var-annotated]
+    MANY_VIEWS = 20
 
     CHOICES = {"projector_mode": ("affine", "exact"), "backend": ("cl", "torch"), "schedule": ("fast", "paper")}
     POSITIVE = frozenset({"value_scale", "lr_factor"})
@@ -215,13 +218,15 @@ def check_run_folder(out_dir, resume: bool) -> None:
                              "or delete that folder (or pass --force on the command line) to start a new run there")
 
 
-def run_config(config_cls, iterations: int | None, settings: dict, resume: bool, out_dir):
+def run_config(config_cls, iterations: int | None, settings: dict, resume: bool, out_dir,
+               n_views: int | None = None):
     """(settings, checkpoint or None) of a new run, or of a run resumed from ``out_dir``: a resumed
     run keeps its checkpoint's settings (only ``iterations`` may grow and ``backend`` change).
 
     ``iterations=None``: the schedule's length for a new run (:func:`clgs.fit.schedule.resolve`:
     30 000 for ``schedule="paper"``, the method's shorter run for ``"fast"``); for a resumed one,
-    the iterations it was started with (an interrupted run is finished, not extended)."""
+    the iterations it was started with (an interrupted run is finished, not extended). ``n_views``:
+    the scan's training views, for a fast schedule that differs on many views (R2-Gaussian mode)."""
     if iterations is not None and not 1 <= iterations <= MAX_ITERATIONS:
         raise InputError(f"iterations must be between 1 and {MAX_ITERATIONS:,}, got {iterations}")
     check_run_folder(out_dir, resume)
@@ -229,7 +234,7 @@ def run_config(config_cls, iterations: int | None, settings: dict, resume: bool,
     if not resume:
         from clgs.fit.schedule import resolve
 
-        return config_cls.from_json(resolve(config_cls, iterations, settings)), None
+        return config_cls.from_json(resolve(config_cls, iterations, settings, n_views)), None
     if out_dir is None:
         raise InputError("resume needs out_dir (the folder holding checkpoint.pt)")
     state = ckpt.load(Path(out_dir) / CHECKPOINT)

@@ -36,7 +36,7 @@ SCHEDULES = ("fast", "paper")
 PAPER_ITERATIONS = 30_000  # R2-Gaussian's and the shape-guided paper's run length
 
 
-def resolve(config_cls, iterations: int | None, settings: dict) -> dict:
+def resolve(config_cls, iterations: int | None, settings: dict, n_views: int | None = None) -> dict:
     """The settings (JSON) of a new run of ``config_cls`` under its schedule (``settings["schedule"]``
     or the config's default): the class defaults, the schedule's, then ``settings`` and
     ``iterations`` as given (what is given always wins).
@@ -45,7 +45,9 @@ def resolve(config_cls, iterations: int | None, settings: dict) -> dict:
     ``fast``: ``config_cls.FAST_ITERATIONS`` unless given; the decays as the paper's 30 000-iteration
     run has them (over more when more iterations are given), densification as the paper's; the
     plateau rule checking every ``FAST_STOP_EVERY`` iterations from half the run on (0: none), and
-    the method's ``FAST_SETTINGS`` (settings measured to reach quality sooner, e.g. ``tv_every``)."""
+    the method's ``FAST_SETTINGS`` (settings measured to reach quality sooner, e.g. ``tv_every``),
+    and on a scan of ``n_views`` >= the method's ``MANY_VIEWS`` its ``FAST_MANY_VIEWS`` (for
+    R2-Gaussian mode: four views per step at twice the learning rates, and its own run length)."""
     base = config_cls().to_json()
     schedule = settings.get("schedule", base.get("schedule", "paper"))
     if schedule not in SCHEDULES:
@@ -55,10 +57,15 @@ def resolve(config_cls, iterations: int | None, settings: dict) -> dict:
         n = PAPER_ITERATIONS if iterations is None else int(iterations)
         out["stop_every"] = 0
     else:
-        n = int(getattr(config_cls, "FAST_ITERATIONS", PAPER_ITERATIONS)) if iterations is None else int(iterations)
+        extra = dict(getattr(config_cls, "FAST_SETTINGS", {}))
+        many = getattr(config_cls, "FAST_MANY_VIEWS", {})
+        if many and n_views is not None and int(n_views) >= int(getattr(config_cls, "MANY_VIEWS", 0)):
+            extra.update(many)
+        fast_n = int(extra.pop("iterations", getattr(config_cls, "FAST_ITERATIONS", PAPER_ITERATIONS)))
+        n = fast_n if iterations is None else int(iterations)
         out["schedule_iterations"] = max(n, PAPER_ITERATIONS)
         out["stop_every"] = int(getattr(config_cls, "FAST_STOP_EVERY", 0))
-        out.update(getattr(config_cls, "FAST_SETTINGS", {}))
+        out.update(extra)
     out.update(settings)
     out["iterations"] = n
     out["schedule"] = schedule

@@ -73,6 +73,11 @@ class R2GSConfig(GaussianFitConfig):
            "scale_floor", "lambda_tv", "lambda_dssim", "views_per_step", "log_every", "log_early", "checkpoint_every")
     KIND = "r2gs"
     FAST_ITERATIONS = 10_000  # the fast schedule's run (clgs.fit.schedule; docs/schedules.md)
+    # on 20 views or more: four views a step at twice the learning rates, 6 000 steps (the thorax,
+    # 25 views: the paper's 30 000-iteration 3D PSNR in about 0.4 of its time, where one view a
+    # step needs two thirds of it, docs/schedules.md); sparse scans keep R2-Gaussian's one view a
+    # step (every femur table was made so)
+    FAST_MANY_VIEWS = {"views_per_step": 4, "lr_factor": 2.0, "iterations": 6_000}
     # no plateau rule by default: on the thorax the projection loss stops setting records at 3 000
     # iterations while the volume gains another 1.4 dB (docs/schedules.md); --set stop_every=500
     FAST_STOP_EVERY = 0
@@ -152,7 +157,8 @@ def reconstruct_r2gs(scan, out_dir=None, iterations: int | None = None, *, resum
     settings, to the iterations it was started with, or to ``iterations`` when given) or
     ``overwrite=True`` (its clgs files are removed first): :func:`clgs.fit.config.run_folder`.
     ``iterations=None`` on a new run: the schedule's length (``schedule="fast"``, the default:
-    the paper's schedule cut at 10 000; ``"paper"``: R2-Gaussian's 30 000; docs/schedules.md).
+    the paper's schedule cut at 10 000, or on 20 views or more 6 000 steps of four views at twice
+    the learning rates; ``"paper"``: R2-Gaussian's 30 000; docs/schedules.md).
     ``fdk``: a ready FDK volume (else computed). Ctrl-C stops cleanly: outputs so far are written
     and ``result.interrupted`` is True.
     """
@@ -165,7 +171,7 @@ def _reconstruct_r2gs(scan, out_dir=None, iterations: int | None = None, *, resu
     """:func:`reconstruct_r2gs` in a run folder already claimed."""
     if not isinstance(scan, Scan):
         scan = Scan.load(scan)
-    cfg, state = run_config(R2GSConfig, iterations, settings, resume, out_dir)
+    cfg, state = run_config(R2GSConfig, iterations, settings, resume, out_dir, n_views=scan.geometry.n_views)
     trainer = build_trainer(scan, cfg, out_dir, progress=progress, fdk=fdk, state=state)
     restore(trainer, state, cfg)
     trainer.fit()
