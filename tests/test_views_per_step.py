@@ -87,11 +87,14 @@ def test_one_tv_patch_per_step(scene, monkeypatch):
                         or tv(backend, tensors, grid))
     t = _trainer(scene, 4, lambda_tv=0.05, views_per_step=4)
     t.evaluate = None
-    renders = []
+    renders, built = [], []
+    scene_tensors = t.scene_tensors
+    t.scene_tensors = lambda: built.append(1) or scene_tensors()
     project = t.backend.project
     t.backend.project = lambda *a: renders.append(list(a[-1])) or project(*a)
     t.fit()
     assert len(calls) == 4  # one patch per iteration
+    assert len(built) == 4  # the Gaussians' activations once a step, for its four views and the patch
     assert len(renders) == 16 and all(len(r) == 1 for r in renders)  # four views per iteration
     assert sorted(v for r in renders[:8] for v in r) == list(range(8))  # each view once per pass over them
 

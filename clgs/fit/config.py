@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -163,7 +164,7 @@ class GaussianFitConfig(JsonConfig):
     FAST_STOP_EVERY = 500  # the fast schedule's plateau checks
     FAST_SETTINGS = {}  # settings the fast schedule changes from the paper's (each method sets its own)
     # ... and on scans of at least MANY_VIEWS views (may hold its own "iterations": the run's length)
-    FAST_MANY_VIEWS = {}  # type: ignore[var-annotated]
+    FAST_MANY_VIEWS: ClassVar[dict] = {}
     MANY_VIEWS = 20
 
     CHOICES = {"projector_mode": ("affine", "exact"), "backend": ("cl", "torch"), "schedule": ("fast", "paper")}
