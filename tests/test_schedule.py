@@ -342,3 +342,7 @@ def test_a_many_view_run_trains_and_records_its_views_per_step(scene, tmp_path, 
     assert saved["views_per_step"] == 4 and saved["lr_factor"] == 2.0
     again = reconstruct_r2gs(scene, tmp_path / "run", resume=True, progress=False, fdk=scene.truth)
     assert again.trainer.views_per_step == 4
+    from clgs.methods.r2gs import run_method  # what report.json's "info" says of the run
+
+    info = run_method(scene, None, 2, progress=False, fdk=scene.truth, **FAST)["info"]
+    assert (info["iterations"], info["views_per_step"], info["lr_factor"]) == (2, 4, 2.0)

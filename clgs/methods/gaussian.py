@@ -24,6 +24,10 @@ def method_output(result, out_dir, files: dict, **extra) -> dict:
             "interrupted": result.interrupted, "stop_signal": getattr(result.trainer, "stop_signal", None),
             # the schedule, and where its plateau rule ended the run (None: it ran every iteration)
             "schedule": result.trainer.config.get("schedule"),
+            # an iteration's views and the learning rates' factor (the fast schedule raises both on
+            # many views), so "iterations" is read right
+            "views_per_step": result.trainer.views_per_step,
+            "lr_factor": result.trainer.config.get("lr_factor"),
             "converged": getattr(result.trainer, "converged", None), **extra}
     # "result": the method's whole result (log, trainer), for Python callers such as the experiment
     return {"volume": result.volume, "files": files, "info": info, "result": result}
