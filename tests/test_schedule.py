@@ -346,3 +346,15 @@ def test_a_many_view_run_trains_and_records_its_views_per_step(scene, tmp_path, 
 
     info = run_method(scene, None, 2, progress=False, fdk=scene.truth, **FAST)["info"]
     assert (info["iterations"], info["views_per_step"], info["lr_factor"]) == (2, 4, 2.0)
+
+
+def test_too_many_views_per_step_is_refused_before_the_start_is_computed(scene, monkeypatch):
+    """More views a step than the scan has stops with the reason before any FDK is computed."""
+    import clgs.methods.r2gs as r2gs
+
+    def no_fdk(*a, **k):
+        raise AssertionError("the FDK start was computed for a refused setting")
+
+    monkeypatch.setattr(r2gs, "fdk_volume", no_fdk)
+    with pytest.raises(InputError, match="views_per_step must be between 1 and the 8 training views, got 9"):
+        reconstruct_r2gs(scene, None, 2, progress=False, views_per_step=9)

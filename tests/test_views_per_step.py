@@ -1,6 +1,7 @@
 """Several views per iteration (``views_per_step``): the projection terms of the step's views
 averaged against single-view gradients computed by hand, one TV patch per step, the densification
 statistic of each view as if it had had its own step, the bounds, and a bit-for-bit resume."""
+import numpy as np
 import pytest
 import torch
 from gaussian_scene import six_gaussian_scan
@@ -117,6 +118,29 @@ def test_each_view_adds_its_own_densification_statistic(scene):
     assert float(a.sum()) > 0 and float(b.sum()) > 0
     torch.testing.assert_close(acc, a + b, rtol=1e-4, atol=1e-6 * float((a + b).max()))
     assert torch.equal(cnt, ca + cb)
+
+
+def test_a_step_draws_distinct_views_across_passes(scene):
+    """Three views a step over eight: a step that runs past a pass's end takes the rest of it and
+    then only views it does not hold; over the run every view comes once per pass (counted over
+    whole passes), and one view a step draws the plain pass-by-pass shuffle."""
+    t = _trainer(scene, 2, views_per_step=3)
+    steps = [t.next_views(3) for _ in range(40)]  # 120 views: 15 passes of 8
+    assert all(len(set(s)) == 3 for s in steps)
+    flat = [v for s in steps for v in s]
+    for p in range(15):
+        assert sorted(flat[8 * p:8 * p + 8]) == list(range(8))
+    # the one view left of a pass is the one the next shuffle would draw first: a plain refill
+    # would repeat it within the step
+    leftover = int(np.random.default_rng(0).permutation(8)[-1])
+    t.rng, t.view_stack = np.random.default_rng(0), [leftover]
+    got = t.next_views(3)
+    assert got[0] == leftover and len(set(got)) == 3
+    assert sorted(got[1:] + t.view_stack) == sorted(set(range(8)) - {leftover}) + [leftover]
+    one = _trainer(scene, 2)
+    plain = np.random.default_rng(0)
+    want = [int(v) for _ in range(3) for v in reversed(plain.permutation(8))]
+    assert [one.next_views(1)[0] for _ in range(24)] == want
 
 
 def test_views_per_step_bounds(scene):

@@ -235,7 +235,11 @@ def run_config(config_cls, iterations: int | None, settings: dict, resume: bool,
     if not resume:
         from clgs.fit.schedule import resolve
 
-        return config_cls.from_json(resolve(config_cls, iterations, settings, n_views)), None
+        cfg = config_cls.from_json(resolve(config_cls, iterations, settings, n_views))
+        k = getattr(cfg, "views_per_step", 1)
+        if n_views is not None and k > n_views:  # refused before the start's FDK, not after it
+            raise InputError(f"views_per_step must be between 1 and the {n_views} training views, got {k}")
+        return cfg, None
     if out_dir is None:
         raise InputError("resume needs out_dir (the folder holding checkpoint.pt)")
     state = ckpt.load(Path(out_dir) / CHECKPOINT)

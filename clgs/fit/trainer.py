@@ -326,17 +326,26 @@ class Trainer:
         return sum(len(s) for s in self.sets)
 
     # ------------------------------------------------------------------ one step
-    def next_view(self) -> int:
-        if not self.view_stack:
-            self.view_stack = [self.views[i] for i in self.rng.permutation(len(self.views))]
-        return self.view_stack.pop()
+    def next_views(self, k: int = 1) -> list:
+        """The next ``k`` views of the reshuffled stack, each view once per pass. A step that runs
+        past the end of a pass takes the rest of it and then, from the next pass, views it does not
+        already hold (those are put last in the new pass), so a step's views are distinct; one view a
+        step draws exactly as a plain pass-by-pass shuffle."""
+        out: list = []
+        while len(out) < k:
+            if not self.view_stack:
+                fresh = [self.views[i] for i in self.rng.permutation(len(self.views))]
+                held = set(out)
+                self.view_stack = [v for v in fresh if v in held] + [v for v in fresh if v not in held]
+            out.append(self.view_stack.pop())
+        return out
 
     def step(self) -> dict:
         """One iteration; returns the loss terms' values (floats)."""
         it = self.iteration
         for group, schedule in zip(self.optimizer.param_groups, self._schedules):
             group["lr"] = schedule(it)
-        views = [self.next_view() for _ in range(self.views_per_step)]
+        views = self.next_views(self.views_per_step)
         ctx = Context(self, views[0], views)
         total, values = None, {}
         for term in self.losses:
