@@ -17,6 +17,10 @@ plus its surface STL), so an interrupted experiment resumes where it stopped.
 Each run is an independent task (:mod:`clgs.cohort`): it simulates its scan (seeded), reconstructs
 and writes its record itself, here or in a Dask worker process (``workers``, ``scheduler``); the
 tables are gathered from the records. A run that fails is listed with its error, the others go on.
+SIGINT (Ctrl-C) or SIGTERM stops the experiment: the run going on is dropped, not recorded (a
+Gaussian run stops at its next iteration, an interrupted training is never taken for a finished
+one), no other run starts, the summary's ``stop_signal`` names the signal, and the same command
+resumes with that run.
 
 Outputs (rewritten after every run, so they always show what is done): ``results.csv`` (one row
 per run), ``table.md`` (per subject and mean, as the paper's
@@ -57,6 +61,11 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
     if method_accepts(name, "iterations"):
         chosen = {"iterations": iterations, **chosen}
     out = run_method(name, scan, None, chosen, anatomy=anatomy, seed=seed, progress=progress)
+    info = out.get("info") or {}
+    if info.get("interrupted"):  # a signal stopped the training: not a finished run, never a record
+        from clgs.cohort.runner import Stopped
+
+        raise Stopped(int(info.get("stop_signal") or 2))
     volume = np.asarray(out["volume"], np.float32)
     res = out.get("result")
     if res is not None:
@@ -230,8 +239,11 @@ def _run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: 
     None or 0, the default), on a local Dask cluster of ``workers`` processes, or on the running
     cluster at ``scheduler``. A run's record does not depend on where it ran. A run that fails is
     listed with its error under ``failed`` in the summary; the others go on."""
+    import signal
+
     from clgs.cohort import Task, run_tasks
     from clgs.cohort.cluster import check_choice, distributed_wanted
+    from clgs.cohort.runner import Stopped, stop_signals
     from clgs.methods.shape_guided import load_anatomy_parts
 
     check_choice(workers, scheduler)
@@ -295,7 +307,8 @@ def _run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: 
                     echo=None if remote else echo, simulation=simulation,
                     angles=None if angles is None else [float(a) for a in angles], detector_mm=det,
                     judge_fov=fov if det is None else None, meshes=meshes)))
-    failed = {}
+    failed: dict = {}
+    stopped: list = []  # the signal that stopped the experiment, if one did
 
     def finished(outcome):
         if outcome.ok:
@@ -309,10 +322,20 @@ def _run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: 
         rows = [done[t] for t in order if t in done]
         write_reports(out, rows, summarise(rows, views, ablation_views, failed), views, ablation_views)
 
-    run_tasks(tasks, workers=workers, scheduler=scheduler, on_outcome=finished, desc="experiment runs",
-              progress=remote or not progress, echo=echo)
+    with stop_signals() as stop:
+        try:
+            run_tasks(tasks, workers=workers, scheduler=scheduler, on_outcome=finished, desc="experiment runs",
+                      progress=remote or not progress, echo=echo, stop=stop)
+        except Stopped as exc:  # the run going on is dropped (runs here keep no checkpoint)
+            stop.request(exc.signum)
+            for key in exc.running:
+                echo(f"  {key}: stopped by {signal.Signals(exc.signum).name}; not recorded, it runs again on resume")
+        if stop.signum is not None:
+            stopped.append(int(stop.signum))
     rows = [done[t] for t in order if t in done]
     summary = summarise(rows, views, ablation_views, failed)
+    if stopped:
+        summary["stop_signal"] = stopped[0]
     write_reports(out, rows, summary, views, ablation_views)
     return summary
 

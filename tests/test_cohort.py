@@ -136,6 +136,33 @@ def test_an_interrupted_experiment_resumes_with_the_finished_runs_kept(toy, seri
     assert table_without_times(tmp_path) == table_without_times(serial_experiment[0])
 
 
+def test_a_signal_during_training_stops_the_experiment_and_the_run_is_not_recorded(toy, serial_experiment,
+                                                                                 tmp_path, monkeypatch):
+    """SIGTERM while R2-Gaussian mode trains: the trainer stops at its next iteration, the experiment
+    records nothing for that run (an interrupted training is not a finished one), starts no other
+    run and names the signal; the same call again runs it and gives the uninterrupted table."""
+    from clgs.fit.trainer import Trainer
+
+    real_step, sent = Trainer.step, []
+
+    def step(self):
+        if self.iteration == 5 and not sent:
+            sent.append(self.iteration)
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "step", step)
+    summary, lines = experiment(toy, tmp_path)
+    assert sent == [5] and summary["stop_signal"] == signal.SIGTERM
+    assert sorted(p.name for p in (tmp_path / "runs").glob("*.json")) == ["08_3_fdk.json"]
+    assert "  08_3_r2gs: stopped by SIGTERM; not recorded, it runs again on resume" in lines
+    assert json.loads((tmp_path / "summary.json").read_text())["stop_signal"] == signal.SIGTERM
+    monkeypatch.setattr(Trainer, "step", real_step)
+    summary, lines = experiment(toy, tmp_path)
+    assert "stop_signal" not in summary and "08_3_fdk: done before, kept" in lines
+    assert table_without_times(tmp_path) == table_without_times(serial_experiment[0])
+
+
 def test_a_failed_run_is_listed_and_the_others_finish(toy, tmp_path, monkeypatch):
     import clgs.experiment as exp
 

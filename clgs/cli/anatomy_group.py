@@ -759,6 +759,13 @@ def _experiment_command(anatomy) -> click.Command:
         for v, g in summary["gain_db"].items():
             click.echo(f"{v}{' views' if str(v).isdigit() else ''}: shape-guided minus R2-Gaussian "
                        f"{g['mean']:+.2f} dB (ahead on {g['subjects_ahead']}/{g['subjects']} subjects)")
+        if summary.get("stop_signal"):
+            import signal
+
+            sig = int(summary["stop_signal"])
+            click.echo(f"experiment stopped by {signal.Signals(sig).name}: the finished runs are kept in {out}/runs, "
+                       "the one going on was dropped; the same command resumes the experiment", err=True)
+            raise SystemExit(128 + sig)
         if summary.get("failed"):
             raise click.ClickException(f"{len(summary['failed'])} run(s) failed (listed in {out}/table.md and "
                                        "summary.json); the others are done: run the same command again to retry them")
