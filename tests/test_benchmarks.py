@@ -191,3 +191,38 @@ def test_bench_iteration_cost_times_a_trained_runs_settings_against_variants(tmp
     res = CliRunner().invoke(cli, ["bench", "iteration-cost", str(tmp_path / "run"), "--scan", str(tmp_path / "scan"),
                                    "--variant", "tv_evry=2"])
     assert res.exit_code == 2 and "tv_evry" in res.output
+
+
+def test_bench_quality_time_stops_on_a_signal_and_never_takes_the_stopped_run_for_a_reference(tmp_path,
+                                                                                            monkeypatch):
+    """SIGTERM during the paper run: its run.json says interrupted, the fast run does not start, the
+    command exits 143; that folder is then refused as a --reference."""
+    import json
+    import os
+    import signal
+
+    from gaussian_scene import six_gaussian_scan
+
+    from clgs.fit.trainer import Trainer
+
+    six_gaussian_scan().save(tmp_path / "scan")
+    real_step = Trainer.step
+
+    def step(self):
+        if self.iteration == 7:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "step", step)
+    common = ["--method", "r2gs", "--log-every", "10", "--set", "n_gaussians=200"]
+    res = CliRunner().invoke(cli, ["bench", "quality-time", str(tmp_path / "scan"), *common, "--paper-iterations",
+                                   "40", "--fast-iterations", "20", "-o", str(tmp_path / "qt")])
+    assert res.exit_code == 128 + signal.SIGTERM, res.output
+    assert "stopped by SIGTERM at iteration 8 of 40" in res.output
+    record = json.loads((tmp_path / "qt" / "paper" / "run.json").read_text())
+    assert record["interrupted"] and record["iterations"] == 8 and record["stop_signal"] == signal.SIGTERM
+    assert not (tmp_path / "qt" / "fast").exists()
+    monkeypatch.setattr(Trainer, "step", real_step)
+    again = CliRunner().invoke(cli, ["bench", "quality-time", str(tmp_path / "scan"), *common, "--fast-iterations",
+                                     "20", "--reference", str(tmp_path / "qt" / "paper")])
+    assert again.exit_code == 2 and "stopped by a signal at iteration 8 of 40" in again.output

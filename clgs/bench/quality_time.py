@@ -86,7 +86,8 @@ def run_schedule(scan, method: str, schedule: str, settings: dict, iterations: i
             final["volume_surface_mm"] = figures["surface_mean_mm"]
     record = {"schedule": schedule, "method": method, "iterations": trainer.iteration,
               "planned_iterations": cfg.iterations, "setup_s": setup, "training_s": trainer.seconds,
-              "converged": trainer.converged, "final": final, "config": cfg.to_json()}
+              "converged": trainer.converged, "final": final, "config": cfg.to_json(),
+              "interrupted": bool(trainer.interrupted), "stop_signal": getattr(trainer, "stop_signal", None)}
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -101,6 +102,9 @@ def read_reference(folder) -> dict:
 
     folder = Path(folder)
     record = json.loads((folder / "run.json").read_text())
+    if record.get("interrupted"):  # a run stopped by a signal is not the schedule's result
+        raise click.UsageError(f"{folder} holds a run stopped by a signal at iteration {record.get('iterations')} of "
+                               f"{record.get('planned_iterations')}: it is no reference; run the schedule again")
     return {**record, "rows": TrainingLog.read_csv(folder / "log.csv").rows, "from": str(folder)}
 
 
@@ -243,6 +247,15 @@ def main(scan, method, anatomy, schedules, reference, paper_iterations, fast_ite
         runs.append(run)
         if name == "paper":
             paper = run
+        if run["interrupted"]:  # stopped by Ctrl-C or SIGTERM: no other schedule starts
+            import signal
+
+            sig = int(run["stop_signal"] or signal.SIGINT)
+            click.echo(f"the {name} run was stopped by {signal.Signals(sig).name} at iteration {run['iterations']} of "
+                       f"{run['planned_iterations']}; its figures so far follow" + (
+                           f" ({where}/run.json says it was interrupted)" if where is not None else ""), err=True)
+            click.echo(report(runs, paper))
+            raise SystemExit(128 + sig)
     click.echo(f"{method} on {scan}: {s.geometry.n_views} views")
     click.echo(report(runs, paper))
     click.echo(watch.summary())
