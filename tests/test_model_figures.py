@@ -108,6 +108,8 @@ def test_build_model_decides_its_modes_stores_the_figures_and_info_reads_them(tm
     r = CliRunner().invoke(group, ["build-model", "--max-cells", "6", "--n-modes", "4"])
     assert r.exit_code == 0, r.output
     assert read_metadata(tmp_path / "blob.npz")["n_modes"] == 4 and "4 modes as asked" in r.output
+    # written to the plugin's own file, which every command of the anatomy then uses: said so
+    assert "plugin's model file now holds a model built with max_cells=6, n_modes=4" in r.output
     r = CliRunner().invoke(group, ["build-model", "--max-cells", "6", "--generalisation-tol", "0"])
     meta = read_metadata(tmp_path / "blob.npz")
     need = next(i + 1 for i, c in enumerate(meta["statistics"]["compactness_all"]) if c >= 0.95 - 1e-12)

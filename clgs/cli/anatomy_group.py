@@ -527,6 +527,12 @@ def _build_model_command(anatomy) -> click.Command:
             template = _need(anatomy, "load_template", "load the template")()
             path = build_model(template, {sid: partial(loader, sid) for sid in ids}, target, force=force, **settings)
         click.echo(f"{name}: model {path} ready ({time.perf_counter() - t0:.1f} s)")
+        chosen = {k: v for k, v in settings.items() if k != "run_registrations"}
+        if not out_path and chosen:  # the plugin's own file now holds a model of other settings
+            given = ", ".join(f"{k}={v}" for k, v in sorted(chosen.items()))
+            click.echo(f"note: the {name} plugin's model file now holds a model built with {given}: every {name} "
+                       f"command uses it from now on; `clgs {name} build-model` without them builds the default "
+                       "again (--out FILE keeps a model apart)", err=True)
         from clgs.shape.model import read_metadata
         from clgs.shape.report import model_lines
 
