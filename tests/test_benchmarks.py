@@ -226,3 +226,17 @@ def test_bench_quality_time_stops_on_a_signal_and_never_takes_the_stopped_run_fo
     again = CliRunner().invoke(cli, ["bench", "quality-time", str(tmp_path / "scan"), *common, "--fast-iterations",
                                      "20", "--reference", str(tmp_path / "qt" / "paper")])
     assert again.exit_code == 2 and "stopped by a signal at iteration 8 of 40" in again.output
+
+
+def test_bench_quality_time_refuses_a_reference_folder_it_did_not_write(tmp_path):
+    from gaussian_scene import six_gaussian_scan
+
+    six_gaussian_scan().save(tmp_path / "scan")
+    (tmp_path / "ref").mkdir()
+    args = ["bench", "quality-time", str(tmp_path / "scan"), "--method", "r2gs", "--reference", str(tmp_path / "ref")]
+    res = CliRunner().invoke(cli, args)
+    assert res.exit_code == 2 and "holds no run.json and no log.csv" in res.output
+    (tmp_path / "ref" / "run.json").write_text("{")
+    (tmp_path / "ref" / "log.csv").write_text("")
+    res = CliRunner().invoke(cli, args)
+    assert res.exit_code == 2 and "run.json is not readable JSON" in res.output

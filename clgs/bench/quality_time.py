@@ -101,7 +101,14 @@ def read_reference(folder) -> dict:
     from clgs.fit.training_log import TrainingLog
 
     folder = Path(folder)
-    record = json.loads((folder / "run.json").read_text())
+    missing = [n for n in ("run.json", "log.csv") if not (folder / n).is_file()]
+    if missing:
+        raise click.UsageError(f"{folder} holds no {' and no '.join(missing)}: give a folder this benchmark wrote "
+                               "with -o (its paper/ subfolder), e.g. --reference qt/paper")
+    try:
+        record = json.loads((folder / "run.json").read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise click.UsageError(f"{folder / 'run.json'} is not readable JSON ({exc}): run the schedule again") from None
     if record.get("interrupted"):  # a run stopped by a signal is not the schedule's result
         raise click.UsageError(f"{folder} holds a run stopped by a signal at iteration {record.get('iterations')} of "
                                f"{record.get('planned_iterations')}: it is no reference; run the schedule again")
