@@ -57,7 +57,8 @@ def test_the_mode_rule_on_known_figures():
     assert choose_modes(fig, 6, 0.80, 0.1)["n_modes"] == 2  # variance first
     assert choose_modes(fig, 6, 0.95, 0.6)["n_modes"] == 2  # 2 -> 3 gains 0.5 < 0.6
     assert choose_modes(fig, 6, n_modes=5)["n_modes"] == 5 and "asked" in choose_modes(fig, 6, n_modes=5)["reason"]
-    assert choose_modes(fig, 6, n_modes=50)["n_modes"] == 6
+    too_many = choose_modes(fig, 6, n_modes=50)
+    assert too_many["n_modes"] == 6 and "50 were asked (--n-modes), the population's PCA has 6" in too_many["reason"]
     assert choose_modes(None, 0)["n_modes"] == 0
     with pytest.raises(InputError, match="variance"):
         choose_modes(fig, 6, 1.5)

@@ -29,7 +29,9 @@ def choose_modes(figures: dict | None, n_available: int, variance: float | None 
         if int(n_modes) < 1:
             raise InputError(f"n_modes must be >= 1, got {n_modes}")
         m = min(int(n_modes), n_available)
-        return {"n_modes": m, "reason": f"{m} modes as asked (--n-modes)", "rule": rule}
+        reason = (f"{m} modes as asked (--n-modes)" if m == int(n_modes) else
+                  f"{m} modes: {n_modes} were asked (--n-modes), the population's PCA has {n_available}")
+        return {"n_modes": m, "reason": reason, "rule": rule}
     if variance is None or not (0 < float(variance) <= 1):
         raise InputError(f"variance must be in (0, 1], got {variance}")
     if tolerance_mm is not None and (tolerance_mm < 0 or tolerance_mm != tolerance_mm):
