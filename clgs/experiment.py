@@ -63,9 +63,11 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
     out = run_method(name, scan, None, chosen, anatomy=anatomy, seed=seed, progress=progress)
     info = out.get("info") or {}
     if info.get("interrupted"):  # a signal stopped the training: not a finished run, never a record
+        import signal
+
         from clgs.cohort.runner import Stopped
 
-        raise Stopped(int(info.get("stop_signal") or 2))
+        raise Stopped(int(info.get("stop_signal") or signal.SIGINT))
     volume = np.asarray(out["volume"], np.float32)
     res = out.get("result")
     if res is not None:
@@ -308,7 +310,6 @@ def _run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: 
                     angles=None if angles is None else [float(a) for a in angles], detector_mm=det,
                     judge_fov=fov if det is None else None, meshes=meshes)))
     failed: dict = {}
-    stopped: list = []  # the signal that stopped the experiment, if one did
 
     def finished(outcome):
         if outcome.ok:
@@ -330,12 +331,10 @@ def _run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: 
             stop.request(exc.signum)
             for key in exc.running:
                 echo(f"  {key}: stopped by {signal.Signals(exc.signum).name}; not recorded, it runs again on resume")
-        if stop.signum is not None:
-            stopped.append(int(stop.signum))
     rows = [done[t] for t in order if t in done]
     summary = summarise(rows, views, ablation_views, failed)
-    if stopped:
-        summary["stop_signal"] = stopped[0]
+    if stop.signum is not None:  # what stopped the experiment
+        summary["stop_signal"] = int(stop.signum)
     write_reports(out, rows, summary, views, ablation_views)
     return summary
 
