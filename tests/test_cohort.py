@@ -137,7 +137,7 @@ def test_an_interrupted_experiment_resumes_with_the_finished_runs_kept(toy, seri
 
 
 def test_a_signal_during_training_stops_the_experiment_and_the_run_is_not_recorded(toy, serial_experiment,
-                                                                                 tmp_path, monkeypatch):
+                                                                                 tmp_path, monkeypatch, capsys):
     """SIGTERM while R2-Gaussian mode trains: the trainer stops at its next iteration, the experiment
     records nothing for that run (an interrupted training is not a finished one), starts no other
     run and names the signal; the same call again runs it and gives the uninterrupted table."""
@@ -157,6 +157,10 @@ def test_a_signal_during_training_stops_the_experiment_and_the_run_is_not_record
     assert sorted(p.name for p in (tmp_path / "runs").glob("*.json")) == ["08_3_fdk.json"]
     assert "  08_3_r2gs: stopped by SIGTERM; not recorded, it runs again on resume" in lines
     assert json.loads((tmp_path / "summary.json").read_text())["stop_signal"] == signal.SIGTERM
+    # the run has no folder: nothing is said to be written or saved
+    err = capsys.readouterr().err
+    assert "interrupted at iteration 6: nothing written (the run has no output folder)" in err
+    assert "checkpoint" not in err and "outputs so far written" not in err
     monkeypatch.setattr(Trainer, "step", real_step)
     summary, lines = experiment(toy, tmp_path)
     assert "stop_signal" not in summary and "08_3_fdk: done before, kept" in lines

@@ -503,7 +503,8 @@ class Trainer:
         self._stop = True
         self.stop_signal = int(signum)
         what = "interrupt" if signum == signal.SIGINT else f"signal {signal.Signals(signum).name}"
-        msg = f"{what}: stopping after this iteration and saving a checkpoint (Ctrl-C again to abort at once)"
+        saving = " and saving a checkpoint" if self.checkpoint_path is not None else ""
+        msg = f"{what}: stopping after this iteration{saving} (Ctrl-C again to abort at once)"
         if getattr(self, "_progress", None) is not None and self._progress.bar is not None:
             self._progress.write(msg)
 

@@ -17,8 +17,9 @@ def method_output(result, out_dir, files: dict, **extra) -> dict:
     continue an interrupted one, go to stderr. ``extra``: more figures for the report."""
     print(result.summary, file=sys.stderr)
     if result.interrupted:
-        where = f"; continue with --resume --out {out_dir}" if out_dir is not None else ""
-        print(f"interrupted at iteration {result.trainer.iteration}: outputs so far written{where}", file=sys.stderr)
+        what = (f"outputs so far written; continue with --resume --out {out_dir}" if out_dir is not None
+                else "nothing written (the run has no output folder)")
+        print(f"interrupted at iteration {result.trainer.iteration}: {what}", file=sys.stderr)
     info = {"iterations": result.trainer.iteration, "n_gaussians": result.trainer.n_gaussians,
             "training_seconds": result.trainer.seconds, "value_scale": result.value_scale,
             "interrupted": result.interrupted, "stop_signal": getattr(result.trainer, "stop_signal", None),
