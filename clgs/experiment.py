@@ -149,13 +149,14 @@ _OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings
            "register_passes": "shape-guided setting register_passes",
            "pass_hole_margin_mm": "shape-guided setting pass_hole_margin_mm",
            "atlas_calibration": "shape-guided setting atlas_calibration",
-           "schedule": "the Gaussian runs' schedule (--set schedule=...)"}
+           "schedule": "the Gaussian runs' schedule (--set schedule=...)", "tissue_seed": "--tissue-seed"}
 
 
-def load_experiment_subject(anatomy, sid, meshes, seed: int):
+def load_experiment_subject(anatomy, sid, meshes, seed: int, tissue_seed: int | None = None):
     """A held-out subject of the anatomy, or with ``meshes`` ({id: (file, units)} or {id: (file,
     units, frame of an untagged file)}) the user's surface ``sid`` made a subject (aligned, its CT
-    simulated with a density seeded by its id)."""
+    simulated with a density seeded by its id, or by ``tissue_seed`` when given: every surface then
+    gets the same draw of the tissue around it, so that surfaces compare on the same limb)."""
     if not meshes:
         return anatomy.load_subject(sid)
     import zlib
@@ -163,8 +164,8 @@ def load_experiment_subject(anatomy, sid, meshes, seed: int):
     from clgs.anatomy.simulation import subject_from_mesh_file
 
     path, units, *space = meshes[sid]
-    return subject_from_mesh_file(anatomy, path, seed=zlib.crc32(f"{anatomy.name}/{sid}".encode()), units=units,
-                                  space=space[0] if space else None)
+    draw = zlib.crc32(f"{anatomy.name}/{sid}".encode()) if tissue_seed is None else int(tissue_seed)
+    return subject_from_mesh_file(anatomy, path, seed=draw, units=units, space=space[0] if space else None)
 
 
 def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
@@ -173,7 +174,8 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
     seed 0, no settings, the whole detector and the same-grid protocol)."""
     from clgs.methods.shape_guided import PAPER_LAMBDA_SHAPE
 
-    defaults = {"seed": 0, "settings": {}, "detector_fov_mm": None, "simulation": "same", "fit_size": "off",
+    defaults = {"seed": 0, "settings": {}, "detector_fov_mm": None, "tissue_seed": None, "simulation": "same",
+                "fit_size": "off",
                 "residual": "off", "schedule": "paper", "lambda_shape": PAPER_LAMBDA_SHAPE,
                 "register_tissue": "free", "register_passes": 1, "pass_hole_margin_mm": 0.0,
                 "atlas_calibration": "off"}
@@ -225,14 +227,17 @@ def run_experiment(anatomy, out_dir, *args, **kwargs) -> dict:
 def _run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: int = 1000,
                    ablation_views: int | None = 5, methods=("fdk", "r2gs", "shape"), seed: int = 0,
                    progress: bool = True, settings: dict | None = None, echo=print, workers: int | None = None,
-                   scheduler: str | None = None, simulation: str = "fine", detector_mm=None, meshes=None) -> dict:
+                   scheduler: str | None = None, simulation: str = "fine", detector_mm=None, meshes=None,
+                   tissue_seed: int | None = None) -> dict:
     """Run (or resume) the experiment; returns the summary dict also written to ``summary.json``.
 
     ``views``: counts and view sets (:func:`view_plan`); ``detector_mm``: every view set scanned
     twice, whole and with a detector of that field of view (mm at the isocentre, truncated
     projections; see :func:`clgs.anatomy.simulation.scan_geometry`), both judged also inside that
     field of view (``psnr3d_fov``, ``ssim3d_fov``); ``meshes``: {id: (surface file, units)} of the
-    user's own subjects instead of the anatomy's held-out ones.
+    user's own subjects instead of the anatomy's held-out ones; ``tissue_seed``: the tissue around
+    every one of them drawn from this seed (the same limb for every surface, so that surfaces changed
+    from one bone compare on it; None: each surface's own draw, seeded by its id).
 
     ``simulation``: how the scans are made (:mod:`clgs.ct.simulation_grid`): ``"fine"`` (default,
     projections from a grid twice as fine) or ``"same"`` (R2-Gaussian's same-grid protocol).
@@ -252,6 +257,11 @@ def _run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: 
     out = Path(out_dir)
     (out / "runs").mkdir(parents=True, exist_ok=True)
     settings = dict(settings or {})
+    if tissue_seed is not None and not meshes:
+        raise InputError("tissue_seed draws the tissue around your own surfaces (meshes); the held-out subjects "
+                         "have their own")
+    # what a surface's scan depends on beyond its file: the tissue's draw (None: seeded by its name)
+    limb = {"tissue_seed": None if tissue_seed is None else int(tissue_seed)} if meshes else {}
     if meshes:
         subjects = list(meshes)
     else:
@@ -296,7 +306,7 @@ def _run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: 
                 order.append(tag)
                 record_path = out / "runs" / f"{tag}.json"
                 made_with = dict(_made_with(method, iterations, seed, settings, simulation,
-                                            _angles_of(v, angles)), detector_fov_mm=det)
+                                            _angles_of(v, angles)), detector_fov_mm=det, **limb)
                 if record_path.is_file():
                     row = json.loads(record_path.read_text())
                     _check_same_run(record_path, row, made_with)
@@ -308,7 +318,7 @@ def _run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: 
                     settings=settings, out_dir=str(out), progress=progress and not remote,
                     echo=None if remote else echo, simulation=simulation,
                     angles=None if angles is None else [float(a) for a in angles], detector_mm=det,
-                    judge_fov=fov if det is None else None, meshes=meshes)))
+                    judge_fov=fov if det is None else None, meshes=meshes, tissue_seed=tissue_seed)))
     failed: dict = {}
 
     def finished(outcome):
@@ -367,7 +377,7 @@ def _cached(key, make):
 
 def run_and_record(anatomy, subject_id, views, method, iterations, seed, settings, out_dir, progress=False,
                    echo=None, simulation: str = "fine", angles=None, detector_mm=None, judge_fov=None,
-                   meshes=None) -> dict:
+                   meshes=None, tissue_seed: int | None = None) -> dict:
     """One run of the experiment, start to finish, wherever it runs: simulate the subject's scan
     (seeded: the same everywhere), reconstruct, score, write the volume, the surfaces, the surface
     picture and the record ``runs/<tag>.json`` (atomically, last); returns the record. ``anatomy``
@@ -398,15 +408,17 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
         echo(f"{tag}: reconstructing ({METHOD_LABELS[method]}, {views_label(v)})")
     det_key = None if detector_mm is None else tuple(detector_mm)
     ang_key = None if angles is None else tuple(angles)
-    subject = _cached(("subject", anatomy.name, subject_id, bool(meshes)),
-                      lambda: load_experiment_subject(anatomy, subject_id, meshes, seed))
-    scan = _cached(("scan", anatomy.name, subject_id, n, ang_key, det_key, seed, simulation), lambda: simulate_subject(
+    subject = _cached(("subject", anatomy.name, subject_id, bool(meshes), tissue_seed),
+                      lambda: load_experiment_subject(anatomy, subject_id, meshes, seed, tissue_seed))
+    scan = _cached(("scan", anatomy.name, subject_id, n, ang_key, det_key, seed, simulation, tissue_seed),
+                   lambda: simulate_subject(
         anatomy, subject, n, math.pi, True, seed, protocol=simulation, angles=angles, detector_mm=detector_mm))
     parts = None
     if method in SHAPE_METHODS:
         parts = _cached(("parts", anatomy.name, str(anatomy.model_path)), lambda: load_anatomy_parts(anatomy))
     made_with = dict(_made_with(method, iterations, seed, settings, simulation, scan.geometry.angles),
-                     detector_fov_mm=None if detector_mm is None else [float(x) for x in detector_mm])
+                     detector_fov_mm=None if detector_mm is None else [float(x) for x in detector_mm],
+                     **({"tissue_seed": tissue_seed} if meshes else {}))
     run = _run_one(method, scan, parts, iterations, seed, progress, settings)
     # the surface scored is the surface written: one mesh, at one level (named in the record)
     level = choose_level(anatomy=anatomy, truth=scan.truth, scan_meta=scan.meta)

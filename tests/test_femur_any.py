@@ -217,3 +217,42 @@ def test_a_reconstruction_with_a_true_surface_writes_its_distance_picture(tmp_pa
     # the distances it colours: a sphere 1 mm larger lies 1 mm from the truth everywhere
     d = vertex_distances((ball.vertices * 19.0 / 18.0, ball.faces), (ball.vertices, ball.faces))
     assert np.allclose(d, 1.0, atol=0.05)
+
+
+def test_surfaces_compare_on_one_limb_with_a_tissue_seed(femur, subject22, tmp_path):
+    """Two names for the same femur surface: each name draws its own limb around it by default (the
+    truths differ), one --tissue-seed gives both the same (equal truths, equal FDK figures); the
+    records name the seed, and a folder made with one is not resumed without it."""
+    import json
+    import math
+
+    from click.testing import CliRunner
+
+    from clgs.anatomy import plugins
+    from clgs.anatomy.simulation import simulate_subject
+    from clgs.cli import main
+    from clgs.errors import InputError
+    from clgs.experiment import load_experiment_subject, run_experiment
+
+    anatomy = plugins.get_anatomy("femur")
+    v, f, _ = subject22
+    for name in ("a", "b"):
+        save_mesh(tmp_path / f"{name}.stl", v, f)
+    meshes = {n: (str(tmp_path / f"{n}.stl"), "mm") for n in ("a", "b")}
+
+    def truth(name, tissue_seed):
+        sub = load_experiment_subject(anatomy, name, meshes, 0, tissue_seed)
+        return simulate_subject(anatomy, sub, 1, math.pi, False, 0, protocol="same").truth
+
+    assert not np.array_equal(truth("a", None), truth("b", None))  # each name its own limb
+    np.testing.assert_array_equal(truth("a", 7), truth("b", 7))
+    kw = dict(views=(2,), iterations=1, ablation_views=None, methods=("fdk",), progress=False, meshes=meshes,
+              simulation="same", echo=lambda *_: None)
+    summary = run_experiment(anatomy, tmp_path / "e", tissue_seed=7, **kw)
+    rows = {p.stem: json.loads(p.read_text()) for p in (tmp_path / "e" / "runs").glob("*.json")}
+    assert rows["a_2_fdk"]["tissue_seed"] == 7 and rows["a_2_fdk"]["psnr3d"] == rows["b_2_fdk"]["psnr3d"]
+    assert summary["per_method"]["2/fdk"]["psnr3d"] == rows["a_2_fdk"]["psnr3d"]
+    with pytest.raises(InputError, match="tissue_seed 7, this run asks for None: give the same --tissue-seed"):
+        run_experiment(anatomy, tmp_path / "e", **kw)
+    res = CliRunner().invoke(main, ["femur", "experiment", "--tissue-seed", "3", "--out", str(tmp_path / "x")])
+    assert res.exit_code == 2 and "--tissue-seed draws the tissue around --meshes surfaces" in res.output

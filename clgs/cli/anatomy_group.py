@@ -701,6 +701,9 @@ def _experiment_command(anatomy) -> click.Command:
     @click.option("--units", type=click.Choice(["mm", "cm", "m", "in"]), default="mm", show_default=True,
                   help="length unit of the --meshes files")
     @mesh_space_option("--meshes")
+    @click.option("--tissue-seed", type=Seed(), default=None,
+                  help="draw the tissue around every --meshes surface from this seed, so that surfaces changed "
+                       "from one bone compare on the same limb [default: each surface's own, seeded by its name]")
     @click.option("--subjects", default=None, help="comma-separated held-out subject ids [default: all held out]")
     @click.option("--iterations", default=1000, show_default=True, type=click.IntRange(min=1),
                   help="training iterations of every Gaussian run (docs/results.md's tables: 1000, a few "
@@ -721,7 +724,8 @@ def _experiment_command(anatomy) -> click.Command:
     @click.option("--schedule", type=click.Choice(["fast", "paper"]), default="fast", show_default=True,
                   help="the schedule of every Gaussian run: fast, the paper's cut at --iterations; paper, its decays "
                        "compressed into them (docs/schedules.md)")
-    def experiment(views, more_views, view_sets, detector_mm, meshes, units, mesh_space, subjects, iterations,
+    def experiment(views, more_views, view_sets, detector_mm, meshes, units, mesh_space, tissue_seed, subjects,
+                   iterations,
                    shape_settings, schedule,
                    ablation_views, out, seed, log_every, progress, protocol, workers, scheduler):
         """The seed paper's experiment: R2-Gaussian vs shape-guided on every held-out subject,
@@ -737,6 +741,9 @@ def _experiment_command(anatomy) -> click.Command:
         fov = _detector_option(detector_mm)
         if mesh_space and not meshes:
             raise click.UsageError("--mesh-space is the frame of the --meshes files")
+        if tissue_seed is not None and not meshes:
+            raise click.UsageError("--tissue-seed draws the tissue around --meshes surfaces; the held-out subjects "
+                                   "have their own")
         mesh_files = _mesh_folder(meshes, units, mesh_space) if meshes else None
         if mesh_files and subjects:
             raise click.UsageError("give --meshes or --subjects, not both")
@@ -759,7 +766,7 @@ def _experiment_command(anatomy) -> click.Command:
                                  ablation_views=ablation_views or None, seed=seed, progress=progress,
                                  settings={"r2gs": per_run, "shape": {**per_run, **shape_opts}}, echo=info,
                                  workers=workers or None, scheduler=scheduler, simulation=protocol, detector_mm=fov,
-                                 meshes=mesh_files)
+                                 meshes=mesh_files, tissue_seed=tissue_seed)
         with open(os.path.join(out, "table.md"), encoding="utf-8") as f:
             click.echo(f.read())
         for v, g in summary["gain_db"].items():
