@@ -132,6 +132,13 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
             "settings": json.loads(json.dumps(chosen, sort_keys=True, default=str)), **sim, **size}
 
 
+def _tissue_record(meshes, tissue_seed) -> dict:
+    """What the scan of a user's surface depends on beyond its file, as its record keeps it: the
+    tissue's draw (``tissue_seed``; None: seeded by the surface's name). Nothing for held-out
+    subjects, which have their own tissue."""
+    return {"tissue_seed": None if tissue_seed is None else int(tissue_seed)} if meshes else {}
+
+
 def _angles_of(views, angles):
     """The view angles (radians) of an experiment's view set: ``angles`` when given, else the
     count's (``"5"`` or ``"5-fov300"``) spread over a half-turn, as the subject is simulated."""
@@ -260,8 +267,7 @@ def _run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: 
     if tissue_seed is not None and not meshes:
         raise InputError("tissue_seed draws the tissue around your own surfaces (meshes); the held-out subjects "
                          "have their own")
-    # what a surface's scan depends on beyond its file: the tissue's draw (None: seeded by its name)
-    limb = {"tissue_seed": None if tissue_seed is None else int(tissue_seed)} if meshes else {}
+    limb = _tissue_record(meshes, tissue_seed)
     if meshes:
         subjects = list(meshes)
     else:
@@ -418,7 +424,7 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
         parts = _cached(("parts", anatomy.name, str(anatomy.model_path)), lambda: load_anatomy_parts(anatomy))
     made_with = dict(_made_with(method, iterations, seed, settings, simulation, scan.geometry.angles),
                      detector_fov_mm=None if detector_mm is None else [float(x) for x in detector_mm],
-                     **({"tissue_seed": tissue_seed} if meshes else {}))
+                     **_tissue_record(meshes, tissue_seed))
     run = _run_one(method, scan, parts, iterations, seed, progress, settings)
     # the surface scored is the surface written: one mesh, at one level (named in the record)
     level = choose_level(anatomy=anatomy, truth=scan.truth, scan_meta=scan.meta)
