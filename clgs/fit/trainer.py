@@ -55,6 +55,7 @@ import torch
 
 from clgs.errors import InputError
 from clgs.fit import checkpoint as ckpt
+from clgs.fit.config import check_views_per_step
 from clgs.fit.estimate import WarmUp
 from clgs.fit.training_log import RATE, Progress, TrainingLog
 from clgs.geometry import Grid
@@ -277,9 +278,7 @@ class Trainer:
         self.expected = None  # the Estimate made, if any
         self.views = list(range(geometry.n_views)) if views is None else [int(v) for v in views]
         self.views_per_step = int(views_per_step)
-        if not 1 <= self.views_per_step <= len(self.views):
-            raise InputError(f"views_per_step must be between 1 and the {len(self.views)} training views, got "
-                             f"{views_per_step}")
+        check_views_per_step(self.views_per_step, len(self.views))
         self.config = dict(config or {})
         self.seed = int(seed)
         # -1: automatic. With the OpenCL backend the torch side of an iteration is small element-wise
