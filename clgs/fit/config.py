@@ -219,12 +219,6 @@ def check_run_folder(out_dir, resume: bool) -> None:
                              "or delete that folder (or pass --force on the command line) to start a new run there")
 
 
-def check_views_per_step(k: int, n_views: int) -> None:
-    """A step's views (``views_per_step``) must be at least one and at most the training views."""
-    if not 1 <= int(k) <= int(n_views):
-        raise InputError(f"views_per_step must be between 1 and the {n_views} training views, got {k}")
-
-
 def run_config(config_cls, iterations: int | None, settings: dict, resume: bool, out_dir,
                n_views: int | None = None):
     """(settings, checkpoint or None) of a new run, or of a run resumed from ``out_dir``: a resumed
@@ -243,6 +237,8 @@ def run_config(config_cls, iterations: int | None, settings: dict, resume: bool,
 
         cfg = config_cls.from_json(resolve(config_cls, iterations, settings, n_views))
         if n_views is not None:  # refused before the start's FDK, not after it
+            from clgs.fit.trainer import check_views_per_step
+
             check_views_per_step(getattr(cfg, "views_per_step", 1), n_views)
         return cfg, None
     if out_dir is None:

@@ -55,7 +55,6 @@ import torch
 
 from clgs.errors import InputError
 from clgs.fit import checkpoint as ckpt
-from clgs.fit.config import check_views_per_step
 from clgs.fit.estimate import WarmUp
 from clgs.fit.training_log import RATE, Progress, TrainingLog
 from clgs.geometry import Grid
@@ -232,6 +231,12 @@ class Context:
     def voxelize(self, grid, tensors=None) -> torch.Tensor:
         """The field of all sets (or of ``tensors``) on ``grid``, training units."""
         return self.trainer.backend.voxelize(*(tensors or self.tensors), grid)
+
+
+def check_views_per_step(k: int, n_views: int) -> None:
+    """A step's views (``views_per_step``) must be at least one and at most the training views."""
+    if not 1 <= int(k) <= int(n_views):
+        raise InputError(f"views_per_step must be between 1 and the {n_views} training views, got {k}")
 
 
 def early_log_points(below: int) -> set:
