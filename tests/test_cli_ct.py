@@ -495,6 +495,23 @@ def test_simulate_refuses_impossible_noise(scan_dir, tmp_path):
     assert Scan.load(tmp_path / "s").meta["acquisition"]["saturated"] == 0
 
 
+def test_simulate_warns_of_a_volume_without_attenuation(tmp_path):
+    """An all-zero volume casts no shadow: its scan is noise alone, and the user is told so."""
+    np.save(tmp_path / "zero.npy", np.zeros((24, 24, 24), np.float32))
+    base = ["simulate", tmp_path / "zero.npy", "--spacing", 2, "--views", 2, "--detector", 16]
+    res = CliRunner().invoke(main, [str(a) for a in base] + ["--out", str(tmp_path / "s")])
+    assert res.exit_code == 0 and "no ray crosses any attenuation" in res.stderr, res.output
+    assert "nothing but noise" in res.stderr
+    res = CliRunner().invoke(main, [str(a) for a in base] + ["--no-noise", "--out", str(tmp_path / "s2")])
+    assert res.exit_code == 0 and "no ray crosses any attenuation" in res.stderr, res.output
+    assert "nothing but noise" not in res.stderr
+    # a volume that attenuates says nothing of it
+    np.save(tmp_path / "ball.npy", ball_volume())
+    res = CliRunner().invoke(main, ["simulate", str(tmp_path / "ball.npy"), "--spacing", "2", "--views", "2",
+                                    "--detector", "16", "--out", str(tmp_path / "s3")])
+    assert res.exit_code == 0 and "no ray crosses" not in res.stderr, res.output
+
+
 def _recording(scan, out_dir=None, **kwargs):
     """Writes the keyword arguments it got; returns files as a list of paths (not a dict)."""
     (out_dir / "kwargs.json").write_text(json.dumps(kwargs))

@@ -91,6 +91,12 @@ def project_with_noise(volume, geometry: Geometry, *, protocol: str = "fine", no
             f"the line integrals overflow 32-bit floats (attenuation up to {float(np.max(volume)):.3g} 1/mm over "
             f"paths of up to {float(max(extent)):.0f} mm); attenuation is in 1/mm (bone about 0.05): check the "
             "volume's units")
+    if not float(proj.max()) > 0:
+        # nothing in the field of view attenuates: a reconstruction of this scan can only find the noise
+        warn(f"no ray crosses any attenuation (the volume's largest value in the field of view is "
+             f"{float(np.max(source)):.3g} 1/mm): every line integral is 0, so the scan holds "
+             f"{'nothing but noise' if noise else 'nothing'}; check the volume's values and units (1/mm, or "
+             "--hu for Hounsfield units) and that it lies inside the scanner's field of view")
     acquisition = {"noise": bool(noise), "seed": int(seed),
                    "simulation": {"protocol": protocol, "projected_grid": list(source.shape),
                                   "reconstruction_grid": list(geometry.nVoxel)}}
