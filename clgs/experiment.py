@@ -93,8 +93,8 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
     experiment reuses a record only when these match (else its table would mix runs). Records
     made before the simulation protocol was a choice used ``"same"`` and do not name it; the
     shape-bound runs name whether a size was fitted (``fit_size``: records made before it was
-    fitted count as ``"off"``), whether a residual deformation was (``residual``: records made
-    before it existed count as ``"off"``), the shape prior's weight (``lambda_shape``: records
+    fitted count as ``"off"``), whether a residual deformation was (``residual``, ``"auto"`` resolved for the views at
+    ``angles``: records made before it existed count as ``"off"``), the shape prior's weight (``lambda_shape``: records
     made before it was named used the paper's 1e-4) and the tissue its registration held
     (``register_tissue``, ``"auto"`` resolved for the views at ``angles``, radians: records made
     before it was named held the free set's start, ``"free"``; with the FDK's, the registrations
@@ -123,6 +123,10 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
             from clgs.methods.shape_guided import registration_tissue
 
             size["register_tissue"] = "free" if angles is None else registration_tissue("auto", angles)
+        if size["residual"] == "auto":
+            from clgs.methods.shape_guided import residual_for
+
+            size["residual"] = "off" if angles is None else residual_for("auto", angles)
         size["atlas_calibration"] = str(chosen.pop("atlas_calibration", ShapeGuidedConfig.atlas_calibration))
         passes = int(chosen.pop("register_passes", ShapeGuidedConfig.register_passes))
         margin = float(chosen.pop("pass_hole_margin_mm", ShapeGuidedConfig.pass_hole_margin_mm))

@@ -138,9 +138,11 @@ def _small(**kw):
     # register_tissue "free": these scans' soft-tissue cylinder is wider than the detector, whose
     # truncated FDK is no tissue to register against (auto would take it at 8 views); the FDK's
     # tissue is tested on a real femur below
+    # residual "off": the figures these tests hold were measured without it (auto would fit it on
+    # these 8 views over a half-turn); its own tests are tests/test_shape_residual.py
     base = dict(n_shape=1500, n_free=500, log_every=0, checkpoint_every=0, progress=False, tv_size=8,
                 density_points=8, densify_start=10_000, alpha_init_iterations=20, schedule="paper",
-                register_tissue="free")
+                register_tissue="free", residual="off")
     base.update(kw)
     return base
 
@@ -607,8 +609,9 @@ def test_registering_against_the_fdks_tissue_lets_a_short_femur_be_short():
     assert 0.024 < tissue_ceiling(bone, tissue, parts.template) < 0.026  # between 0.020 (tissue) and 0.030
     found = {}
     for key, held, passes in (("free", "free", 3), ("one pass", "auto", 1), ("default", "auto", 3)):
+        # residual off: the figures are the shape model's registration alone (auto adds the residual's here)
         t = build_trainer(scan, parts, ShapeGuidedConfig(iterations=1, register_tissue=held, register_passes=passes,
-                                                         log_every=0, checkpoint_every=0))
+                                                         log_every=0, checkpoint_every=0, residual="off"))
         found[key] = surface_distance(deformed_template_surface(parts.template, t.sets[0]), scan.surface)["mean"]
         assert t.sets[1].name == "free" and len(t.sets[1]) == ShapeGuidedConfig().n_free  # the atlas's tissue
     assert ShapeGuidedConfig().register_passes == 3
@@ -633,6 +636,37 @@ def test_the_registration_holds_the_fdks_tissue_only_where_the_views_cover_a_hal
                    np.linspace(0, np.pi, 4, endpoint=False), [0.0]):
         assert registration_tissue("auto", angles) == "free"
     assert registration_tissue("fdk", [0.0]) == "fdk" and registration_tissue("free", half[1]) == "free"
+
+
+def test_the_residual_is_fitted_by_default_only_where_the_views_cover_a_half_turn(template, shape_model,
+                                                                                  tissue_atlas, tmp_path):
+    """residual auto (the default): on where the registration holds the FDK's tissue (no gap between
+    neighbouring views above 40 degrees), off from AP + lateral or a quarter-turn; a run records what
+    it did (its config.json and the surface's split say "on" or "off", never "auto"), and the
+    experiment's record resolves it the same way."""
+    from clgs.experiment import _made_with
+    from clgs.methods.shape_guided import ShapeGuidedConfig, reconstruct_shape_guided, residual_for
+
+    assert ShapeGuidedConfig().residual == "auto"
+    for n in (5, 10):
+        assert residual_for("auto", np.linspace(0, np.pi, n, endpoint=False)) == "on"
+    for angles in (np.radians([0.0, 90.0]), np.radians([0.0, 45.0, 90.0]), np.linspace(0, np.pi / 2, 5), [0.0]):
+        assert residual_for("auto", angles) == "off"
+    assert residual_for("on", [0.0]) == "on" and residual_for("off", np.linspace(0, np.pi, 10)) == "off"
+
+    parts = AnatomyParts(template, shape_model, tissue_atlas)
+    kw = {k: v for k, v in _small(alpha_init_iterations=5, residual_init_iterations=5).items() if k != "residual"}
+    half = reconstruct_shape_guided(_scan(template, n_views=6), parts, tmp_path / "half", iterations=2, **kw)
+    assert json.loads((tmp_path / "half" / "config.json").read_text())["residual"] == "on"
+    assert half.trainer.sets[0].has_residual and half.displacement["residual"] == "on"
+    lateral = reconstruct_shape_guided(_scan(template, n_views=2), parts, tmp_path / "two", iterations=2, **kw)
+    assert json.loads((tmp_path / "two" / "config.json").read_text())["residual"] == "off"
+    assert not lateral.trainer.sets[0].has_residual
+
+    five = np.linspace(0, np.pi, 5, endpoint=False)
+    assert _made_with("shape", 1000, 0, {}, angles=five)["residual"] == "on"
+    assert _made_with("shape", 1000, 0, {}, angles=np.radians([0.0, 90.0]))["residual"] == "off"
+    assert _made_with("shape", 1000, 0, {"shape": {"residual": "off"}}, angles=five)["residual"] == "off"
 
 
 def test_later_registration_passes_refine_from_the_last_fit_at_a_tenth_of_the_rates(monkeypatch):
