@@ -310,7 +310,8 @@ def residual_for(choice: str, angles) -> str:
     Why: from 5 views over a half-turn, after the three registration passes, the residual brought
     the six held-out femurs' model surfaces from 0.69 to 0.65 mm mean and the out-of-span ones from
     0.83 to 0.81 (the bowed shaft 1.07 -> 1.00 mm), the 3D PSNR within 0.07 dB, for about a fifth
-    more time; from AP + lateral views it adds nothing on average (docs/results.md)."""
+    more time; from 10 views it is a wash (0.68 -> 0.65 mm, -0.06 dB); from AP + lateral views it
+    adds nothing on average (docs/results.md)."""
     if choice != "auto":
         return choice
     return "on" if widest_view_gap_deg(angles) <= AUTO_FDK_GAP_DEG else "off"
