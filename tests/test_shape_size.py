@@ -282,7 +282,10 @@ def test_experiment_records_made_before_the_registrations_tissue_was_named_count
     assert _made_with("shape", 1000, 0, {}, "same", ap_lat)["register_tissue"] == "free"
     _check_same_run(tmp_path / "run.json", old, _made_with("shape", 1000, 0, {}, "same", ap_lat))
     five = np.linspace(0, np.pi, 5, endpoint=False)
-    with pytest.raises(InputError, match="register_tissue 'free', this run asks for 'fdk'"):
+    with pytest.raises(InputError, match="register_tissue 'free', this run asks for 'fdk'"):  # the residual held apart
+        _check_same_run(tmp_path / "run.json", old,
+                        _made_with("shape", 1000, 0, {"shape": {"residual": "off"}}, "same", five))
+    with pytest.raises(InputError, match="residual 'off', this run asks for 'on'"):  # the default there fits it
         _check_same_run(tmp_path / "run.json", old, _made_with("shape", 1000, 0, {}, "same", five))
 
 
@@ -295,8 +298,9 @@ def test_experiment_records_name_the_fdk_registrations_passes_only_where_they_ru
     from clgs.experiment import _check_same_run, _made_with
 
     five = np.linspace(0, np.pi, 5, endpoint=False)
+    # the residual as a 5-view run records it today (it has its own check)
     one_pass = {"iterations": 1000, "seed": 0, "settings": {}, "fit_size": "on", "schedule": "fast",
-                "lambda_shape": 0.0, "register_tissue": "fdk"}
+                "lambda_shape": 0.0, "register_tissue": "fdk", "residual": "on"}
     want = _made_with("shape", 1000, 0, {"shape": {"register_passes": 3}}, "same", five)
     assert want["register_passes"] == 3 and want["settings"] == {} and want["pass_hole_margin_mm"] == 3.0
     assert _made_with("shape", 1000, 0, {}, "same", five) == want  # three: the default
