@@ -299,7 +299,14 @@ def registration_tissue(choice: str, angles) -> str:
     atlas's tissue (docs/results.md)."""
     if choice != "auto":
         return choice
-    return "fdk" if widest_view_gap_deg(angles) <= AUTO_FDK_GAP_DEG else "free"
+    return "fdk" if covers_a_half_turn(angles) else "free"
+
+
+def covers_a_half_turn(angles) -> bool:
+    """Whether views at ``angles`` (radians) leave no gap wider than :data:`AUTO_FDK_GAP_DEG`: where
+    the ``"auto"`` settings hold the FDK's tissue (:func:`registration_tissue`) and fit the residual
+    (:func:`residual_for`)."""
+    return widest_view_gap_deg(angles) <= AUTO_FDK_GAP_DEG
 
 
 def residual_for(choice: str, angles) -> str:
@@ -314,7 +321,7 @@ def residual_for(choice: str, angles) -> str:
     adds nothing on average (docs/results.md)."""
     if choice != "auto":
         return choice
-    return "on" if widest_view_gap_deg(angles) <= AUTO_FDK_GAP_DEG else "off"
+    return "on" if covers_a_half_turn(angles) else "off"
 
 
 def fdk_tissue(fdk, geometry, template, cfg, set_kw: dict, size=None, centre_mm=None, ceiling=None,
