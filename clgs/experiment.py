@@ -93,11 +93,12 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
     experiment reuses a record only when these match (else its table would mix runs). Records
     made before the simulation protocol was a choice used ``"same"`` and do not name it; the
     shape-bound runs name whether a size was fitted (``fit_size``: records made before it was
-    fitted count as ``"off"``), whether a residual deformation was (``residual``, ``"auto"`` resolved for the views at
-    ``angles``: records made before it existed count as ``"off"``), the shape prior's weight (``lambda_shape``: records
-    made before it was named used the paper's 1e-4) and the tissue its registration held
-    (``register_tissue``, ``"auto"`` resolved for the views at ``angles``, radians: records made
-    before it was named held the free set's start, ``"free"``; with the FDK's, the registrations
+    fitted count as ``"off"``), whether a residual deformation was (``residual``, ``"auto"``
+    resolved for the views at ``angles``: records made before it existed count as ``"off"``), the
+    shape prior's weight (``lambda_shape``: records made before it was named used the paper's 1e-4)
+    and the tissue its registration held (``register_tissue``, ``"auto"`` resolved for the views
+    at ``angles``, radians: records made before it was named held the free set's start,
+    ``"free"``; with the FDK's, the registrations
     in a row, ``register_passes``: records made before it was named made one, and the margin of a
     later pass's hole, ``pass_hole_margin_mm``: records made before it had none) and whether the
     atlas was scaled to the scan (``atlas_calibration``: records made before it existed count as
