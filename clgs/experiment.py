@@ -321,8 +321,15 @@ def _run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: 
                 if record_path.is_file():
                     row = json.loads(record_path.read_text())
                     _check_same_run(record_path, row, made_with)
+                    if surface_outdated(anatomy, row) and (out / "runs" / f"{tag}.nii.gz").is_file():
+                        row = remeasure_surface(anatomy, row, out, tag, angles, det, seed, simulation, meshes,
+                                                tissue_seed)
+                        mm = row.get("surface_mean_mm", float("nan"))
+                        echo(f"{tag}: done before, kept; its bone surface taken again from its volume "
+                             f"(gaps in the wall sealed as the anatomy asks): {mm:.2f} mm")
+                    else:
+                        echo(f"{tag}: done before, kept")
                     done[tag] = row
-                    echo(f"{tag}: done before, kept")
                     continue
                 tasks.append(Task(tag, run_and_record, kwargs=dict(
                     anatomy=where, subject_id=sid, views=v, method=method, iterations=iterations, seed=seed,
@@ -386,6 +393,66 @@ def _cached(key, make):
     return _CACHE[kind][1]
 
 
+def _experiment_scan(anatomy, subject_id, n, angles, detector_mm, seed, simulation, meshes, tissue_seed) -> tuple:
+    """(subject, scan) of one experiment run, made once per process (runs of one scan share it)."""
+    from clgs.anatomy.simulation import simulate_subject
+
+    det_key = None if detector_mm is None else tuple(detector_mm)
+    ang_key = None if angles is None else tuple(angles)
+    subject = _cached(("subject", anatomy.name, subject_id, bool(meshes), tissue_seed),
+                      lambda: load_experiment_subject(anatomy, subject_id, meshes, seed, tissue_seed))
+    scan = _cached(("scan", anatomy.name, subject_id, n, ang_key, det_key, seed, simulation, tissue_seed),
+                   lambda: simulate_subject(
+        anatomy, subject, n, math.pi, True, seed, protocol=simulation, angles=angles, detector_mm=detector_mm))
+    return subject, scan
+
+
+def surface_outdated(anatomy, row: dict) -> bool:
+    """Whether a kept record's bone surface was taken with another closing than the anatomy's
+    today (records made before surfaces sealed gaps in the bone's wall name none: 0)."""
+    from clgs.anatomy.record import Scene
+
+    if row.get("surface_level") is None:
+        return False
+    closing = Scene.from_dict(getattr(anatomy, "scene", None)).surface_closing or 0
+    return int(row.get("surface_closing_max_voxels", 0)) != closing
+
+
+def remeasure_surface(anatomy, row: dict, out_dir, tag: str, angles=None, detector_mm=None, seed: int = 0,
+                      simulation: str = "fine", meshes=None, tissue_seed=None) -> dict:
+    """A kept record with its bone surface taken again from its saved volume (``runs/<tag>.nii.gz``)
+    as a run makes it today: the mesh, the picture and the surface figures replaced, the rest kept.
+    So a resumed experiment's table never mixes surfaces taken two ways, and no run is repeated."""
+    from clgs.anatomy.bone_level import choose_level
+    from clgs.anatomy.evaluation import bone_surface_closed, evaluate_volume
+    from clgs.anatomy.surface_figure import reconstruction_figure
+    from clgs.io import atomic
+    from clgs.io.mesh import load_mesh, save_mesh
+    from clgs.io.volume import load_volume
+
+    runs = Path(out_dir) / "runs"
+    v = row["views"]
+    n = int(str(v).split("-fov")[0]) if angles is None else len(angles)
+    _, scan = _experiment_scan(anatomy, row["subject"], n, angles, detector_mm, seed, simulation, meshes, tissue_seed)
+    volume = load_volume(runs / f"{tag}.nii.gz").volume
+    level = choose_level(anatomy=anatomy, truth=scan.truth, scan_meta=scan.meta)
+    found = None if level is None else bone_surface_closed(volume, scan.geometry, level)
+    mesh = None if found is None else found[0]
+    metrics = evaluate_volume(anatomy, scan, volume, surface=mesh, level=level)
+    row = {k: x for k, x in row.items() if not (k.startswith("surface_") and not k.startswith("surface_file"))}
+    row.update({k: x for k, x in metrics.items() if k.startswith("surface_")})
+    if found is not None and level.closing:
+        row["surface_closing_voxels"] = found[1]
+    (runs / f"{tag}.stl").unlink(missing_ok=True)
+    row["surface_file"] = None if mesh is None else str(save_mesh(runs / f"{tag}.stl", mesh.vertices, mesh.faces))
+    model = runs / f"{tag}_model.stl"
+    model_surface = tuple(load_mesh(model)) if model.is_file() else None
+    reconstruction_figure(runs / f"{tag}_surface.png", anatomy, scan, volume, model_surface, mesh=mesh, level=level,
+                          title=f"{row['subject']}, {views_label(v)}, {METHOD_LABELS[row['method']]}")
+    atomic.write_json(runs / f"{tag}.json", row)
+    return row
+
+
 def run_and_record(anatomy, subject_id, views, method, iterations, seed, settings, out_dir, progress=False,
                    echo=None, simulation: str = "fine", angles=None, detector_mm=None, judge_fov=None,
                    meshes=None, tissue_seed: int | None = None) -> dict:
@@ -397,8 +464,8 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
     ``detector_mm``: a truncating detector; ``judge_fov``: also score inside that detector's field
     of view (the untruncated twin of a truncated scan); ``meshes``: the user's own subjects."""
     from clgs.anatomy.bone_level import choose_level
-    from clgs.anatomy.evaluation import bone_surface, evaluate_volume
-    from clgs.anatomy.simulation import scan_geometry, simulate_subject
+    from clgs.anatomy.evaluation import bone_surface_closed, evaluate_volume
+    from clgs.anatomy.simulation import scan_geometry
     from clgs.anatomy.surface_figure import reconstruction_figure
     from clgs.io import atomic
     from clgs.io.mesh import save_mesh
@@ -417,13 +484,8 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
     tag = f"{subject_id}_{v}_{method.replace('+', '-')}"
     if echo is not None:
         echo(f"{tag}: reconstructing ({METHOD_LABELS[method]}, {views_label(v)})")
-    det_key = None if detector_mm is None else tuple(detector_mm)
-    ang_key = None if angles is None else tuple(angles)
-    subject = _cached(("subject", anatomy.name, subject_id, bool(meshes), tissue_seed),
-                      lambda: load_experiment_subject(anatomy, subject_id, meshes, seed, tissue_seed))
-    scan = _cached(("scan", anatomy.name, subject_id, n, ang_key, det_key, seed, simulation, tissue_seed),
-                   lambda: simulate_subject(
-        anatomy, subject, n, math.pi, True, seed, protocol=simulation, angles=angles, detector_mm=detector_mm))
+    subject, scan = _experiment_scan(anatomy, subject_id, n, angles, detector_mm, seed, simulation, meshes,
+                                     tissue_seed)
     parts = None
     if method in SHAPE_METHODS:
         parts = _cached(("parts", anatomy.name, str(anatomy.model_path)), lambda: load_anatomy_parts(anatomy))
@@ -433,8 +495,11 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
     run = _run_one(method, scan, parts, iterations, seed, progress, settings)
     # the surface scored is the surface written: one mesh, at one level (named in the record)
     level = choose_level(anatomy=anatomy, truth=scan.truth, scan_meta=scan.meta)
-    mesh = None if level is None else bone_surface(run["volume"], scan.geometry, level)
+    found = None if level is None else bone_surface_closed(run["volume"], scan.geometry, level)
+    mesh = None if found is None else found[0]
     metrics = evaluate_volume(anatomy, scan, run["volume"], surface=mesh, level=level)
+    if found is not None and level.closing:
+        metrics["surface_closing_voxels"] = found[1]
     if judge_fov is not None and metrics.get("psnr3d") is not None:
         judge = scan_geometry(anatomy, subject, n, math.pi, angles=angles, detector_mm=judge_fov).field_of_view()
         if judge.any():

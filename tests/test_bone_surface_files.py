@@ -247,3 +247,52 @@ def test_the_femur_demo_writes_the_femur_not_the_thigh(tmp_path, method):
     assert independent_mean_distance(surface, truth) == pytest.approx(printed(res.output, "surface_mean_mm"),
                                                                       rel=0.03, abs=0.02)
     assert re.search(r"^\s*surface_level_source\s+truth\s*$", res.output, re.M)
+
+
+@pytest.mark.slow
+def test_the_femurs_surface_seals_a_hole_in_its_shaft_and_is_measured_so(tmp_path):
+    """Known answer on the femur's own CT phantom (held-out subject 20): a 3-voxel hole drilled
+    through the mid-shaft cortex opens the marrow canal to the outside. The femur's level carries
+    its scene's closing (3 voxels), and the surface written at it is the intact bone's outer
+    surface (trimesh: as close to the true surface as the intact phantom's, the same area); at
+    the same level without the closing the canal's wall is written as bone surface too."""
+    pytest.importorskip("clgs_femur", reason="install with: pip install -e anatomies/femur")
+    import math
+
+    from clgs.anatomy import plugins
+    from clgs.anatomy.bone_level import BoneLevel, choose_level
+    from clgs.anatomy.evaluation import bone_surface, read_bone_surface, write_bone_surface
+    from clgs.anatomy.simulation import simulate_subject
+
+    femur = plugins.get_anatomy("femur")
+    scan = simulate_subject(femur, femur.load_subject("20"), 2, math.pi, True, 0, protocol="same")
+    level = choose_level(anatomy=femur, truth=scan.truth, scan_meta=scan.meta)
+    assert level.closing == femur.scene.surface_closing == 3
+    bone = scan.truth > level.value
+    z = bone.shape[0] // 2
+    ys, xs = np.nonzero(bone[z])
+    yc, xc = int(round(ys.mean())), int(round(xs.mean()))
+    assert not bone[z, yc, xc]  # the canal, below the level
+    drilled = scan.truth.copy()
+    drilled[z - 1:z + 2, yc - 1:yc + 2, xc:] = 0.0  # through the cortex on the +x side
+    truth = trimesh.Trimesh(scan.surface[0], scan.surface[1], process=False)
+
+    def mean_distance(mesh):
+        _, d, _ = trimesh.proximity.closest_point(truth, mesh.vertices)
+        return float(d.mean())
+
+    intact = bone_surface(scan.truth, scan.geometry, level)
+    sealed = bone_surface(drilled, scan.geometry, level)
+    opened = bone_surface(drilled, scan.geometry, BoneLevel(level.value, level.source))
+    area = {k: trimesh.Trimesh(m.vertices, m.faces).area for k, m in
+            (("intact", intact), ("sealed", sealed), ("opened", opened))}
+    assert area["sealed"] == pytest.approx(area["intact"], rel=0.01)
+    assert area["opened"] > 1.2 * area["intact"]
+    assert mean_distance(sealed) == pytest.approx(mean_distance(intact), abs=0.05)
+    assert mean_distance(opened) > mean_distance(intact) + 0.5
+    # the file says what it is: the closing allowed and the one used, read back with the level
+    with_hole = write_bone_surface(tmp_path, drilled, scan.geometry, level)
+    record = json.loads((tmp_path / "surface.json").read_text())
+    assert record["surface_closing_max_voxels"] == 3 and 1 <= record["surface_closing_voxels"] <= 3
+    assert "sealed" in record["what"] and with_hole["surface_closing_voxels"] == record["surface_closing_voxels"]
+    assert read_bone_surface(tmp_path)[1] == level

@@ -246,7 +246,7 @@ def test_bone_surface_is_the_outer_surface_of_the_solid_bone():
         bone_surface(vol, geo, None)
 
 
-def _tiny_anatomy(template, shape_model, atlas):
+def _tiny_anatomy(template, shape_model, atlas, **scene_settings):
     """An Anatomy whose subjects are the ellipsoid deformed by known alphas (ids 'a', 'b' held out)."""
     from clgs.anatomy import Anatomy
     from clgs.shape.template import Subject
@@ -263,7 +263,8 @@ def _tiny_anatomy(template, shape_model, atlas):
         return Subject(sid, v, template.faces, volume=truth, spacing=tuple(np.asarray(grid.spacing)[::-1]),
                        origin=origin_zyx)
 
-    scene = dict(mode="cone", DSO=400.0, DSD=600.0, nDetector=(48, 48), dDetector=(1.6, 1.6), arc_deg=180.0)
+    scene = dict(mode="cone", DSO=400.0, DSD=600.0, nDetector=(48, 48), dDetector=(1.6, 1.6), arc_deg=180.0,
+                 **scene_settings)
     return Anatomy(name="ellipsoid", summary="test", load_template=lambda: template,
                    load_shape_model=lambda: shape_model, load_atlas=lambda: atlas, population=lambda: ["p"],
                    test_subjects=lambda: ["a", "b"], load_subject=load_subject, scene=scene)
@@ -309,6 +310,37 @@ def test_experiment_writes_tables_curves_and_resumes(template, shape_model, atla
     # held-out subjects only
     with pytest.raises(ValueError, match="population"):
         run_experiment(anatomy, tmp_path / "x", views=(3,), subjects=["p"], iterations=2)
+
+
+def test_a_resumed_experiment_takes_kept_surfaces_again_as_the_anatomy_now_asks(template, shape_model, atlas,
+                                                                               tmp_path):
+    """Records whose bone surface was taken without the closing the anatomy now asks for (made
+    before it existed) are measured again from their saved volumes on resume, not mixed into the
+    table and not run again: their figures are then a fresh run's to the last digit."""
+    from clgs.experiment import run_experiment
+
+    before = _tiny_anatomy(template, shape_model, atlas)
+    now = _tiny_anatomy(template, shape_model, atlas, surface_closing=2)
+    kw = dict(views=(3,), methods=("fdk",), iterations=10, ablation_views=None, progress=False)
+    run_experiment(before, tmp_path / "old", **kw)
+    old = json.loads((tmp_path / "old" / "runs" / "a_3_fdk.json").read_text())
+    assert "surface_closing_max_voxels" not in old
+    old["surface_mean_mm"] = 99.0  # as if taken with the cavity's walls: it must not survive
+    (tmp_path / "old" / "runs" / "a_3_fdk.json").write_text(json.dumps(old))
+    lines = []
+    run_experiment(now, tmp_path / "old", echo=lines.append, **kw)
+    assert sum("taken again" in x for x in lines) == 2 and not any("reconstructing" in x for x in lines)
+    run_experiment(now, tmp_path / "fresh", **kw)
+    for sid in ("a", "b"):
+        kept = json.loads((tmp_path / "old" / "runs" / f"{sid}_3_fdk.json").read_text())
+        fresh = json.loads((tmp_path / "fresh" / "runs" / f"{sid}_3_fdk.json").read_text())
+        assert kept["surface_closing_max_voxels"] == 2 and "surface_closing_voxels" in kept
+        for key in [k for k in fresh if k.startswith("surface_") and k != "surface_file"] + ["psnr3d"]:
+            assert kept[key] == fresh[key], key
+        assert kept["seconds"] == (old["seconds"] if sid == "a" else kept["seconds"])
+    lines.clear()
+    run_experiment(now, tmp_path / "old", echo=lines.append, **kw)
+    assert sum(x.endswith("done before, kept") for x in lines) == 2
 
 
 def test_experiment_takes_clinical_view_sets_and_a_truncating_detector(template, shape_model, atlas, tmp_path):

@@ -18,10 +18,14 @@ The level is chosen, first found first (:func:`choose_level`):
 Never a percentile of the reconstruction: in a mostly-air volume such a level lies in the soft
 tissue and the "bone" surface traces the limb. With none of these there is no bone level, and no
 bone surface is written.
+
+The level carries the anatomy's ``scene.surface_closing`` (whatever its source): how wide a gap in
+the bone's wall the surface may seal before the cavities are filled
+(:func:`clgs.anatomy.evaluation.bone_mask`); 0 without an anatomy or where it names none.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -41,20 +45,27 @@ SOURCES = {
 
 @dataclass(frozen=True)
 class BoneLevel:
-    """A bone iso-level (1/mm) and its source (a key of :data:`SOURCES`)."""
+    """A bone iso-level (1/mm), its source (a key of :data:`SOURCES`) and the widest closing
+    (voxels) the bone surface at it may use (the anatomy's ``scene.surface_closing``; 0: none)."""
 
     value: float
     source: str
+    closing: int = 0
 
     def __post_init__(self):
         if self.source not in SOURCES:
             raise ValueError(f"unknown bone-level source {self.source!r}; one of {', '.join(SOURCES)}")
         if not (np.isfinite(self.value) and self.value > 0):
             raise ValueError(f"a bone level must be a positive attenuation (1/mm), got {self.value!r}")
+        if isinstance(self.closing, bool) or int(self.closing) != self.closing or self.closing < 0:
+            raise ValueError(f"a surface closing is a whole number of voxels >= 0, got {self.closing!r}")
+        object.__setattr__(self, "closing", int(self.closing))
 
     def record(self) -> dict:
-        """The fields a report carries: ``surface_level`` and ``surface_level_source``."""
-        return {"surface_level": float(self.value), "surface_level_source": self.source}
+        """The fields a report carries: ``surface_level``, ``surface_level_source`` and, where the
+        surface may close gaps in the bone's wall, ``surface_closing_max_voxels``."""
+        closing = {"surface_closing_max_voxels": self.closing} if self.closing else {}
+        return {"surface_level": float(self.value), "surface_level_source": self.source, **closing}
 
     def describe(self) -> str:
         return f"{self.value:.5g} 1/mm ({self.source}: {SOURCES[self.source]})"
@@ -108,7 +119,13 @@ def choose_level(user=None, anatomy=None, truth=None, scan_meta=None, atlas=None
     ``anatomy``: an :class:`clgs.anatomy.Anatomy` (its scene, and, when nothing before gives a
     level, its atlas and template, loaded then) or None; ``truth``: a simulated scan's true volume;
     ``scan_meta``: the scan's meta; ``atlas``/``template``: parts already loaded (a shape-guided
-    run's)."""
+    run's). Whatever its source, the level carries the anatomy's ``scene.surface_closing``."""
+    found = _level(user, anatomy, truth, scan_meta, atlas, template)
+    closing = Scene.from_dict(getattr(anatomy, "scene", None)).surface_closing or 0
+    return None if found is None else replace(found, closing=closing)
+
+
+def _level(user, anatomy, truth, scan_meta, atlas, template):
     if user is not None:
         return BoneLevel(float(user), "user")
     recorded = (scan_meta or {}).get("truth_surface_level")

@@ -11,9 +11,12 @@ from clgs.anatomy.bone_level import BoneLevel, choose_level
 from clgs.errors import InputError
 from clgs.progress import phased
 
-__all__ = ["surface_level", "bone_mask", "bone_surface", "write_bone_surface", "read_bone_surface",
-           "evaluate_volume", "truncated_field_of_view", "SURFACE_FILE", "SURFACE_RECORD"]
+__all__ = ["surface_level", "bone_mask", "solid_bone", "bone_surface", "bone_surface_closed", "write_bone_surface",
+           "read_bone_surface", "evaluate_volume", "truncated_field_of_view", "SURFACE_FILE", "SURFACE_RECORD",
+           "LEVEL_KEYS"]
 
+#: what a surface's record says of how it was taken (a method's info and a report carry these on)
+LEVEL_KEYS = ("surface_level", "surface_level_source", "surface_closing_max_voxels", "surface_closing_voxels")
 #: the bone surface of a run folder, and the record of the level it was taken at
 SURFACE_FILE = "surface.stl"
 SURFACE_RECORD = "surface.json"
@@ -28,12 +31,30 @@ def surface_level(anatomy, truth) -> float:
     return level.value
 
 
-def bone_mask(volume, level: float, min_piece: float = 0.1):
-    """The solid bone: voxels above ``level``, enclosed cavities (medullary canal, cancellous
-    interior below the level) filled, pieces smaller than ``min_piece`` x the largest dropped; so
-    the surface compared is the outer bone surface, not every iso-contour or speckle. (A sparse-view
-    reconstruction often breaks a bone at thin cortex: keeping only the largest piece would
-    measure one fragment's surface against the whole bone.)"""
+def bone_mask(volume, level: float, min_piece: float = 0.1, closing: int = 0):
+    """The solid bone: voxels above ``level``, pieces smaller than ``min_piece`` x the largest
+    dropped, gaps in the bone's wall sealed (``closing``, below), enclosed cavities (medullary
+    canal, cancellous interior below the level) filled; so the surface compared is the outer bone
+    surface, not every iso-contour or speck. (A sparse-view reconstruction often breaks a bone at
+    thin cortex: keeping only the largest piece would measure one fragment's surface against the
+    whole bone.)
+
+    ``closing`` (voxels, the anatomy's ``scene.surface_closing``): a sparse-view reconstruction
+    also opens holes in a thin cortex, through which the marrow cavity and the cancellous ends
+    reach the outside and are not filled: their walls would be written as bone surface (a femur
+    from 10 views: a fifth of its surface inside the bone). A morphological closing seals them,
+    at the smallest radius from 1 to ``closing`` after which a larger one grows the solid bone by
+    at most :data:`CLOSING_GROWTH` (only the outer creases still fill); 0: none, for anatomies of
+    several bones, which a closing could join. :func:`solid_bone` also returns the radius used."""
+    return solid_bone(volume, level, min_piece, closing)[0]
+
+
+#: a closing radius is large enough once one voxel more grows the solid bone by this share or less
+CLOSING_GROWTH = 0.01
+
+
+def solid_bone(volume, level: float, min_piece: float = 0.1, closing: int = 0) -> tuple:
+    """(:func:`bone_mask`'s mask, the closing radius it used, voxels; 0 for none)."""
     import numpy as np
     from scipy import ndimage
 
@@ -43,28 +64,59 @@ def bone_mask(volume, level: float, min_piece: float = 0.1):
         sizes = ndimage.sum_labels(mask, labels, index=np.arange(1, n + 1))
         keep = np.flatnonzero(sizes >= min_piece * sizes.max()) + 1
         mask = np.isin(labels, keep)
-    return ndimage.binary_fill_holes(mask)
+    solid, radius = ndimage.binary_fill_holes(mask), 0
+    if closing and solid.any():
+        size = int(solid.sum())
+        for r in range(1, int(closing) + 1):
+            sealed = ndimage.binary_fill_holes(_closed(mask, r))
+            grown = int(sealed.sum())
+            if grown - size <= CLOSING_GROWTH * size:
+                break
+            solid, radius, size = sealed, r, grown
+    return solid, radius
 
 
-def bone_surface(volume, geometry, level: float):
+def _closed(mask, radius: int):
+    """A binary closing by a ball of ``radius`` voxels, padded so that bone touching the grid's
+    edge is not eroded from outside it. A ball, not the 6-neighbour cross iterated: the cross's
+    corner reaches deep into a hole and keeps it open (a 3-voxel hole through a 4-voxel wall stays
+    open at any radius; a ball of 3 seals it)."""
+    import numpy as np
+    from scipy import ndimage
+
+    g = np.mgrid[-radius:radius + 1, -radius:radius + 1, -radius:radius + 1]
+    ball = (g ** 2).sum(0) <= radius * radius
+    pad = radius + 1
+    out = ndimage.binary_closing(np.pad(mask, pad), ball)
+    return out[pad:-pad, pad:-pad, pad:-pad]
+
+
+def bone_surface(volume, geometry, level):
     """The outer bone surface (:class:`clgs.io.mesh.Mesh`, mm) of a (Z, Y, X) volume on
     ``geometry``'s grid: :func:`clgs.mesh.surface.surface_from_volume` of :func:`bone_mask` at
-    ``level`` (1/mm, or a :class:`clgs.anatomy.bone_level.BoneLevel`; see that module for where a
-    level comes from). None when no surface separates bone from the rest (nothing, or everything,
-    above the level)."""
+    ``level`` (1/mm, or a :class:`clgs.anatomy.bone_level.BoneLevel`, whose closing it uses; see
+    that module for where a level comes from). None when no surface separates bone from the rest
+    (nothing, or everything, above the level)."""
+    found = bone_surface_closed(volume, geometry, level)
+    return None if found is None else found[0]
+
+
+def bone_surface_closed(volume, geometry, level):
+    """(:func:`bone_surface`'s mesh, the closing radius it used in voxels) or None."""
     import numpy as np
 
     from clgs.mesh.surface import surface_from_volume
 
+    closing = 0
     if isinstance(level, BoneLevel):
-        level = level.value
+        level, closing = level.value, level.closing
     if level is None:
         raise TypeError("bone_surface needs the bone level (clgs.anatomy.bone_level.choose_level gives one)")
     vol = np.asarray(volume, np.float32)
-    mask = bone_mask(vol, float(level))
+    mask, radius = solid_bone(vol, float(level), closing=closing)
     if not mask.any() or mask.all():
         return None
-    return surface_from_volume(mask, geometry=geometry)
+    return surface_from_volume(mask, geometry=geometry), radius
 
 
 @phased("the bone surface")
@@ -78,16 +130,19 @@ def write_bone_surface(out_dir, volume, geometry, level: BoneLevel | None) -> di
     from clgs.io.mesh import save_mesh
 
     out_dir = Path(out_dir)
-    mesh = None if level is None else bone_surface(volume, geometry, level)
-    if mesh is None:
+    found = None if level is None else bone_surface_closed(volume, geometry, level)
+    if found is None:
         for name in (SURFACE_FILE, SURFACE_RECORD):
             (out_dir / name).unlink(missing_ok=True)
         reason = ("no bone level: give one with --surface-level (Python: surface_level=)" if level is None else
                   f"no voxel of the volume is above the bone level {level.value:.4g} (or every voxel is)")
         return {"path": None, "reason": reason, **({} if level is None else level.record())}
+    mesh, radius = found
     path = save_mesh(out_dir / SURFACE_FILE, mesh.vertices, mesh.faces)
+    sealed = f", gaps in its wall sealed by a {radius}-voxel closing" if radius else ""
     record = {"surface": SURFACE_FILE, "what": "the outer bone surface of the volume (world mm): solid bone above "
-              "the level, cavities filled, specks dropped", **level.record()}
+              f"the level{sealed}, cavities filled, specks dropped", **level.record(),
+              **({"surface_closing_voxels": radius} if level.closing else {})}
     atomic.write_json(out_dir / SURFACE_RECORD, record)
     return {**record, "path": str(path)}
 
@@ -103,7 +158,8 @@ def read_bone_surface(folder):
     if not ((folder / SURFACE_FILE).is_file() and (folder / SURFACE_RECORD).is_file()):
         return None
     record = json.loads((folder / SURFACE_RECORD).read_text(encoding="utf-8"))
-    level = BoneLevel(float(record["surface_level"]), str(record["surface_level_source"]))
+    level = BoneLevel(float(record["surface_level"]), str(record["surface_level_source"]),
+                      int(record.get("surface_closing_max_voxels", 0)))
     return load_mesh(folder / SURFACE_FILE), level
 
 

@@ -51,6 +51,10 @@ class SubjectFromMesh(Protocol):
     def __call__(self, path: Any, seed: int = 0, **options: Any) -> Subject | tuple: ...
 
 
+#: the widest closing radius (voxels) a scene may ask for: wider ones fill a bone's real hollows
+MAX_CLOSING = 8
+
+
 class SceneError(InputError):
     """A scene setting of an anatomy is missing its shape, out of range or unknown."""
 
@@ -62,14 +66,14 @@ class AnatomyError(InputError, TypeError):
 def _number(key, value, *, positive=True, integer=False, finite=True):
     if isinstance(value, bool) or not isinstance(value, (int, float)) and not _is_numpy_number(value):
         raise SceneError(f"scene {key!r} must be a number, got {value!r}")
+    if (finite or integer) and not math.isfinite(float(value)):
+        raise SceneError(f"scene {key!r} must be finite, got {value!r}")
     if integer:
         if float(value) != int(value):
             raise SceneError(f"scene {key!r} must be a whole number, got {value!r}")
         value = int(value)
     else:
         value = float(value)
-    if finite and not math.isfinite(value):
-        raise SceneError(f"scene {key!r} must be finite, got {value!r}")
     if positive and not value > 0:
         raise SceneError(f"scene {key!r} must be positive, got {value!r}")
     return value
@@ -97,8 +101,12 @@ class Scene:
     detector; cone beam needs DSD > DSO), ``nDetector``/``dDetector``/``offDetector`` (V, U: pixels,
     mm per pixel, mm), ``nVoxel``/``dVoxel``/``offOrigin`` (Z, Y, X: the grid the detector was sized
     for). Then ``n_views`` and ``arc_deg`` (the default views over an arc in (0, 360] degrees),
-    ``surface_level`` (bone iso-level, 1/mm), ``density`` (uniform attenuation, 1/mm, of a surface
-    without a CT model) and ``n_detector`` (pixels across when clgs sizes the detector itself).
+    ``surface_level`` (bone iso-level, 1/mm), ``surface_closing`` (the widest radius, voxels, of the
+    closing that seals gaps in a bone's wall before its cavities are filled: for one bone with a
+    marrow cavity, the femur's 3; unset or 0 for anatomies of several bones, which a closing
+    could join; :func:`clgs.anatomy.evaluation.bone_mask`), ``density`` (uniform attenuation, 1/mm,
+    of a surface without a CT model) and ``n_detector`` (pixels across when clgs sizes the detector
+    itself).
 
     Every field may be left unset (None): clgs's own default applies. A Scene also reads like the
     dict plugins used to give (``scene.get("n_views", 50)``, ``"nVoxel" in scene``, ``dict(scene)``:
@@ -116,6 +124,7 @@ class Scene:
     n_views: int | None = None
     arc_deg: float | None = None
     surface_level: float | None = None
+    surface_closing: int | None = None
     density: float | None = None
     n_detector: int | None = None
 
@@ -130,6 +139,7 @@ class Scene:
             "offOrigin": lambda k, v: _vector(k, v, 3, "Z, Y, X mm", positive=False),
             "n_views": lambda k, v: _number(k, v, integer=True),
             "arc_deg": _number, "surface_level": _number,
+            "surface_closing": lambda k, v: _number(k, v, positive=False, integer=True),
             "density": _number, "n_detector": lambda k, v: _number(k, v, integer=True),
         }
         if self.mode is not None and self.mode not in ("cone", "parallel"):
@@ -138,6 +148,8 @@ class Scene:
             value = getattr(self, key)
             if value is not None:
                 object.__setattr__(self, key, check(key, value))
+        if self.surface_closing is not None and not 0 <= self.surface_closing <= MAX_CLOSING:
+            raise SceneError(f"scene 'surface_closing' must be 0 to {MAX_CLOSING} voxels, got {self.surface_closing!r}")
         if self.arc_deg is not None and self.arc_deg > 360:
             raise SceneError(f"scene 'arc_deg' must be in (0, 360] degrees, got {self.arc_deg!r}")
         if (self.mode or "cone") == "cone" and self.DSO is not None and self.DSD is not None and self.DSD <= self.DSO:

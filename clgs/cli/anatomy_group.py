@@ -179,7 +179,7 @@ def run_reconstruct(scan, anatomy, method: str, out=None, surface_level=None, **
     result = run_method(method, scan, out, options, anatomy=anatomy, surface_level=surface_level)
     if out is not None and "volume" in result:
         from clgs.anatomy.bone_level import choose_level
-        from clgs.anatomy.evaluation import write_bone_surface
+        from clgs.anatomy.evaluation import LEVEL_KEYS, write_bone_surface
         from clgs.anatomy.simulation import as_float32
         from clgs.figures import SLICES_FILE, volume_slices
         from clgs.io.volume import save_volume
@@ -193,7 +193,7 @@ def run_reconstruct(scan, anatomy, method: str, out=None, surface_level=None, **
         info = result.get("info") or {}
         if "surface_level_source" in info or "surface_note" in info:  # the method wrote (or ruled out) its own
             result["surface"] = {"path": info.get("surface_file"), "reason": info.get("surface_note"),
-                                 **{k: info[k] for k in ("surface_level", "surface_level_source") if k in info}}
+                                 **{k: info[k] for k in LEVEL_KEYS if k in info}}
         else:
             level = choose_level(user=surface_level, anatomy=anatomy, truth=scan.truth, scan_meta=scan.meta)
             result["surface"] = write_bone_surface(out, volume, scan.geometry, level)
@@ -207,8 +207,11 @@ def _echo_outputs(result) -> None:
     surface = result.get("surface")
     if surface is not None:
         if surface.get("path"):
+            sealed = surface.get("surface_closing_voxels")
+            sealed = "" if sealed is None else (f"; gaps in its wall sealed by a {sealed}-voxel closing" if sealed else
+                                                 "; no gap in its wall to seal")
             click.echo(f"  bone surface           {surface['path']} (level {surface['surface_level']:.4g} 1/mm, "
-                       f"source: {surface['surface_level_source']})")
+                       f"source: {surface['surface_level_source']}{sealed})")
         else:
             click.echo(f"  bone surface           none written: {surface.get('reason')}")
     if result.get("slices"):

@@ -390,7 +390,7 @@ def run_figures(folder, volume, scan, method_name: str, surface_level, info: dic
     them in ``info``), with the surface's distance to the scan's true surface measured on the file
     read back: ``{"slices": {...}, "surface": {...}}`` for the report."""
     from clgs.anatomy.bone_level import choose_level
-    from clgs.anatomy.evaluation import read_bone_surface, write_bone_surface
+    from clgs.anatomy.evaluation import LEVEL_KEYS, read_bone_surface, write_bone_surface
     from clgs.figures import SLICES_FILE, volume_slices
 
     out = {"slices": {"path": volume_slices(Path(folder) / SLICES_FILE, volume, scan.geometry, truth=scan.truth,
@@ -399,7 +399,7 @@ def run_figures(folder, volume, scan, method_name: str, surface_level, info: dic
                           "; the truth's and the error's below" if scan.truth is not None else "")}}
     if "surface_level_source" in info or "surface_note" in info:  # the method wrote (or ruled out) its own
         surface = {"path": info.get("surface_file"), "reason": info.get("surface_note"),
-                   **{k: info[k] for k in ("surface_level", "surface_level_source") if k in info}}
+                   **{k: info[k] for k in LEVEL_KEYS if k in info}}
     else:
         level = choose_level(user=surface_level, scan_meta=scan.meta)
         surface = write_bone_surface(folder, volume, scan.geometry, level)

@@ -53,7 +53,7 @@ import torch
 
 from clgs.anatomy import AnatomyParts, plugins
 from clgs.anatomy.bone_level import choose_level
-from clgs.anatomy.evaluation import bone_surface, write_bone_surface  # the outer bone surface of the outputs
+from clgs.anatomy.evaluation import LEVEL_KEYS, bone_surface, write_bone_surface
 from clgs.errors import InputError
 from clgs.fit import losses as L
 from clgs.fit.assembly import (
@@ -922,7 +922,7 @@ def run_method(scan, out_dir=None, iterations: int | None = None, anatomy=None, 
               file=sys.stderr)
     surface = {}
     if result.surface is not None:
-        surface = {k: result.surface[k] for k in ("surface_level", "surface_level_source") if k in result.surface}
+        surface = {k: result.surface[k] for k in LEVEL_KEYS if k in result.surface}
         surface["surface_file"] = result.surface["path"]
         if result.surface["path"] is None:
             surface["surface_note"] = result.surface["reason"]

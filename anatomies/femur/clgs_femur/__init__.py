@@ -86,6 +86,6 @@ PLUGIN = population_anatomy(
     name="femur", summary="left femur (LLP26 real surfaces: 20 model subjects, 6 held out)", version=__version__,
     data_dir=DATA_DIR, file_pattern="femur_left_LLP26_subject{id}.npz", ids=SUBJECTS, test_ids=TEST_SUBJECTS,
     shape=SHAPE, spacing_mm=SPACING_MM, params=params, frame_offset=FRAME_OFFSET, side_of=femur_side,
-    scene=Scene(DSO=1000.0, DSD=1500.0, dDetector=(3.0, 3.0), n_views=50, arc_deg=180.0))
+    scene=Scene(DSO=1000.0, DSD=1500.0, dDetector=(3.0, 3.0), n_views=50, arc_deg=180.0, surface_closing=3))
 population_model = PLUGIN.population_model  # the femur's SurfacePopulation (made once)
 clgs_anatomies = PLUGIN.clgs_anatomies  # the plugin's hook
