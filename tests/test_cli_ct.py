@@ -129,6 +129,25 @@ def test_a_folder_run_gets_slices_and_a_bone_surface_only_at_a_named_level(scan_
     assert res.exit_code == 2 and "give a folder as --out" in res.output
 
 
+def test_a_scan_of_an_installed_anatomy_gets_its_bone_surface_sealed_as_the_anatomy_asks(scan_dir, tmp_path):
+    """`clgs reconstruct` knows no anatomy, but a scan that names one (meta['anatomy'], as `clgs
+    <anatomy> simulate` writes it) gets that anatomy's closing of holes in the bone's wall
+    (docs/outputs.md); surface.json names it. Any other scan gets none."""
+    pytest.importorskip("clgs_femur", reason="install with: pip install -e anatomies/femur")
+    sc = Scan.load(scan_dir / "scan")
+    sc.meta["anatomy"] = "femur"
+    sc.save(tmp_path / "femur")
+    run("reconstruct", tmp_path / "femur", "-m", "fdk", "--surface-level", 0.012, "--out", tmp_path / "a")
+    record = json.loads((tmp_path / "a" / "surface.json").read_text())
+    assert record["surface_closing_max_voxels"] == 3 and record["surface_closing_voxels"] in (0, 1, 2, 3)
+    rep = json.loads((tmp_path / "a" / "report.json").read_text())["surface"]
+    assert rep["surface_closing_max_voxels"] == 3
+    sc.meta["anatomy"] = "no-such-bone"
+    sc.save(tmp_path / "other")
+    run("reconstruct", tmp_path / "other", "-m", "fdk", "--surface-level", 0.012, "--out", tmp_path / "b")
+    assert "surface_closing_max_voxels" not in json.loads((tmp_path / "b" / "surface.json").read_text())
+
+
 def test_reconstruct_sart_options(scan_dir, tmp_path):
     res = run("reconstruct", scan_dir / "scan", "--method", "sart", "--iterations", 2, "--subsets", 3,
               "--out", tmp_path / "sart.npy")

@@ -3,6 +3,7 @@ modules load when it runs."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import sys
 import time
@@ -385,6 +386,18 @@ def _takes_surface_level(method) -> bool:
         return False
 
 
+def _scan_anatomy_closing(scan) -> int:
+    """The ``scene.surface_closing`` of the installed anatomy a scan names (``meta['anatomy']``,
+    as ``clgs <anatomy> simulate`` writes it); 0 for any other scan."""
+    from clgs.anatomy import plugins
+    from clgs.anatomy.record import Scene
+
+    name = (scan.meta or {}).get("anatomy")
+    if not isinstance(name, str) or name not in plugins.anatomy_names():
+        return 0
+    return Scene.from_dict(plugins.get_anatomy(name).scene).surface_closing or 0
+
+
 def run_figures(folder, volume, scan, method_name: str, surface_level, info: dict) -> dict:
     """The run folder's slice panel and bone surface (written by the method itself when it names
     them in ``info``), with the surface's distance to the scan's true surface measured on the file
@@ -402,6 +415,8 @@ def run_figures(folder, volume, scan, method_name: str, surface_level, info: dic
                    **{k: info[k] for k in LEVEL_KEYS if k in info}}
     else:
         level = choose_level(user=surface_level, scan_meta=scan.meta)
+        if level is not None:  # a scan of an installed anatomy: its bone's surface, holes sealed as it asks
+            level = dataclasses.replace(level, closing=_scan_anatomy_closing(scan))
         surface = write_bone_surface(folder, volume, scan.geometry, level)
     surface = {k: v for k, v in surface.items() if v is not None}
     written = read_bone_surface(folder) if surface.get("path") else None
