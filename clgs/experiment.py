@@ -321,12 +321,17 @@ def _run_experiment(anatomy, out_dir, views=(5, 10), subjects=None, iterations: 
                 if record_path.is_file():
                     row = json.loads(record_path.read_text())
                     _check_same_run(record_path, row, made_with)
-                    if surface_outdated(anatomy, row) and (out / "runs" / f"{tag}.nii.gz").is_file():
+                    outdated = surface_outdated(anatomy, row)
+                    if outdated and (out / "runs" / f"{tag}.nii.gz").is_file():
                         row = remeasure_surface(anatomy, row, out, tag, angles, det, seed, simulation, meshes,
                                                 tissue_seed)
                         mm = row.get("surface_mean_mm", float("nan"))
                         echo(f"{tag}: done before, kept; its bone surface taken again from its volume "
                              f"(gaps in the wall sealed as the anatomy asks): {mm:.2f} mm")
+                    elif outdated:
+                        echo(f"{tag}: done before, kept, but its bone surface was taken without the closing "
+                             f"the anatomy now asks for and runs/{tag}.nii.gz is gone: its surface figures "
+                             "are not comparable with the others (delete its record to run it again)")
                     else:
                         echo(f"{tag}: done before, kept")
                     done[tag] = row

@@ -341,6 +341,12 @@ def test_a_resumed_experiment_takes_kept_surfaces_again_as_the_anatomy_now_asks(
     lines.clear()
     run_experiment(now, tmp_path / "old", echo=lines.append, **kw)
     assert sum(x.endswith("done before, kept") for x in lines) == 2
+    # a record made before whose volume is gone cannot be measured again: said, not hidden
+    run_experiment(before, tmp_path / "gone", **kw)
+    (tmp_path / "gone" / "runs" / "a_3_fdk.nii.gz").unlink()
+    lines.clear()
+    run_experiment(now, tmp_path / "gone", echo=lines.append, **kw)
+    assert any("a_3_fdk" in x and "is gone" in x and "not comparable" in x for x in lines)
 
 
 def test_experiment_takes_clinical_view_sets_and_a_truncating_detector(template, shape_model, atlas, tmp_path):
