@@ -415,12 +415,27 @@ def _experiment_scan(anatomy, subject_id, n, angles, detector_mm, seed, simulati
 def surface_outdated(anatomy, row: dict) -> bool:
     """Whether a kept record's bone surface was taken with another closing than the anatomy's
     today (records made before surfaces sealed gaps in the bone's wall name none: 0)."""
-    from clgs.anatomy.record import Scene
+    from clgs.anatomy.bone_level import anatomy_closing
 
     if row.get("surface_level") is None:
         return False
-    closing = Scene.from_dict(getattr(anatomy, "scene", None)).surface_closing or 0
-    return int(row.get("surface_closing_max_voxels", 0)) != closing
+    return int(row.get("surface_closing_max_voxels", 0)) != anatomy_closing(anatomy)
+
+
+def _measured_surface(anatomy, scan, volume) -> tuple:
+    """(mesh or None, level, metrics) of a run's volume: the outer bone surface at the level the
+    anatomy and scan give, and :func:`clgs.anatomy.evaluation.evaluate_volume`'s figures of that
+    same mesh (with the closing radius used, where the anatomy seals holes in the wall)."""
+    from clgs.anatomy.bone_level import choose_level
+    from clgs.anatomy.evaluation import bone_surface_closed, evaluate_volume
+
+    level = choose_level(anatomy=anatomy, truth=scan.truth, scan_meta=scan.meta)
+    found = None if level is None else bone_surface_closed(volume, scan.geometry, level)
+    mesh = None if found is None else found[0]
+    metrics = evaluate_volume(anatomy, scan, volume, surface=mesh, level=level)
+    if found is not None and level.closing:
+        metrics["surface_closing_voxels"] = found[1]
+    return mesh, level, metrics
 
 
 def remeasure_surface(anatomy, row: dict, out_dir, tag: str, angles=None, detector_mm=None, seed: int = 0,
@@ -428,8 +443,6 @@ def remeasure_surface(anatomy, row: dict, out_dir, tag: str, angles=None, detect
     """A kept record with its bone surface taken again from its saved volume (``runs/<tag>.nii.gz``)
     as a run makes it today: the mesh, the picture and the surface figures replaced, the rest kept.
     So a resumed experiment's table never mixes surfaces taken two ways, and no run is repeated."""
-    from clgs.anatomy.bone_level import choose_level
-    from clgs.anatomy.evaluation import bone_surface_closed, evaluate_volume
     from clgs.anatomy.surface_figure import reconstruction_figure
     from clgs.io import atomic
     from clgs.io.mesh import load_mesh, save_mesh
@@ -440,14 +453,9 @@ def remeasure_surface(anatomy, row: dict, out_dir, tag: str, angles=None, detect
     n = int(str(v).split("-fov")[0]) if angles is None else len(angles)
     _, scan = _experiment_scan(anatomy, row["subject"], n, angles, detector_mm, seed, simulation, meshes, tissue_seed)
     volume = load_volume(runs / f"{tag}.nii.gz").volume
-    level = choose_level(anatomy=anatomy, truth=scan.truth, scan_meta=scan.meta)
-    found = None if level is None else bone_surface_closed(volume, scan.geometry, level)
-    mesh = None if found is None else found[0]
-    metrics = evaluate_volume(anatomy, scan, volume, surface=mesh, level=level)
+    mesh, level, metrics = _measured_surface(anatomy, scan, volume)
     row = {k: x for k, x in row.items() if not (k.startswith("surface_") and not k.startswith("surface_file"))}
     row.update({k: x for k, x in metrics.items() if k.startswith("surface_")})
-    if found is not None and level.closing:
-        row["surface_closing_voxels"] = found[1]
     (runs / f"{tag}.stl").unlink(missing_ok=True)
     row["surface_file"] = None if mesh is None else str(save_mesh(runs / f"{tag}.stl", mesh.vertices, mesh.faces))
     model = runs / f"{tag}_model.stl"
@@ -468,8 +476,6 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
     ``views`` is a view count or a view-set key (then ``angles``, radians, are its views);
     ``detector_mm``: a truncating detector; ``judge_fov``: also score inside that detector's field
     of view (the untruncated twin of a truncated scan); ``meshes``: the user's own subjects."""
-    from clgs.anatomy.bone_level import choose_level
-    from clgs.anatomy.evaluation import bone_surface_closed, evaluate_volume
     from clgs.anatomy.simulation import scan_geometry
     from clgs.anatomy.surface_figure import reconstruction_figure
     from clgs.io import atomic
@@ -499,12 +505,7 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
                      **_tissue_record(meshes, tissue_seed))
     run = _run_one(method, scan, parts, iterations, seed, progress, settings)
     # the surface scored is the surface written: one mesh, at one level (named in the record)
-    level = choose_level(anatomy=anatomy, truth=scan.truth, scan_meta=scan.meta)
-    found = None if level is None else bone_surface_closed(run["volume"], scan.geometry, level)
-    mesh = None if found is None else found[0]
-    metrics = evaluate_volume(anatomy, scan, run["volume"], surface=mesh, level=level)
-    if found is not None and level.closing:
-        metrics["surface_closing_voxels"] = found[1]
+    mesh, level, metrics = _measured_surface(anatomy, scan, run["volume"])
     if judge_fov is not None and metrics.get("psnr3d") is not None:
         judge = scan_geometry(anatomy, subject, n, math.pi, angles=angles, detector_mm=judge_fov).field_of_view()
         if judge.any():

@@ -31,7 +31,7 @@ import numpy as np
 
 from clgs.anatomy.record import Scene
 
-__all__ = ["BoneLevel", "SOURCES", "choose_level", "truth_level", "atlas_level"]
+__all__ = ["BoneLevel", "SOURCES", "choose_level", "anatomy_closing", "truth_level", "atlas_level"]
 
 #: what each source means, for reports and documentation
 SOURCES = {
@@ -121,8 +121,13 @@ def choose_level(user=None, anatomy=None, truth=None, scan_meta=None, atlas=None
     ``scan_meta``: the scan's meta; ``atlas``/``template``: parts already loaded (a shape-guided
     run's). Whatever its source, the level carries the anatomy's ``scene.surface_closing``."""
     found = _level(user, anatomy, truth, scan_meta, atlas, template)
-    closing = Scene.from_dict(getattr(anatomy, "scene", None)).surface_closing or 0
-    return None if found is None else replace(found, closing=closing)
+    return None if found is None else replace(found, closing=anatomy_closing(anatomy))
+
+
+def anatomy_closing(anatomy) -> int:
+    """The widest closing (voxels) an anatomy's bone surface may use: its ``scene.surface_closing``,
+    0 for None or an anatomy that names none."""
+    return Scene.from_dict(getattr(anatomy, "scene", None)).surface_closing or 0
 
 
 def _level(user, anatomy, truth, scan_meta, atlas, template):

@@ -390,12 +390,12 @@ def _scan_anatomy_closing(scan) -> int:
     """The ``scene.surface_closing`` of the installed anatomy a scan names (``meta['anatomy']``,
     as ``clgs <anatomy> simulate`` writes it); 0 for any other scan."""
     from clgs.anatomy import plugins
-    from clgs.anatomy.record import Scene
+    from clgs.anatomy.bone_level import anatomy_closing
 
     name = (scan.meta or {}).get("anatomy")
     if not isinstance(name, str) or name not in plugins.anatomy_names():
         return 0
-    return Scene.from_dict(plugins.get_anatomy(name).scene).surface_closing or 0
+    return anatomy_closing(plugins.get_anatomy(name))
 
 
 def run_figures(folder, volume, scan, method_name: str, surface_level, info: dict) -> dict:
