@@ -148,6 +148,55 @@ def test_a_scan_of_an_installed_anatomy_gets_its_bone_surface_sealed_as_the_anat
     assert "surface_closing_max_voxels" not in json.loads((tmp_path / "b" / "surface.json").read_text())
 
 
+def _drilled_tube(scan, out_dir=None):
+    """A 'reconstruction' that is a known answer: a hollow tube along z (outer radius 10 voxels, a
+    3-voxel wall at 0.03/mm, the canal at 0.005, closed by 2-voxel lids) with a 2-voxel hole
+    through its wall halfway along."""
+    nz, ny, nx = scan.geometry.nVoxel
+    _, y, x = np.mgrid[:nz, :ny, :nx].astype(np.float32)
+    r = np.hypot(y - (ny - 1) / 2, x - (nx - 1) / 2)
+    vol = np.where(r <= 10, np.where(r > 7, 0.03, 0.005), 0.0).astype(np.float32)
+    vol[2:4][r[2:4] <= 10], vol[-4:-2][r[-4:-2] <= 10] = 0.03, 0.03
+    vol[:2], vol[-2:] = 0.0, 0.0
+    vol[nz // 2 - 1:nz // 2 + 1, ny // 2 - 1:ny // 2 + 1, nx // 2:] = 0.0  # the canal opens to the outside
+    return {"volume": vol}
+
+
+def test_surface_closing_seals_the_bone_surface_of_a_scan_that_names_no_anatomy(scan_dir, tmp_path):
+    """`clgs reconstruct --surface-closing N` on a scan of no anatomy: the known-answer tube with a
+    hole in its wall is written as its outer wall alone (trimesh: the area of the tube without
+    the hole's inner surface), surface.json and the report name the closing; without it the
+    canal's wall is written too. Given without a bone level it is refused before the run."""
+    trimesh = pytest.importorskip("trimesh")
+    sc = Scan.load(scan_dir / "scan")
+    sc.meta.pop("truth_surface_level", None)
+    sc.meta.pop("anatomy", None)
+    sc.save(tmp_path / "plain")
+    _register("tube_t", _drilled_tube)
+    run("reconstruct", tmp_path / "plain", "-m", "tube_t", "--surface-level", 0.02, "--out", tmp_path / "open")
+    run("reconstruct", tmp_path / "plain", "-m", "tube_t", "--surface-level", 0.02, "--surface-closing", 2,
+        "--out", tmp_path / "sealed")
+    opened, sealed = (trimesh.load(tmp_path / k / "surface.stl") for k in ("open", "sealed"))
+    assert "surface_closing_max_voxels" not in json.loads((tmp_path / "open" / "surface.json").read_text())
+    record = json.loads((tmp_path / "sealed" / "surface.json").read_text())
+    assert record["surface_closing_max_voxels"] == 2 and record["surface_closing_voxels"] in (1, 2)
+    rep = json.loads((tmp_path / "sealed" / "report.json").read_text())["surface"]
+    assert rep["surface_closing_max_voxels"] == 2 and rep["surface_closing_voxels"] == record["surface_closing_voxels"]
+    # the sealed surface is one closed shell, the outer wall; the open one also holds the canal's wall
+    assert sealed.is_watertight and len(sealed.split(only_watertight=False)) == 1
+    assert opened.area > 1.3 * sealed.area, (opened.area, sealed.area)
+    # refused before the run: no level to write a surface at, or a volume file for --out
+    res = run("reconstruct", tmp_path / "plain", "-m", "tube_t", "--surface-closing", 2, "--out", tmp_path / "x",
+              ok=False)
+    assert res.exit_code == 2 and "--surface-level" in res.output and not (tmp_path / "x").exists()
+    res = run("reconstruct", tmp_path / "plain", "-m", "tube_t", "--surface-closing", 2, "--out", tmp_path / "x.nii.gz",
+              ok=False)
+    assert res.exit_code == 2 and "give a folder" in res.output
+    res = run("reconstruct", tmp_path / "plain", "-m", "tube_t", "--surface-level", 0.02, "--surface-closing", 9,
+              "--out", tmp_path / "x", ok=False)
+    assert res.exit_code == 2 and "0<=x<=8" in res.output.replace(" ", "")
+
+
 def test_reconstruct_sart_options(scan_dir, tmp_path):
     res = run("reconstruct", scan_dir / "scan", "--method", "sart", "--iterations", 2, "--subsets", 3,
               "--out", tmp_path / "sart.npy")

@@ -154,3 +154,31 @@ def test_anatomy_reconstruct_calls_run_method(scan, calls, template, shape_model
     anatomy = _tiny_anatomy(template, shape_model, atlas)
     run_reconstruct(scan, anatomy, "fdk", filter="hann")
     assert calls == [("fdk", {"filter": "hann"})]
+
+
+def test_a_closing_given_reaches_a_method_that_writes_its_own_bone_surface(template, shape_model, atlas,  # noqa: F811
+                                                                           tmp_path):
+    """``surface_closing=`` goes to a method that writes its own bone surface (the shape-guided
+    one): its surface.json names the closing given, not the anatomy's (the tiny anatomy asks for
+    none). A method that writes its own surface but takes no closing is refused before it runs:
+    its surface would not be the one asked for."""
+    import json
+
+    anatomy = _tiny_anatomy(template, shape_model, atlas)
+    sc = _scan(template, alpha=(0.8, -0.5), shape_model=shape_model)
+    run_method("shape", sc, tmp_path / "a", {"iterations": 5, **_small()}, anatomy=anatomy, seed=0,
+               surface_closing=2)
+    record = json.loads((tmp_path / "a" / "surface.json").read_text())
+    assert record["surface_closing_max_voxels"] == 2 and record["surface_closing_voxels"] in (0, 1, 2)
+    ran = []
+
+    def own_surface(scan, out_dir=None, surface_level=None):
+        ran.append(scan)
+        return {"volume": np.zeros(scan.geometry.nVoxel, np.float32)}
+
+    methods.register(methods.Method("own_surface_t", own_surface, help="test"), replace=True)
+    with pytest.raises(methods.MethodError, match="takes no surface closing"):
+        run_method("own_surface_t", sc, None, surface_closing=1)
+    assert not ran
+    with pytest.raises(clgs.errors.InputError, match="0 to 8"):
+        run_method("shape", sc, None, {"iterations": 1, **_small()}, anatomy=anatomy, surface_closing=9)

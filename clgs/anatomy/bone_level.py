@@ -29,9 +29,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from clgs.anatomy.record import Scene
+from clgs.anatomy.record import MAX_CLOSING, Scene
+from clgs.errors import InputError
 
-__all__ = ["BoneLevel", "SOURCES", "choose_level", "anatomy_closing", "truth_level", "atlas_level"]
+__all__ = ["BoneLevel", "SOURCES", "choose_level", "anatomy_closing", "with_closing", "truth_level", "atlas_level"]
 
 #: what each source means, for reports and documentation
 SOURCES = {
@@ -128,6 +129,18 @@ def anatomy_closing(anatomy) -> int:
     """The widest closing (voxels) an anatomy's bone surface may use: its ``scene.surface_closing``,
     0 for None or an anatomy that names none."""
     return Scene.from_dict(getattr(anatomy, "scene", None)).surface_closing or 0
+
+
+def with_closing(level: BoneLevel | None, closing: int | None) -> BoneLevel | None:
+    """``level`` with the widest closing a user gave (``closing``, 0 to ``MAX_CLOSING`` voxels) in
+    place of the anatomy's: for a scan that names no anatomy (``clgs reconstruct
+    --surface-closing``), or to turn the anatomy's off (0). ``level`` as it is when ``closing`` is
+    None."""
+    if closing is None:
+        return level
+    if isinstance(closing, bool) or not isinstance(closing, (int, np.integer)) or not 0 <= closing <= MAX_CLOSING:
+        raise InputError(f"surface closing must be a whole number of voxels from 0 to {MAX_CLOSING}, got {closing!r}")
+    return None if level is None else replace(level, closing=int(closing))
 
 
 def _level(user, anatomy, truth, scan_meta, atlas, template):

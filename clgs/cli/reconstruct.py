@@ -3,7 +3,6 @@ modules load when it runs."""
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import os
 import sys
 import time
@@ -11,6 +10,7 @@ from pathlib import Path
 
 import click
 
+from clgs.anatomy.record import MAX_CLOSING
 from clgs.cli.common import (
     check_not_input,
     check_output,
@@ -177,9 +177,14 @@ def _prepare_outputs(scan, out, json_out, force, into_folder: bool, resuming: bo
 @click.option("--surface-level", type=FiniteFloat(min=0, min_open=True), default=None,
               help="bone level (1/mm): also write OUT/surface.stl, the volume's outer bone surface there [default: "
                    "the level the scan's true surface was made at, if it names one; else no surface]")
+@click.option("--surface-closing", type=click.IntRange(0, MAX_CLOSING), default=None, metavar="VOXELS",
+              help="seal gaps in the bone's wall up to this many voxels wide before OUT/surface.stl is taken (a "
+                   "thin cortex below the level opens the marrow canal to the outside; docs/outputs.md) "
+                   f"[default: the closing of the anatomy the scan names (femur: 3), else 0; at most {MAX_CLOSING}]")
 @click.option("--help", "-h", "show_help", is_flag=True, help="show this message (with --method: its options)")
 @click.pass_context
-def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, settings, surface_level, show_help):
+def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, settings, surface_level,
+                surface_closing, show_help):
     """Reconstruct a volume from SCAN (a clgs scan folder or an R2-Gaussian dataset folder).
 
     The volume is attenuation in 1/mm (Hounsfield units with --to-hu), in the array order and with
@@ -218,8 +223,16 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
         raise click.UsageError("--resume continues the run in --out, --force replaces it: give one")
     if surface_level is not None and is_volume_path(out):
         raise click.UsageError("--surface-level writes OUT/surface.stl next to the volume: give a folder as --out")
+    if surface_closing is not None and is_volume_path(out):
+        raise click.UsageError("--surface-closing seals OUT/surface.stl, written next to the volume: give a folder "
+                               "as --out")
     if surface_level is not None and _takes_surface_level(method):
         kwargs["surface_level"] = surface_level  # a method that writes its own bone surface
+    if surface_closing is not None and _takes_surface_level(method):
+        if not _takes(method, "surface_closing"):
+            raise click.UsageError(f"the {method.name} method writes its own bone surface and takes no closing: "
+                                   "leave --surface-closing out")
+        kwargs["surface_closing"] = surface_closing
     into_folder = not is_volume_path(out) and not method.atomic_dir
     resuming = bool(options.get("resume")) and into_folder and out.is_dir()
     created, created_json = _prepare_outputs(scan, out, json_out, force, into_folder, resuming)
@@ -270,7 +283,8 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
         save_reconstruction(out if folder is None else folder, vol, sc.geometry, hu=hu, kev=kev, meta=sc.meta,
                             folder=folder is not None)
         if folder is not None:
-            report.update(run_figures(folder, vol, sc, method.name, surface_level, result.get("info") or {}))
+            report.update(run_figures(folder, vol, sc, method.name, surface_level, result.get("info") or {},
+                                      surface_closing))
             # the folder's files named in the report are where they end up (an atomic folder is renamed)
             for key in ("slices", "surface"):
                 if report.get(key, {}).get("path"):
@@ -298,6 +312,12 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
             except UnitsError as exc:
                 raise click.UsageError(str(exc)) from None
             report["volume_orientation"] = sc.geometry.orientation
+            from clgs.anatomy.bone_level import choose_level
+
+            if (surface_closing is not None and not _takes_surface_level(method)
+                    and choose_level(user=surface_level, scan_meta=sc.meta) is None):  # before the run
+                raise click.UsageError("--surface-closing seals the bone surface, which is written at a bone level: "
+                                       "the scan names none, so give --surface-level too")
             info(f"{method.name}: {sc.n_views} views, {'x'.join(map(str, sc.geometry.nVoxel))} voxels")
             if is_verbose():
                 _say_detail(method, options, sc, time.perf_counter() - t_start)
@@ -378,10 +398,15 @@ def _say_detail(method, options: dict, scan, seconds: float) -> None:
 
 def _takes_surface_level(method) -> bool:
     """Whether the method's callable names a ``surface_level`` parameter (it writes its own bone surface)."""
+    return _takes(method, "surface_level")
+
+
+def _takes(method, name: str) -> bool:
+    """Whether the method's callable names the parameter ``name``."""
     import inspect
 
     try:
-        return "surface_level" in inspect.signature(method.callable()).parameters
+        return name in inspect.signature(method.callable()).parameters
     except (TypeError, ValueError, ImportError, AttributeError):
         return False
 
@@ -398,11 +423,13 @@ def _scan_anatomy_closing(scan) -> int:
     return anatomy_closing(plugins.get_anatomy(name))
 
 
-def run_figures(folder, volume, scan, method_name: str, surface_level, info: dict) -> dict:
+def run_figures(folder, volume, scan, method_name: str, surface_level, info: dict, surface_closing=None) -> dict:
     """The run folder's slice panel and bone surface (written by the method itself when it names
-    them in ``info``), with the surface's distance to the scan's true surface measured on the file
-    read back: ``{"slices": {...}, "surface": {...}}`` for the report."""
-    from clgs.anatomy.bone_level import choose_level
+    them in ``info``; else at ``surface_level`` or the scan's, its wall sealed by a closing of up to
+    ``surface_closing`` voxels or the scan's anatomy's), with the surface's distance to the scan's
+    true surface measured on the file read back: ``{"slices": {...}, "surface": {...}}`` for the
+    report."""
+    from clgs.anatomy.bone_level import choose_level, with_closing
     from clgs.anatomy.evaluation import LEVEL_KEYS, read_bone_surface, write_bone_surface
     from clgs.figures import SLICES_FILE, volume_slices
 
@@ -415,8 +442,9 @@ def run_figures(folder, volume, scan, method_name: str, surface_level, info: dic
                    **{k: info[k] for k in LEVEL_KEYS if k in info}}
     else:
         level = choose_level(user=surface_level, scan_meta=scan.meta)
-        if level is not None:  # a scan of an installed anatomy: its bone's surface, holes sealed as it asks
-            level = dataclasses.replace(level, closing=_scan_anatomy_closing(scan))
+        if level is not None:  # the closing given, else a scan of an installed anatomy's: holes sealed as it asks
+            closing = _scan_anatomy_closing(scan) if surface_closing is None else surface_closing
+            level = with_closing(level, closing)
         surface = write_bone_surface(folder, volume, scan.geometry, level)
     surface = {k: v for k, v in surface.items() if v is not None}
     written = read_bone_surface(folder) if surface.get("path") else None

@@ -103,7 +103,8 @@ def check_method_settings(method, settings: dict | None) -> dict:
 
 
 def run_method(name, scan, out_dir=None, settings: dict | None = None, *, anatomy=None, seed=None,
-               resume: bool = False, progress: bool | None = None, surface_level=None) -> dict:
+               resume: bool = False, progress: bool | None = None, surface_level=None,
+               surface_closing=None) -> dict:
     """Run the registered method ``name`` on ``scan`` (a :class:`clgs.Scan`) and return its
     result dict (at least ``"volume"``, (Z, Y, X) float32 in 1/mm).
 
@@ -111,7 +112,9 @@ def run_method(name, scan, out_dir=None, settings: dict | None = None, *, anatom
     ``settings``: the method's settings by name (checked: an unknown key is an
     :class:`UnknownSettingError` naming the valid ones). ``anatomy`` goes to a method whose callable
     names an ``anatomy`` parameter, ``seed`` and ``progress`` (when not None) to one that takes them,
-    ``surface_level`` (when not None) to one that writes its own bone surface. ``resume=True``
+    ``surface_level`` and ``surface_closing`` (when not None) to one that writes its own bone surface
+    and names them (a method that writes its own but takes no ``surface_closing`` is a
+    :class:`MethodError`: its surface would not be the one asked for). ``resume=True``
     continues the run in ``out_dir`` from its checkpoint; without an ``iterations`` setting it goes
     on to the iterations the run was started with (``iterations=None``), never a new-run default.
     """
@@ -133,4 +136,9 @@ def run_method(name, scan, out_dir=None, settings: dict | None = None, *, anatom
         kwargs["anatomy"] = anatomy
     if surface_level is not None and "surface_level" in params:
         kwargs["surface_level"] = surface_level
+    if surface_closing is not None and "surface_level" in params:
+        if "surface_closing" not in params:
+            raise MethodError(f"the {m.name} method writes its own bone surface and takes no surface closing: "
+                              "leave surface_closing (--surface-closing) out")
+        kwargs["surface_closing"] = surface_closing
     return run(scan, out_dir, **kwargs)

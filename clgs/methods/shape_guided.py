@@ -52,7 +52,7 @@ import numpy as np
 import torch
 
 from clgs.anatomy import AnatomyParts, plugins
-from clgs.anatomy.bone_level import choose_level
+from clgs.anatomy.bone_level import choose_level, with_closing
 from clgs.anatomy.evaluation import LEVEL_KEYS, bone_surface, write_bone_surface
 from clgs.errors import InputError
 from clgs.fit import losses as L
@@ -798,19 +798,20 @@ def displacement_report(template, shape_set) -> dict | None:
 
 def reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | None = None, *, resume: bool = False,
                              overwrite: bool = False, progress: bool = True, fdk=None,
-                             surface_level: float | None = None,
+                             surface_level: float | None = None, surface_closing: int | None = None,
                              **settings) -> ShapeGuidedResult:
     """See :func:`_reconstruct_shape_guided`. ``out_dir``: one that holds anything is refused
     unless ``resume=True`` or ``overwrite=True`` (its clgs files go first), and it is locked while
     the run writes it (:func:`clgs.fit.config.run_folder`)."""
     with run_folder(out_dir, resume, overwrite), enabled(progress), run_clock():
         return _reconstruct_shape_guided(scan, anatomy, out_dir, iterations, resume=resume, progress=progress,
-                                         fdk=fdk, surface_level=surface_level, **settings)
+                                         fdk=fdk, surface_level=surface_level, surface_closing=surface_closing,
+                                         **settings)
 
 
 def _reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | None = None, *, resume: bool = False,
                               progress: bool = True, fdk=None, surface_level: float | None = None,
-                              **settings) -> ShapeGuidedResult:
+                              surface_closing: int | None = None, **settings) -> ShapeGuidedResult:
     """Reconstruct ``scan`` with the shape-guided method and the parts of ``anatomy``.
 
     ``anatomy``: a :class:`clgs.anatomy.AnatomyParts`, or a :class:`clgs.anatomy.Anatomy` (its
@@ -819,7 +820,8 @@ def _reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | Non
     ``out_dir`` receives volume.nii.gz, gaussians.npz, alpha.json, log.csv/png, summary.txt,
     surface.stl with surface.json (the reconstruction's outer bone surface and the level it was
     taken at: ``surface_level`` (1/mm) when given, else :func:`clgs.anatomy.bone_level.choose_level`'s
-    for this anatomy and scan) and shape_surface.stl (the template deformed by the fitted alpha);
+    for this anatomy and scan; gaps in its wall sealed by a closing of up to ``surface_closing``
+    voxels when given, else the anatomy's) and shape_surface.stl (the template deformed by the fitted alpha);
     checkpoints allow ``resume``. ``result.surface`` records the bone surface written.
     """
 
@@ -828,8 +830,8 @@ def _reconstruct_shape_guided(scan, anatomy, out_dir=None, iterations: int | Non
     parts = AnatomyParts.of(anatomy)
     cfg, state = run_config(ShapeGuidedConfig, iterations, settings, resume, out_dir)
     warn_if_the_scan_cannot_hold(scan, parts.template)
-    level = choose_level(user=surface_level, anatomy=parts.anatomy, truth=scan.truth, scan_meta=scan.meta,
-                         atlas=parts.atlas, template=parts.template)
+    level = with_closing(choose_level(user=surface_level, anatomy=parts.anatomy, truth=scan.truth, scan_meta=scan.meta,
+                                      atlas=parts.atlas, template=parts.template), surface_closing)
     if level is not None:  # what the scan shows, before the shape model shapes it: its FDK
         fdk = fdk_volume(scan) if fdk is None else fdk
         warn_if_it_fills_the_grid(fdk, level.value, parts.template, seen=scan.geometry.field_of_view())
@@ -908,12 +910,13 @@ def _anatomy_for(scan, anatomy):
 
 
 def run_method(scan, out_dir=None, iterations: int | None = None, anatomy=None, resume: bool = False,
-               progress: bool = True, surface_level: float | None = None, **settings) -> dict:
+               progress: bool = True, surface_level: float | None = None, surface_closing: int | None = None,
+               **settings) -> dict:
     """The ``shape`` entry of :mod:`clgs.methods`; its ``info`` names the bone surface written
     (``surface_file``, ``surface_level``, ``surface_level_source``)."""
     anatomy = _anatomy_for(scan, anatomy)
     result = reconstruct_shape_guided(scan, anatomy, out_dir, iterations, resume=resume, progress=progress,
-                                      surface_level=surface_level, **settings)
+                                      surface_level=surface_level, surface_closing=surface_closing, **settings)
     files = {p.name: str(p) for p in sorted(Path(out_dir).iterdir())} if out_dir is not None else {}
     shape_set = result.trainer.sets[0]
     size = shape_set.size if isinstance(shape_set, ShapeGuidedSet) and shape_set.fits_size else None
