@@ -408,3 +408,49 @@ def test_demo_out_follows_the_output_rule(tmp_path):
     res = CliRunner().invoke(main, ["femur", "demo", "--method", "fdk", "--views", "2", "--out", str(mine), "--force"])
     assert_clean_error(res, "notes.txt")
     assert (mine / "scan" / "notes.txt").read_text() == "my own notes"
+
+
+# --------------------------------------------------------------------------------------- the closing
+def _open_tube(scan, out_dir=None):
+    """A known answer: a hollow tube along z across the grid (a 2-voxel wall, lids at both ends)
+    with a 2-voxel hole through its wall halfway along: the canal reaches the outside there."""
+    n = tuple(scan.geometry.nVoxel)
+    _, y, x = np.mgrid[:n[0], :n[1], :n[2]].astype(np.float32)
+    r = np.hypot(y - (n[1] - 1) / 2, x - (n[2] - 1) / 2)
+    vol = np.where(r <= 5, np.where(r > 2.9, 0.03, 0.005), 0.0).astype(np.float32)
+    vol[2:4][r[2:4] <= 5], vol[-4:-2][r[-4:-2] <= 5] = 0.03, 0.03
+    vol[:2], vol[-2:] = 0.0, 0.0
+    c = n[0] // 2
+    vol[c - 1:c + 1, n[1] // 2 - 1:n[1] // 2 + 1, n[2] // 2:] = 0.0
+    return {"volume": vol}
+
+
+def test_the_anatomy_groups_reconstruct_takes_a_closing(bare, tiny_scan, tmp_path, monkeypatch):
+    """`clgs <anatomy> reconstruct --surface-closing N`: surface.json names the closing given (the
+    bare anatomy asks for none) and the surface is the tube's outer wall alone, one shell (trimesh);
+    without it the canal's wall is written too; a method that writes its own bone surface but
+    takes no closing is refused before it runs."""
+    trimesh = pytest.importorskip("trimesh")
+    import json
+
+    monkeypatch.setitem(methods._REGISTRY, "t-tube", methods.Method("t-tube", _open_tube, help="test stand-in"))
+    for name, extra in (("open", ()), ("sealed", ("--surface-closing", 2))):
+        res = invoke(bare, "reconstruct", tiny_scan, "--out", tmp_path / name, "--method", "t-tube",
+                     "--surface-level", 0.02, *extra)
+        assert res.exit_code == 0, res.output
+    record = json.loads((tmp_path / "sealed" / "surface.json").read_text())
+    assert record["surface_closing_max_voxels"] == 2 and record["surface_closing_voxels"] == 1
+    assert "surface_closing_max_voxels" not in json.loads((tmp_path / "open" / "surface.json").read_text())
+    opened, sealed = (trimesh.load(tmp_path / k / "surface.stl") for k in ("open", "sealed"))
+    assert sealed.is_watertight and len(sealed.split(only_watertight=False)) == 1
+    assert opened.area > 1.2 * sealed.area, (opened.area, sealed.area)
+    ran = []
+
+    def own_surface(scan, out_dir=None, surface_level=None):
+        ran.append(scan)
+        return {"volume": np.zeros(tuple(scan.geometry.nVoxel), np.float32)}
+
+    monkeypatch.setitem(methods._REGISTRY, "t-own", methods.Method("t-own", own_surface, help="test stand-in"))
+    res = invoke(bare, "reconstruct", tiny_scan, "--out", tmp_path / "x", "--method", "t-own", "--surface-closing", 1)
+    assert_clean_error(res, "takes no closing", code=2)
+    assert not ran and not (tmp_path / "x").exists()

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import click
 
+from clgs.anatomy.record import MAX_CLOSING
 from clgs.cli.cohort_options import check_cohort_options, cohort_options
 from clgs.cli.common import check_memory, check_not_input, exit_if_interrupted
 from clgs.cli.options import FiniteFloat, Seed, force_option, mesh_space_option, out_option
@@ -163,22 +164,23 @@ def _get_method(method: str):
         raise click.ClickException(f"reconstruction method {method!r} could not be loaded: {exc}") from exc
 
 
-def run_reconstruct(scan, anatomy, method: str, out=None, surface_level=None, **options):
+def run_reconstruct(scan, anatomy, method: str, out=None, surface_level=None, surface_closing=None, **options):
     """Reconstruct with a method of the registry through :func:`clgs.methods.run.run_method` (the
     anatomy goes to the methods that name an ``anatomy`` parameter). Returns
     the method's result dict (at least ``volume``). With ``out``, ``out/volume.npy`` is (over)written
     atomically with the volume just computed, whatever an earlier run left there (and
     ``out/volume.nii.gz`` for viewers), and so are the bone surface ``out/surface.stl`` (with
     ``surface.json``: the level and its source, :func:`clgs.anatomy.bone_level.choose_level`, or
-    ``surface_level`` when given; a method that writes its own, as the shape-guided one does, is
-    given the level) and the slice panel ``out/slices.png``; ``result["surface"]`` and
-    ``result["slices"]`` record them."""
+    ``surface_level`` when given, its wall sealed by the anatomy's closing or ``surface_closing``; a
+    method that writes its own, as the shape-guided one does, is given both) and the slice panel
+    ``out/slices.png``; ``result["surface"]`` and ``result["slices"]`` record them."""
     from clgs.methods.run import run_method
 
     _get_method(method)  # an unknown or broken method: a click error
-    result = run_method(method, scan, out, options, anatomy=anatomy, surface_level=surface_level)
+    result = run_method(method, scan, out, options, anatomy=anatomy, surface_level=surface_level,
+                        surface_closing=surface_closing)
     if out is not None and "volume" in result:
-        from clgs.anatomy.bone_level import choose_level
+        from clgs.anatomy.bone_level import choose_level, with_closing
         from clgs.anatomy.evaluation import LEVEL_KEYS, write_bone_surface
         from clgs.anatomy.simulation import as_float32
         from clgs.figures import SLICES_FILE, volume_slices
@@ -196,7 +198,7 @@ def run_reconstruct(scan, anatomy, method: str, out=None, surface_level=None, **
                                  **{k: info[k] for k in LEVEL_KEYS if k in info}}
         else:
             level = choose_level(user=surface_level, anatomy=anatomy, truth=scan.truth, scan_meta=scan.meta)
-            result["surface"] = write_bone_surface(out, volume, scan.geometry, level)
+            result["surface"] = write_bone_surface(out, volume, scan.geometry, with_closing(level, surface_closing))
         result["slices"] = volume_slices(os.path.join(out, SLICES_FILE), volume, scan.geometry, truth=scan.truth,
                                          title=f"{anatomy.name}: {method}, {scan.n_views} views")
     return result
@@ -425,7 +427,10 @@ def _reconstruct_command(anatomy) -> click.Command:
     @click.option("--surface-level", type=FiniteFloat(min=0, min_open=True), default=None,
                   help="bone level (1/mm) of OUT/surface.stl [default: the anatomy's, or the truth's for a simulated "
                        "scan; docs/outputs.md]")
-    def reconstruct(scan_dir, out, method, views, settings, resume, force, surface_level):
+    @click.option("--surface-closing", type=click.IntRange(0, MAX_CLOSING), default=None, metavar="VOXELS",
+                  help="seal gaps in the bone's wall up to this many voxels wide before OUT/surface.stl is taken "
+                       "(0: none) [default: the anatomy's scene.surface_closing; docs/outputs.md]")
+    def reconstruct(scan_dir, out, method, views, settings, resume, force, surface_level, surface_closing):
         """Reconstruct a scan folder with the anatomy's prior; writes OUT/volume.nii.gz and OUT/volume.npy."""
         method = method or default_method(anatomy)
         m, run = _get_method(method)
@@ -439,16 +444,24 @@ def _reconstruct_command(anatomy) -> click.Command:
             opts["resume"] = True
         # no iterations unless given: a resumed run then goes on to its checkpoint's planned count
         opts = check_settings(method, m, run, opts, raw)
+        if surface_closing is not None:  # run_method's rule, before anything is claimed
+            import inspect
+
+            params = inspect.signature(run).parameters
+            if "surface_level" in params and "surface_closing" not in params:
+                raise click.UsageError(f"the {method} method writes its own bone surface and takes no closing: "
+                                       "leave --surface-closing out")
         from clgs.progress import enabled
 
         with _check_run_out(scan_dir, out, bool(opts.get("resume")), force), enabled(opts.get("progress", True)):
-            result, scan = _reconstruct_into(anatomy, scan_dir, out, method, views, opts, surface_level)
+            result, scan = _reconstruct_into(anatomy, scan_dir, out, method, views, opts, surface_level,
+                                             surface_closing)
         exit_if_interrupted(result.get("info"))
 
     return reconstruct
 
 
-def _reconstruct_into(anatomy, scan_dir, out, method, views, opts, surface_level=None) -> tuple:
+def _reconstruct_into(anatomy, scan_dir, out, method, views, opts, surface_level=None, surface_closing=None) -> tuple:
     """The run of ``clgs <anatomy> reconstruct`` in its claimed folder: (result, scan)."""
     from clgs.io.scan import Scan
 
@@ -463,7 +476,8 @@ def _reconstruct_into(anatomy, scan_dir, out, method, views, opts, surface_level
 
         scan = scan.subset(np.linspace(0, scan.n_views, views, endpoint=False).astype(int))
     t0 = time.perf_counter()
-    result = run_reconstruct(scan, anatomy, method, out=out, surface_level=surface_level, **opts)
+    result = run_reconstruct(scan, anatomy, method, out=out, surface_level=surface_level,
+                             surface_closing=surface_closing, **opts)
     seconds = time.perf_counter() - t0
     click.echo(f"{name}: {method} reconstruction of {scan.n_views} views in {seconds:.1f} s -> {out}")
     _echo_outputs(result)
