@@ -452,5 +452,5 @@ def test_the_anatomy_groups_reconstruct_takes_a_closing(bare, tiny_scan, tmp_pat
 
     monkeypatch.setitem(methods._REGISTRY, "t-own", methods.Method("t-own", own_surface, help="test stand-in"))
     res = invoke(bare, "reconstruct", tiny_scan, "--out", tmp_path / "x", "--method", "t-own", "--surface-closing", 1)
-    assert_clean_error(res, "takes no closing", code=2)
+    assert_clean_error(res, "takes no surface closing", "--surface-closing", code=2)
     assert not ran and not (tmp_path / "x").exists()

@@ -195,6 +195,17 @@ def test_surface_closing_seals_the_bone_surface_of_a_scan_that_names_no_anatomy(
     res = run("reconstruct", tmp_path / "plain", "-m", "tube_t", "--surface-level", 0.02, "--surface-closing", 9,
               "--out", tmp_path / "x", ok=False)
     assert res.exit_code == 2 and "0<=x<=8" in res.output.replace(" ", "")
+    ran = []
+
+    def own_surface(scan, out_dir=None, surface_level=None):  # writes its own surface, takes no closing
+        ran.append(scan)
+        return _drilled_tube(scan)
+
+    _register("own_surface_t", own_surface)
+    res = run("reconstruct", tmp_path / "plain", "-m", "own_surface_t", "--surface-closing", 2,
+              "--out", tmp_path / "y", ok=False)
+    assert res.exit_code == 2 and "takes no surface closing" in res.output and "--surface-closing" in res.output
+    assert not ran and not (tmp_path / "y").exists()
 
 
 def test_reconstruct_sart_options(scan_dir, tmp_path):

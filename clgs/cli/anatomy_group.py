@@ -444,13 +444,12 @@ def _reconstruct_command(anatomy) -> click.Command:
             opts["resume"] = True
         # no iterations unless given: a resumed run then goes on to its checkpoint's planned count
         opts = check_settings(method, m, run, opts, raw)
-        if surface_closing is not None:  # run_method's rule, before anything is claimed
-            import inspect
+        from clgs.methods.run import MethodError, check_surface_closing
 
-            params = inspect.signature(run).parameters
-            if "surface_level" in params and "surface_closing" not in params:
-                raise click.UsageError(f"the {method} method writes its own bone surface and takes no closing: "
-                                       "leave --surface-closing out")
+        try:  # run_method's rule, before anything is claimed
+            check_surface_closing(m, surface_closing)
+        except MethodError as exc:
+            raise click.UsageError(str(exc)) from None
         from clgs.progress import enabled
 
         with _check_run_out(scan_dir, out, bool(opts.get("resume")), force), enabled(opts.get("progress", True)):

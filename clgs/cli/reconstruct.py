@@ -229,9 +229,12 @@ def reconstruct(ctx, scan, method_name, out, split, json_out, force, hu, kev, se
     if surface_level is not None and _takes_surface_level(method):
         kwargs["surface_level"] = surface_level  # a method that writes its own bone surface
     if surface_closing is not None and _takes_surface_level(method):
-        if not _takes(method, "surface_closing"):
-            raise click.UsageError(f"the {method.name} method writes its own bone surface and takes no closing: "
-                                   "leave --surface-closing out")
+        from clgs.methods.run import check_surface_closing
+
+        try:  # run_method's rule, before the outputs are claimed
+            check_surface_closing(method, surface_closing)
+        except methods.MethodError as exc:
+            raise click.UsageError(str(exc)) from None
         kwargs["surface_closing"] = surface_closing
     into_folder = not is_volume_path(out) and not method.atomic_dir
     resuming = bool(options.get("resume")) and into_folder and out.is_dir()
@@ -398,15 +401,10 @@ def _say_detail(method, options: dict, scan, seconds: float) -> None:
 
 def _takes_surface_level(method) -> bool:
     """Whether the method's callable names a ``surface_level`` parameter (it writes its own bone surface)."""
-    return _takes(method, "surface_level")
-
-
-def _takes(method, name: str) -> bool:
-    """Whether the method's callable names the parameter ``name``."""
     import inspect
 
     try:
-        return name in inspect.signature(method.callable()).parameters
+        return "surface_level" in inspect.signature(method.callable()).parameters
     except (TypeError, ValueError, ImportError, AttributeError):
         return False
 

@@ -86,6 +86,20 @@ def method_accepts(method, key: str) -> bool:
     return open_ or key in hints
 
 
+def check_surface_closing(method, surface_closing) -> None:
+    """A closing given (``surface_closing`` not None) must reach the surface written: a
+    :class:`MethodError` for a method that writes its own bone surface (its callable names
+    ``surface_level``) but takes no ``surface_closing``. The one rule :func:`run_method` and the
+    commands (before they claim their outputs) apply."""
+    if surface_closing is None:
+        return
+    m = _method(method)
+    params = inspect.signature(m.callable()).parameters
+    if "surface_level" in params and "surface_closing" not in params:
+        raise MethodError(f"the {m.name} method writes its own bone surface and takes no surface closing: "
+                          "leave surface_closing (--surface-closing) out")
+
+
 def unknown_setting_message(key: str, owner: str, valid) -> str:
     """The one wording of an unknown setting, everywhere."""
     return f"unknown setting {key!r} for {owner}; valid keys: {', '.join(sorted(valid))}"
@@ -136,9 +150,7 @@ def run_method(name, scan, out_dir=None, settings: dict | None = None, *, anatom
         kwargs["anatomy"] = anatomy
     if surface_level is not None and "surface_level" in params:
         kwargs["surface_level"] = surface_level
+    check_surface_closing(m, surface_closing)
     if surface_closing is not None and "surface_level" in params:
-        if "surface_closing" not in params:
-            raise MethodError(f"the {m.name} method writes its own bone surface and takes no surface closing: "
-                              "leave surface_closing (--surface-closing) out")
         kwargs["surface_closing"] = surface_closing
     return run(scan, out_dir, **kwargs)
