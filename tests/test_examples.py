@@ -154,3 +154,42 @@ def test_femur_density_shift_scales_bone_and_tissue_apart(tmp_path):
     bad = subprocess.run(cmd[:2] + [str(tmp_path / "t"), "--subject", "03"], capture_output=True, text=True,
                          cwd=EXAMPLES, timeout=600)
     assert bad.returncode == 2 and "held-out subject" in bad.stderr
+
+
+def test_femur_model_reach_finds_the_length_given_to_a_model_surface(tmp_path):
+    """Known answer: the template carried by known coefficients, made 4 % larger and 6 % longer along
+    the leg, then turned and moved into another frame (as a user's file would be): the fit with a
+    length factor finds the size and length given and comes back onto the surface; the fit with one
+    size cannot (its error is the length it lacks)."""
+    pytest.importorskip("clgs_femur", reason="install with: pip install -e anatomies/femur")
+    import json
+
+    import numpy as np
+    import torch
+
+    from clgs.anatomy.plugins import get_anatomy
+    from clgs.io.mesh import save_mesh
+    from clgs.shape.model import exp_velocity
+
+    femur = get_anatomy("femur")
+    template, model = femur.load_template(), femur.load_shape_model().to(torch.float64)
+    v = torch.as_tensor(np.asarray(template.vertices), dtype=torch.float64)
+    alpha = torch.tensor([0.5, -0.4, 0.3], dtype=torch.float64)[: model.n_modes]
+    with torch.no_grad():
+        p = (v + model.sample(exp_velocity(model.velocity(alpha), model.spacing), v)).numpy()
+    c = np.asarray(template.vertices).mean(0)
+    p = c + np.array([1.04, 1.04, 1.04 * 1.06]) * (p - c)
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90 degrees about the leg
+    save_mesh(tmp_path / "given.stl", p @ turn.T + np.array([30.0, -12.0, 5.0]), np.asarray(template.faces))
+    cmd = [sys.executable, str(EXAMPLES / "femur_model_reach.py"), str(tmp_path / "given.stl"), "--rounds", "10",
+           "--json", str(tmp_path / "reach.json")]
+    r = subprocess.run(cmd, capture_output=True, text=True, cwd=EXAMPLES, timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+    one, both = json.loads((tmp_path / "reach.json").read_text())
+    assert (one["fit"], both["fit"]) == ("size", "size_and_length") and one["length"] == 1.0
+    assert both["length"] == pytest.approx(1.06, abs=0.01) and both["size"] == pytest.approx(1.04, abs=0.01)
+    assert both["mean_mm"] < 0.15 and both["trimesh_vertex_mean_mm"] < 0.15
+    assert one["mean_mm"] > 2 * both["mean_mm"] + 0.2
+    assert "size and length" in r.stdout
+    bad = subprocess.run(cmd[:3] + ["--rounds", "0"], capture_output=True, text=True, cwd=EXAMPLES, timeout=300)
+    assert bad.returncode == 2 and "at least 1" in bad.stderr
