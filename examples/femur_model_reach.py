@@ -11,8 +11,8 @@ model's coefficients alpha, its size ``s`` about the template's centroid (as the
 method's ``fit_size``) and a small rigid correction are fitted by ICP (closest points on the
 surface, then L-BFGS on the squared distance to their tangent planes, with a twentieth of the
 squared distance to the points), once with one size and once with a second factor ``k`` along
-the leg (z) as well: ``c + s * diag(1, 1, k) (x - c)``, the length apart from the girth. Each fit's surface is
-compared with the surface given: the symmetric mean, p95 and Hausdorff distance in mm
+the leg (z) as well: ``c + s * diag(1, 1, k) (x - c)``, the length apart from the girth. Each
+fit's surface is compared with the surface given: the symmetric mean, p95 and Hausdorff distance in mm
 (:func:`clgs.metrics.surface_distance`, the experiment's measure), and, read independently, the
 mean unsigned distance of its vertices to the surface (trimesh). The method has no length factor:
 the second fit says what one would reach.
@@ -27,6 +27,7 @@ import trimesh
 
 from clgs.anatomy.alignment import align_rigid
 from clgs.anatomy.plugins import get_anatomy
+from clgs.io.mesh import MeshError, load_mesh
 from clgs.metrics import surface_distance
 from clgs.shape.model import exp_velocity
 
@@ -88,17 +89,21 @@ def main():
     args = ap.parse_args()
     if args.rounds < 1 or args.steps < 1:
         ap.error("--rounds and --steps must be at least 1")
-    torch.manual_seed(0)
+    meshes = {}
+    for path in args.surfaces:  # every file read before any fit: a bad one stops nothing half-done
+        try:
+            meshes[path] = load_mesh(path)
+        except MeshError as exc:
+            ap.error(str(exc))
     femur = get_anatomy("femur")
     template = femur.load_template()
     model = femur.load_shape_model().to(torch.float64)
     tv, tf = np.asarray(template.vertices, float), np.asarray(template.faces)
     rows = []
     print(f"{'surface':<22} {'fit':<16} {'size':>6} {'length':>7}   mean / p95 / Hausdorff (mm)   trimesh mean")
-    for path in args.surfaces:
-        mesh = trimesh.load(path)
+    for path, mesh in meshes.items():
         a = align_rigid(mesh.vertices, tv)
-        target = trimesh.Trimesh(*a.apply_mesh(mesh.vertices, mesh.faces), process=False)
+        target = trimesh.Trimesh(*a.apply_mesh(mesh.vertices, mesh.faces), process=True)
         for length in (False, True):
             pts, alpha, s, k = fit(model, tv, tf, target, length, args.rounds, args.steps)
             d = surface_distance((pts, tf), (np.asarray(target.vertices), np.asarray(target.faces)))

@@ -193,3 +193,7 @@ def test_femur_model_reach_finds_the_length_given_to_a_model_surface(tmp_path):
     assert "size and length" in r.stdout
     bad = subprocess.run(cmd[:3] + ["--rounds", "0"], capture_output=True, text=True, cwd=EXAMPLES, timeout=300)
     assert bad.returncode == 2 and "at least 1" in bad.stderr
+    missing = subprocess.run(cmd[:3] + [str(tmp_path / "none.stl")], capture_output=True, text=True, cwd=EXAMPLES,
+                             timeout=300)
+    assert missing.returncode == 2 and "none.stl: no such file" in missing.stderr
+    assert "size and length" not in missing.stdout
