@@ -82,7 +82,14 @@ from clgs.progress import enabled, phase
 from clgs.shape.gaussian_set import ShapeGuidedSet
 from clgs.shape.initialise import initialise, initialise_surroundings, sample_surrounding_centres
 from clgs.shape.priors import DensityPrior, random_subgrid, residual_prior_term, shape_prior_term
-from clgs.shape.size import AUTO_TOLERANCE, search_size, size_centre, stretched_surroundings
+from clgs.shape.size import (
+    AUTO_TOLERANCE,
+    LEG_AXIS,
+    search_size,
+    search_size_and_length,
+    size_centre,
+    stretched_surroundings,
+)
 
 # The paper's weight of the shape prior |alpha|^2. Against a loss that is a mean over one view's
 # pixels it is not a prior of the views' likelihood but a pull of its own: once the densities and
@@ -144,6 +151,13 @@ class ShapeGuidedConfig(GaussianFitConfig):
     fit_size: str = setting("on", "--fit-size",
                             "fit the bone's size with its shape: on, auto (only when the projections show a bone "
                             "more than 10% larger or smaller than the model's), off (the paper)")
+    # a length of the bone's own along the leg, searched with the size (clgs.shape.size
+    # .search_size_and_length) and held through the fit: "on" needs fit_size "on"; "off" (the
+    # default) the one size (docs/methods.md, "The bone's length")
+    fit_length: str = "off"
+    # the length factor of this run (set by the search with fit_length="on", or given: held fixed;
+    # None: none)
+    length_factor: float | None = None
     # a smooth residual deformation beyond the model's span (clgs.shape.residual): "on" registers it
     # after alpha and trains it with everything else; "off" (the paper) keeps the bone in the span;
     # "auto" (residual_for): on where the views cover a half-turn (5 over 180 degrees and more),
@@ -198,9 +212,11 @@ class ShapeGuidedConfig(GaussianFitConfig):
     FAST_STOP_EVERY = 250
     CHOICES = {**GaussianFitConfig.CHOICES, "free_init": ("atlas", "fdk"), "register_tissue": ("auto", "free", "fdk"),
                "density_prior_field": ("all", "shape"),
-               "fit_size": ("auto", "on", "off"), "residual": ("auto", "on", "off"), "uncertainty": ("on", "off"),
+               "fit_size": ("auto", "on", "off"), "fit_length": ("on", "off"),
+               "residual": ("auto", "on", "off"), "uncertainty": ("on", "off"),
                "atlas_calibration": ("fit", "off")}
-    POSITIVE = GaussianFitConfig.POSITIVE | {"tau", "density_s", "atlas_bone_factor", "atlas_rest_factor"}
+    POSITIVE = GaussianFitConfig.POSITIVE | {"tau", "density_s", "atlas_bone_factor", "atlas_rest_factor",
+                                             "length_factor"}
     AT_LEAST = {**GaussianFitConfig.AT_LEAST, "density_points": 2, "residual_points": 4, "register_passes": 1}
 
 
@@ -213,6 +229,7 @@ def shape_schedules(cfg: ShapeGuidedConfig, iterations: int, *, free_means: bool
     sched = {
         "alpha": Schedule(cfg.lr_alpha, cfg.lr_alpha * 0.01, half, start=cfg.alpha_freeze, frozen_before_start=True),
         "log_size": Schedule(cfg.lr_size, cfg.lr_size * 0.01, half, start=cfg.alpha_freeze, frozen_before_start=True),
+        "log_length": Schedule(0.0),  # held where the search put it
         "residual": Schedule(cfg.lr_residual, cfg.lr_residual * 0.01, half, start=cfg.alpha_freeze,
                              frozen_before_start=True),
         "densities": Schedule(cfg.lr_density),
@@ -243,13 +260,13 @@ class ShapeGuidedResult:
 
 
 def _free_init_volume(fdk, geometry, template, size=None, centre_mm=None, to_template=None,
-                      margin_mm=0.0) -> np.ndarray:
+                      margin_mm=0.0, length: float = 1.0) -> np.ndarray:
     """The FDK volume with the template's bone blanked out (free Gaussians start outside it); with
     ``size`` > 1, the bone scaled by it about ``centre_mm`` (a larger bone's ends stay blanked);
     with ``to_template`` (a map of points (N, 3) mm to the template's, or a list of them, None in
     it standing for the template's own bone as above), only where every map's bone lies (the bones
     fitted so far: :func:`fit_alpha_in_passes`), a fitted bone's grown by ``margin_mm`` (mm in the
-    template's frame).
+    template's frame). A ``length`` factor stretches the template's bone along the leg as well.
 
     Why the margin (``pass_hole_margin_mm``, 3): where a fitted bone's surface lies a little inside
     the true bone, a hole that follows it holds the FDK's bone there as tissue, which pushes the
@@ -258,14 +275,15 @@ def _free_init_volume(fdk, geometry, template, size=None, centre_mm=None, to_tem
     shrinks only where a fitted bone lies clearly inside the template's (subject 24's ends: 0.74
     mm after three passes, 1.22 after one; docs/results.md)."""
     pts = geometry.volume_grid(scene=False).points().reshape(-1, 3)
-    k = max(float(size or 1.0), 1.0)
+    k = np.full(3, max(float(size or 1.0), 1.0))
+    k[LEG_AXIS] *= max(float(length), 1.0)
     maps = to_template if isinstance(to_template, (list, tuple)) else [to_template]
     inside = np.ones(fdk.shape, bool)
     for m in maps:
         if m is not None:
             inside &= template.sdf_at(m(pts)).reshape(fdk.shape) < margin_mm
             continue
-        q = centre_mm + (pts - centre_mm) / k if k > 1.0 else pts
+        q = centre_mm + (pts - centre_mm) / k if np.any(k > 1.0) else pts
         inside &= template.sdf_at(q).reshape(fdk.shape) < 0
     vol = np.array(fdk, np.float32, copy=True)
     vol[inside] = float(vol.min())
@@ -330,7 +348,8 @@ def fdk_tissue(fdk, geometry, template, cfg, set_kw: dict, size=None, centre_mm=
     its values capped at ``ceiling`` (1/mm; None: not capped): the free set's start with
     ``free_init="fdk"``, and the tissue held while alpha is registered with ``register_tissue="fdk"``
     (capped at :func:`tissue_ceiling`)."""
-    vol = _free_init_volume(fdk, geometry, template, size, centre_mm, to_template, cfg.pass_hole_margin_mm)
+    vol = _free_init_volume(fdk, geometry, template, size, centre_mm, to_template, cfg.pass_hole_margin_mm,
+                            length=getattr(cfg, "length_factor", None) or 1.0)
     if ceiling is not None:
         vol = np.minimum(vol, np.float32(ceiling))
     vol = vol * cfg.value_scale
@@ -496,14 +515,15 @@ def _registration(scan, shape_model, cfg, init, free, moving: dict, k: int, *, s
     """(the shape set, its trainer) of :func:`_register`."""
     geo = scan.geometry
     frozen = Schedule(0.0)
-    sched = {name: moving.get(name, frozen) for name in ("alpha", "log_size", "residual", "densities", "scales",
-                                                          "quats")}
+    sched = {name: moving.get(name, frozen) for name in ("alpha", "log_size", "log_length", "residual", "densities",
+                                                          "scales", "quats")}
     bound = ShapeGuidedSet(init.centres, (init.scales * geo.scale).astype(np.float32), init.quats.astype(np.float32),
                            (init.densities * cfg.value_scale).astype(np.float32), shape_model=shape_model,
                            geometry=geo, box=volume_box(geo),
                            scale_bounds=scale_bounds_for(geo, cfg.scale_bounds, cfg.scale_floor), schedules=sched,
                            name="registration", sampler=field_sampler(cfg.backend), size=size,
-                           size_centre_mm=centre_mm, alpha=alpha, residual=residual)
+                           size_centre_mm=centre_mm, alpha=alpha, residual=residual,
+                           length=cfg.length_factor if size is not None else None)
     for name, p in bound.params.items():  # no gradients wanted: a cheaper backward
         if name not in moving:
             p.requires_grad_(False)
@@ -602,7 +622,8 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
         if size is not None:  # the bone's Gaussians at its size, the tissue along its length
             init = dataclasses.replace(init, scales=init.scales * size)
             if outside is not None:
-                outside = dataclasses.replace(outside, centres=stretched_surroundings(outside.centres, centre, size))
+                outside = dataclasses.replace(outside, centres=stretched_surroundings(outside.centres, centre, size,
+                                                                                      cfg.length_factor or 1.0))
         if outside is not None:
             free = GaussianSet(geo.world_to_scene(outside.centres).astype(np.float32),
                                (outside.scales * geo.scale).astype(np.float32), outside.quats.astype(np.float32),
@@ -638,7 +659,8 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
                                    dens.astype(np.float32), shape_model=shape_model, geometry=geo,
                                    schedules=sched, alpha=alpha0, sampler=field_sampler(cfg.backend), size=size,
                                    size_centre_mm=centre, residual=residual_grid(shape_model, cfg),
-                                   residual_theta=theta0, **common)
+                                   residual_theta=theta0,
+                                   length=cfg.length_factor if size is not None else None, **common)
     else:
         shape_set = GaussianSet(geo.world_to_scene(centres).astype(np.float32), scales.astype(np.float32),
                                 quats.astype(np.float32), dens.astype(np.float32), schedules=sched,
@@ -716,14 +738,28 @@ def choose_size(scan, cfg: ShapeGuidedConfig, init, tissue, centre_mm) -> float 
     model's size: then the run is the same as without the search). Without the atlas's tissue
     around the bone (``tissue`` None) the search would let the bone grow into the tissue it cannot
     see: ``"auto"`` then fits no size and ``"on"`` starts from the model's size."""
+    if cfg.length_factor is not None and cfg.fit_size != "on":
+        raise InputError(f"a length_factor needs fit_size=on (the length is a factor of the size), got fit_size="
+                         f"{cfg.fit_size}")
+    if cfg.fit_length == "on" and cfg.fit_size != "on":
+        raise InputError(f"fit_length=on needs fit_size=on (the length is a factor of the size), got fit_size="
+                         f"{cfg.fit_size}")
     if cfg.fit_size == "off" or (tissue is None and cfg.fit_size == "auto"):
         return None
     if tissue is None:
         return 1.0
     assert cfg.value_scale is not None  # set by build_trainer before the search
+    if cfg.fit_length == "on" and cfg.length_factor is None:
+        with phase("searching the bone's size and length"):
+            best, length, alone = search_size_and_length(scan, Backend(cfg.backend, cfg.projector_mode),
+                                                         cfg.value_scale, init, tissue, centre_mm)
+        print(f"bone length: {length:.2f} x its size along the leg (size {best:.2f}; the size alone: {alone:.2f})",
+              file=sys.stderr)
+        cfg.length_factor = None if length == 1.0 else length
+        return best
     with phase("searching the bone's size"):
         best, _ = search_size(scan, Backend(cfg.backend, cfg.projector_mode), cfg.value_scale, init, tissue,
-                              centre_mm)
+                              centre_mm, length=cfg.length_factor or 1.0)
     if cfg.fit_size == "auto" and abs(best - 1.0) <= AUTO_TOLERANCE:
         return None
     return best
@@ -890,6 +926,8 @@ def write_outputs(trainer, out_dir, value_scale, volume, template, alpha, level,
                 volume_surface = (written.vertices, written.faces)
             paths["uncertainty"] = write_uncertainty(trainer, shape_set, template, moved, out_dir, volume_surface)
     record = {"alpha": [float(a) for a in alpha], "size": size, **({"displacement": split} if split else {})}
+    if isinstance(shape_set, ShapeGuidedSet) and shape_set.fits_length:
+        record["length"] = shape_set.length  # along the leg, times the size
     if paths.get("uncertainty"):
         record["uncertainty"] = paths["uncertainty"]
     paths["alpha"] = atomic.write_json(out_dir / "alpha.json", record)
@@ -921,8 +959,8 @@ def run_method(scan, out_dir=None, iterations: int | None = None, anatomy=None, 
     shape_set = result.trainer.sets[0]
     size = shape_set.size if isinstance(shape_set, ShapeGuidedSet) and shape_set.fits_size else None
     if size is not None:
-        print(f"bone size: {size:.3f} x the shape model's (fitted with its shape; --fit-size off keeps the model's)",
-              file=sys.stderr)
+        print(f"bone size: {size:.3f} x the shape model's (fitted with its shape; --fit-size off keeps the model's)"
+              + (f", {shape_set.length:.3f} x that along the leg" if shape_set.fits_length else ""), file=sys.stderr)
     surface = {}
     if result.surface is not None:
         surface = {k: result.surface[k] for k in LEVEL_KEYS if k in result.surface}

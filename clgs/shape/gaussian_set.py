@@ -5,7 +5,9 @@ the bone plausible. Their scale, rotation and density are free, as any :class:`G
 With a fitted size ``s`` the model's bone is also scaled about a fixed centre ``c``:
 ``p_j = c + s (p_ref_j + u(alpha)(p_ref_j) - c)``. The modes of a shape model built from one
 population describe its shapes at that population's sizes; a femur of 355 or 558 mm lies beyond
-what they can stretch to, and ``s`` (one number, no prior) takes that part.
+what they can stretch to, and ``s`` (one number, no prior) takes that part. With a fitted length
+``k`` as well, the scaling along the leg (z) is ``s k``: a femur longer or shorter for its girth
+than the model's (``diag(s, s, s k)``; docs/methods.md).
 
 With a residual (:mod:`clgs.shape.residual`) a smooth displacement ``r(theta)`` on the template,
 beyond the modes' span, is added to theirs:
@@ -39,7 +41,8 @@ class ShapeGuidedSet(GaussianSet):
 
     def __init__(self, p_ref_mm, scales, quats, densities, *, shape_model, geometry, box, scale_bounds,
                  schedules, alpha=None, name: str = "shape", raw: bool = False, sampler=None,
-                 size: float | None = None, size_centre_mm=None, residual=None, residual_theta=None):
+                 size: float | None = None, size_centre_mm=None, residual=None, residual_theta=None,
+                 length: float | None = None):
         dt = torch.float32
         self.sampler = sampler  # a FieldSampler (OpenCL) or None (torch's grid_sample)
         self.shape_model = shape_model.to(dt) if shape_model.dtype != dt else shape_model
@@ -59,6 +62,13 @@ class ShapeGuidedSet(GaussianSet):
                 raise ValueError(f"size must be a positive number, got {size}")
             self.size_centre = torch.as_tensor(np.asarray(size_centre_mm, np.float64), dtype=dt)
             self.params["log_size"] = torch.tensor([np.log(size)], dtype=dt, requires_grad=True)
+        # a length of its own along the leg (z), times the size (None: the size alone)
+        if length is not None:
+            if size is None:
+                raise ValueError("a length factor needs a fitted size (its centre)")
+            if not np.isfinite(length) or length <= 0:
+                raise ValueError(f"length must be a positive number, got {length}")
+            self.params["log_length"] = torch.tensor([np.log(length)], dtype=dt, requires_grad=True)
         # the residual beyond the model's span (a ResidualGrid on the model's grid, None: none)
         self.residual = residual.to(dt) if residual is not None and residual.dtype != dt else residual
         if residual is not None:
@@ -98,12 +108,31 @@ class ShapeGuidedSet(GaussianSet):
         """The fitted size (1.0 without one)."""
         return float(torch.exp(self.params["log_size"].detach())[0]) if self.fits_size else 1.0
 
+    @property
+    def fits_length(self) -> bool:
+        return "log_length" in self.params
+
+    @property
+    def length(self) -> float:
+        """The fitted length factor along the leg (1.0 without one)."""
+        return float(torch.exp(self.params["log_length"].detach())[0]) if self.fits_length else 1.0
+
+    def _stretch(self, like: torch.Tensor, detach: bool = False) -> torch.Tensor:
+        """(1, 1, k) for the length factor k along the leg (z), ones without one."""
+        one = torch.ones(1, dtype=like.dtype)
+        if not self.fits_length:
+            return torch.ones(3, dtype=like.dtype)
+        k = torch.exp(self.params["log_length"].detach() if detach else self.params["log_length"]).to(like.dtype)
+        return torch.cat([one, one, k])
+
     def scaled(self, points_mm: torch.Tensor) -> torch.Tensor:
-        """Points of the model's frame at the fitted size: ``c + s (x - c)`` (the points as they are
-        without a fitted size)."""
+        """Points of the model's frame at the fitted size: ``c + s (x - c)``, times the length
+        factor along the leg where one is fitted (the points as they are without a fitted size)."""
         if not self.fits_size:
             return points_mm
         s = torch.exp(self.params["log_size"])
+        if self.fits_length:
+            s = s * self._stretch(points_mm)
         return self.size_centre + s * (points_mm - self.size_centre)
 
     def centres_mm(self, u=None) -> torch.Tensor:
@@ -246,7 +275,10 @@ class ShapeGuidedSet(GaussianSet):
         total = self.total_displacement()
         if self.fits_size:
             s = torch.exp(self.params["log_size"].detach())
-            points_mm = self.size_centre + (points_mm - self.size_centre) / (torch.clamp(s, min=1.0) if tissue else s)
+            k = self._stretch(points_mm, detach=True)
+            # the tissue takes the bone's size and length where they are larger, never smaller
+            s = torch.clamp(s, min=1.0) * torch.clamp(k, min=1.0) if tissue else s * k
+            points_mm = self.size_centre + (points_mm - self.size_centre) / s
         x = points_mm
         for _ in range(2):
             x = points_mm - self.shape_model.sample(total, x, self.sampler)
@@ -258,6 +290,8 @@ class ShapeGuidedSet(GaussianSet):
         if self.fits_size:
             out["size"] = np.float32(self.size)
             out["size_centre_mm"] = self.size_centre.numpy().astype(np.float32)
+        if self.fits_length:
+            out["length"] = np.float32(self.length)
         out["p_ref_mm"] = self.p_ref.numpy().astype(np.float32)
         if self.has_residual:  # the B-spline coefficients (mm) and their control spacing
             out["residual_mm"] = self.params["residual"].detach().numpy().astype(np.float32)
@@ -281,6 +315,9 @@ class ShapeGuidedSet(GaussianSet):
                              + " a fitted size, this run's " + ("with" if self.fits_size else "without"))
         if self.fits_size:
             self.size_centre = state["size_centre"].clone()
+        if ("log_length" in state) != self.fits_length:
+            raise ValueError("the checkpoint's shape set was made " + ("with" if "log_length" in state else "without")
+                             + " a fitted length, this run's " + ("with" if self.fits_length else "without"))
         if ("residual" in state) != self.has_residual:
             raise ValueError("the checkpoint's shape set was made " + ("with" if "residual" in state else "without")
                              + " a residual deformation, this run's " + ("with" if self.has_residual else "without"))

@@ -26,6 +26,10 @@ SIZES = np.round(np.arange(0.70, 1.4001, 0.02), 4)
 AUTO_TOLERANCE = 0.10
 #: the axis along the leg in the template's frame (x, y, z): z
 LEG_AXIS = 2
+#: the length factors searched with ``fit_length="on"`` (along the leg, times the size), and how
+#: far from the size alone's best the sizes searched with them reach
+LENGTHS = np.round(np.arange(0.90, 1.1501, 0.01), 4)
+LENGTH_SIZE_REACH = 0.081
 
 
 def size_centre(template) -> np.ndarray:
@@ -34,20 +38,26 @@ def size_centre(template) -> np.ndarray:
     return np.asarray(template.vertices, np.float64).mean(0)
 
 
-def stretched_surroundings(centres_mm: np.ndarray, centre_mm: np.ndarray, size: float) -> np.ndarray:
+def stretched_surroundings(centres_mm: np.ndarray, centre_mm: np.ndarray, size: float,
+                           length: float = 1.0) -> np.ndarray:
     """Tissue centres (mm) stretched along the leg about ``centre_mm`` for a bone ``size`` times the
-    model's, when ``size`` > 1 (unchanged otherwise; see the module doc)."""
+    model's, when ``size`` > 1 (unchanged otherwise; see the module doc), and by a ``length``
+    factor > 1 as well (a limb runs the length of its bone; neither compresses it)."""
     out = np.array(centres_mm, np.float64, copy=True)
-    k = max(float(size), 1.0)
+    k = max(float(size), 1.0) * max(float(length), 1.0)
     out[:, LEG_AXIS] = centre_mm[LEG_AXIS] + k * (out[:, LEG_AXIS] - centre_mm[LEG_AXIS])
     return out
 
 
-def search_size(scan, backend, value_scale: float, bone, tissue=None, centre_mm=None, sizes=SIZES) -> tuple:
+def search_size(scan, backend, value_scale: float, bone, tissue=None, centre_mm=None, sizes=SIZES,
+                length: float = 1.0) -> tuple:
     """(best size, L1 per size) of the bone ``bone`` (a ShapeInit: mm, atlas units) scaled about
     ``centre_mm`` with ``tissue`` (a ShapeInit or None) stretched as :func:`stretched_surroundings`
-    says, against every view of ``scan``; ``backend`` a :class:`clgs.fit.trainer.Backend`."""
+    says, against every view of ``scan``; ``backend`` a :class:`clgs.fit.trainer.Backend`. With a
+    ``length`` factor the bone is also that much longer along the leg at every size."""
     geo = scan.geometry
+    stretch = np.ones(3)
+    stretch[LEG_AXIS] = float(length)
     n = len(bone.centres)
     parts = [bone] if tissue is None else [bone, tissue]
     centres = np.concatenate([p.centres for p in parts]).astype(np.float64)
@@ -59,9 +69,9 @@ def search_size(scan, backend, value_scale: float, bone, tissue=None, centre_mm=
     losses = []
     for s in sizes:
         c = centres.copy()
-        c[:n] = centre_mm + s * (centres[:n] - centre_mm)
+        c[:n] = centre_mm + s * stretch * (centres[:n] - centre_mm)
         if tissue is not None:
-            c[n:] = stretched_surroundings(centres[n:], centre_mm, s)
+            c[n:] = stretched_surroundings(centres[n:], centre_mm, s, length)
         sc = scales.copy()
         sc[:n] *= s
         with torch.no_grad():
@@ -73,3 +83,22 @@ def search_size(scan, backend, value_scale: float, bone, tissue=None, centre_mm=
     if not np.all(np.isfinite(losses)):
         raise FloatingPointError("the size search's projections are not finite")
     return float(sizes[int(np.argmin(losses))]), losses
+
+
+def search_size_and_length(scan, backend, value_scale: float, bone, tissue=None, centre_mm=None, sizes=SIZES,
+                           lengths=LENGTHS) -> tuple:
+    """(best size, best length factor, the size alone's best) by L1 over every view: the size alone
+    first (:func:`search_size`), then each length factor with the sizes within
+    ``LENGTH_SIZE_REACH`` of that best (a femur longer for its girth comes out as a larger size
+    alone: the girth is then nearer the model's). Where no length beats the size alone, the length
+    is 1."""
+    alone, losses = search_size(scan, backend, value_scale, bone, tissue, centre_mm, sizes)
+    best = (float(np.min(losses)), alone, 1.0)
+    near = np.asarray([s for s in sizes if abs(s - alone) <= LENGTH_SIZE_REACH])
+    for k in lengths:
+        if k == 1.0:
+            continue
+        size, ls = search_size(scan, backend, value_scale, bone, tissue, centre_mm, near, length=float(k))
+        if float(np.min(ls)) < best[0]:
+            best = (float(np.min(ls)), size, float(k))
+    return best[1], best[2], alone
