@@ -55,7 +55,7 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
     from clgs.methods.run import method_accepts, run_method
 
     t0 = time.perf_counter()
-    history, model_surface, jac_min, model_size, split = [], None, None, None, None
+    history, model_surface, jac_min, model_size, model_length, split = [], None, None, None, None, None
     name, variant = EXPERIMENT_METHODS[method]
     chosen = {**settings.get(name, {}), **variant}  # settings are grouped by registered method: "r2gs", "shape"
     if method_accepts(name, "iterations"):
@@ -80,11 +80,13 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
             jac_min = float(np.min(anatomy.shape_model.jacobian_determinant(res.trainer.sets[0].alpha.detach())))
         if getattr(res.trainer.sets[0], "fits_size", False):  # the bone's fitted size (the default)
             model_size = res.trainer.sets[0].size
+        if getattr(res.trainer.sets[0], "fits_length", False):  # and its length along the leg, where one was fitted
+            model_length = res.trainer.sets[0].length
         split = res.displacement  # the surface's displacement: the model's part and the residual's
     seconds = time.perf_counter() - t0
     return {"volume": volume, "seconds": seconds, "history": history,
             "model_surface": model_surface, "jacobian_min": jac_min, "model_size": model_size,
-            "displacement": split}
+            "model_length": model_length, "displacement": split}
 
 
 def _made_with(method: str, iterations: int, seed: int, settings: dict, simulation: str = "fine",
@@ -93,7 +95,8 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
     experiment reuses a record only when these match (else its table would mix runs). Records
     made before the simulation protocol was a choice used ``"same"`` and do not name it; the
     shape-bound runs name whether a size was fitted (``fit_size``: records made before it was
-    fitted count as ``"off"``), whether a residual deformation was (``residual``, ``"auto"``
+    fitted count as ``"off"``) and a length with it (``fit_length``, ``"off"`` without a fitted
+    size: records made before it existed count as ``"off"``), whether a residual deformation was (``residual``, ``"auto"``
     resolved for the views at ``angles``: records made before it existed count as ``"off"``), the
     shape prior's weight (``lambda_shape``: records made before it was named used the paper's 1e-4)
     and the tissue its registration held (``register_tissue``, ``"auto"`` resolved for the views
@@ -117,6 +120,7 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
         from clgs.methods.shape_guided import ShapeGuidedConfig
 
         size.update(fit_size=str(chosen.pop("fit_size", ShapeGuidedConfig.fit_size)),
+                    fit_length=str(chosen.pop("fit_length", ShapeGuidedConfig.fit_length)),
                     residual=str(chosen.pop("residual", ShapeGuidedConfig.residual)),
                     lambda_shape=float(chosen.pop("lambda_shape", ShapeGuidedConfig.lambda_shape)),
                     register_tissue=str(chosen.pop("register_tissue", ShapeGuidedConfig.register_tissue)))
@@ -128,6 +132,8 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
             from clgs.methods.shape_guided import residual_for
 
             size["residual"] = "off" if angles is None else residual_for("auto", angles)
+        if size["fit_size"] != "on":  # a length is a factor of a fitted size: none without one
+            size["fit_length"] = "off"
         size["atlas_calibration"] = str(chosen.pop("atlas_calibration", ShapeGuidedConfig.atlas_calibration))
         passes = int(chosen.pop("register_passes", ShapeGuidedConfig.register_passes))
         margin = float(chosen.pop("pass_hole_margin_mm", ShapeGuidedConfig.pass_hole_margin_mm))
@@ -156,6 +162,7 @@ def _angles_of(views, angles):
 _BOOKKEEPING = {"log_every", "log_early", "checkpoint_every", "checkpoint_dir", "progress"}
 _OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings", "detector_fov_mm": "--detector-mm",
            "simulation": "--simulation", "fit_size": "shape-guided setting fit_size",
+           "fit_length": "shape-guided setting fit_length",
            "residual": "shape-guided setting residual", "lambda_shape": "shape-guided setting lambda_shape",
            "register_tissue": "shape-guided setting register_tissue",
            "register_passes": "shape-guided setting register_passes",
@@ -187,7 +194,7 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
     from clgs.methods.shape_guided import PAPER_LAMBDA_SHAPE
 
     defaults = {"seed": 0, "settings": {}, "detector_fov_mm": None, "tissue_seed": None, "simulation": "same",
-                "fit_size": "off",
+                "fit_size": "off", "fit_length": "off",
                 "residual": "off", "schedule": "paper", "lambda_shape": PAPER_LAMBDA_SHAPE,
                 "register_tissue": "free", "register_passes": 1, "pass_hole_margin_mm": 0.0,
                 "atlas_calibration": "off"}
@@ -526,6 +533,7 @@ def run_and_record(anatomy, subject_id, views, method, iterations, seed, setting
     row = {"subject": subject_id, "views": v, "method": method, "seconds": run["seconds"], **made_with,
            "angles_deg": [round(math.degrees(a), 6) for a in scan.geometry.angles],
            "jacobian_min": run["jacobian_min"], "model_size": run.get("model_size"),
+           "model_length": run.get("model_length"),
            "displacement": run.get("displacement"),
            **{k: (float(x) if isinstance(x, (int, float, np.floating)) else x) for k, x in metrics.items()},
            "surface_file": None if surf is None else str(surf),
@@ -567,7 +575,7 @@ def write_reports(out: Path, rows, summary, views, ablation_views) -> None:
     keys = ["subject", "views", "method", "psnr3d", "ssim3d", "psnr3d_fov", "ssim3d_fov", "surface_mean_mm",
             "surface_p95_mm",
             "surface_hausdorff_mm", "model_surface_mean_mm", "model_surface_p95_mm", "model_surface_hausdorff_mm",
-            "jacobian_min", "model_size", "seconds", "iterations", "schedule", "detector_fov_mm"]
+            "jacobian_min", "model_size", "model_length", "seconds", "iterations", "schedule", "detector_fov_mm"]
     def cell(x):
         return "" if x is None else ("x".join(f"{v:g}" for v in x) if isinstance(x, list) else str(x))
 
@@ -632,6 +640,14 @@ def markdown_tables(rows, summary, views, ablation_views) -> str:
     if sized:
         text += ["", "Fitted bone size, times the shape model's (per subject, over its runs): " + ", ".join(
             f"{s} {min(v):.3f}" + (f"-{max(v):.3f}" if max(v) > min(v) else "") for s, v in sorted(sized.items()))]
+        longer = {}
+        for r in rows:  # a length of its own along the leg (fit_length), where one was fitted
+            if r.get("model_length") is not None:
+                longer.setdefault(r["subject"], []).append(float(r["model_length"]))
+        if longer:
+            text += ["", "Fitted bone length along the leg, times its size (where one was fitted): " + ", ".join(
+                f"{s} {min(v):.3f}" + (f"-{max(v):.3f}" if max(v) > min(v) else "")
+                for s, v in sorted(longer.items()))]
     if any(r.get("psnr3d_fov") is not None for r in rows):
         text += ["", "## Inside the detector's field of view (truncated scans)", "",
                  "3D PSNR / SSIM over the voxels every view measured whole (the rest of the bone was "

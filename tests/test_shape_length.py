@@ -32,24 +32,53 @@ def _scan_stretched(template, size, length, n_views=8, tissue: float = 0.01):
     return Scan(geo, np.asarray(CTProjector(geo).forward(truth), np.float32), truth=truth)
 
 
-def test_the_search_tells_a_longer_bone_from_a_larger_one(template, tissue_atlas):
-    """The bone alone (no tissue in the scan or the search): one of the model's shape keeps a length
-    of 1 and its size; one 1.12 times longer for its girth is found so, where the size alone takes
-    it for a larger bone. The bone at 0.8 of the template's size: the longer one still ends inside
-    the 48 mm grid. (With the atlas's tissue around this coarse ellipsoid, whose tissue ends where
-    the grid does, the search finds no length: the femur's figures are in docs/methods.md.)"""
+@pytest.mark.parametrize("length", [1.0, 1.12, 0.9])
+def test_the_search_tells_a_longer_or_shorter_bone_from_a_larger_or_smaller_one(template, tissue_atlas, length):
+    """The bone alone (no tissue in the scan or the search), at 0.8 of the template's size so that
+    the longer one still ends inside the 48 mm grid: one of the model's shape keeps a length of 1
+    and its size; one 1.12 times longer (0.9 times shorter) for its girth is found so, where the
+    size alone takes it for a larger (smaller) bone; with the gain asked of ``fit_length="auto"``
+    the length is kept only where it lowers the L1 by more than that share."""
     from clgs.fit.trainer import Backend
-    from clgs.shape.size import search_size_and_length, size_centre
+    from clgs.shape.size import LENGTH_GAIN, search_size_and_length, size_centre
 
-    found = {}
-    for length in (1.0, 1.12):
-        scan = _scan_stretched(template, 0.8, length, tissue=0.0)
-        bone, _ = _starts(template, tissue_atlas, scan.geometry)
-        found[length] = search_size_and_length(scan, Backend("cl"), 1.0, bone, None, size_centre(template))
-    print("SEARCH", found)
-    assert found[1.0] == (pytest.approx(0.8), 1.0, pytest.approx(0.8))
-    size, k, alone = found[1.12]
-    assert size == pytest.approx(0.8, abs=0.03) and k == pytest.approx(1.12, abs=0.02) and alone > 0.83
+    scan = _scan_stretched(template, 0.8, length, tissue=0.0)
+    bone, _ = _starts(template, tissue_atlas, scan.geometry)
+    size, k, alone, share = search_size_and_length(scan, Backend("cl"), 1.0, bone, None, size_centre(template),
+                                                   gain=LENGTH_GAIN)
+    assert size == pytest.approx(0.8, abs=0.03)
+    if length == 1.0:
+        assert (k, alone) == (1.0, size) and share <= LENGTH_GAIN
+    else:
+        assert k == pytest.approx(length, abs=0.015) and share > 0.1
+        assert (alone - size) * (length - 1.0) > 0.001  # the size alone took the length for a size
+
+
+def test_a_stretched_bone_carries_each_gaussians_covariance():
+    """``stretched_bone``: centres by c + A (x - c), covariances A S A for A = diag(s, s, s k),
+    against the reference's rotation of the quaternions; with k = 1 the plain scaling to the bit."""
+    from clgs.reference.gaussians import quaternion_to_rotation
+    from clgs.shape.size import stretched_bone
+
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(40, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q[0] = (1.0, 0.0, 0.0, 0.0)
+    sc, x, c = rng.uniform(0.3, 3.0, (40, 3)), rng.normal(size=(40, 3)) * 20, np.array([1.0, -2.0, 5.0])
+
+    def cov(q, sc):
+        r = quaternion_to_rotation(torch.as_tensor(q, dtype=torch.float64)).numpy()
+        return r @ (sc[:, :, None] ** 2 * np.swapaxes(r, 1, 2))
+
+    a = np.diag([1.1, 1.1, 1.1 * 1.2])
+    x2, sc2, q2 = stretched_bone(x, sc, q, c, 1.1, 1.2)
+    np.testing.assert_allclose(x2, c + (x - c) @ a, rtol=1e-12)
+    np.testing.assert_allclose(cov(q2, sc2), a @ cov(q, sc) @ a, atol=1e-10)
+    np.testing.assert_allclose(np.linalg.norm(q2, axis=1), 1.0, rtol=1e-12)
+    x1, sc1, q1 = stretched_bone(x, sc, q, c, 1.1)
+    np.testing.assert_array_equal(x1, c + 1.1 * (x - c))
+    np.testing.assert_array_equal(sc1, sc * 1.1)
+    assert q1 is q or np.array_equal(q1, q)
 
 
 def test_the_tissue_runs_the_length_of_its_bone():
@@ -65,7 +94,7 @@ def test_the_tissue_runs_the_length_of_its_bone():
 
 
 def _long_set(template, shape_model, size=1.1, length=1.2):
-    s = _set(template, shape_model, size)
+    s = _set(template, shape_model, 1.1)
     from clgs.fit.gaussians import Schedule
     from clgs.shape.gaussian_set import ShapeGuidedSet
 
@@ -75,7 +104,7 @@ def _long_set(template, shape_model, size=1.1, length=1.2):
     return ShapeGuidedSet(p, np.full((n, 3), 0.02, np.float32), np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
                           np.full(n, 0.1, np.float32), shape_model=shape_model, geometry=geometry(),
                           box=(-1.0, 1.0), scale_bounds=(1e-4, 1.0), schedules=sched, alpha=(0.4, -0.3), size=size,
-                          size_centre_mm=s.size_centre.numpy(), length=length)
+                          size_centre_mm=s.size_centre.numpy() if size is not None else None, length=length)
 
 
 def test_a_long_set_stretches_its_centres_along_the_leg_and_its_map_inverts_it(template, shape_model):
@@ -117,28 +146,71 @@ def test_the_centres_gradient_wrt_the_length_is_the_derivative_of_the_map(templa
     assert got == pytest.approx((up - down) / (2 * h), rel=2e-3)
 
 
-def test_a_run_with_a_length_records_it_resumes_bit_for_bit_and_needs_a_size(template, shape_model, tissue_atlas,
+def test_a_run_finds_a_shorter_bones_length_records_it_and_resumes_bit_for_bit(template, shape_model, tissue_atlas,
                                                                               tmp_path):
+    """The ellipsoid 0.9 times as long for its girth in the atlas's tissue: the default
+    ``fit_length="auto"`` finds the length, holds it, records it (alpha.json, config.json) and a
+    resumed run continues bit for bit."""
+    from clgs.methods.shape_guided import reconstruct_shape_guided
+
+    scan = _scan_stretched(template, 1.0, 0.9)
+    parts = AnatomyParts(template, shape_model, tissue_atlas)
+    kw = _small(alpha_freeze=3)
+    kw.pop("checkpoint_every")
+    full = reconstruct_shape_guided(scan, parts, tmp_path / "a", iterations=30, checkpoint_every=15, **kw)
+    s = full.trainer.sets[0]
+    assert s.fits_length and s.length == pytest.approx(0.9, abs=0.015)
+    assert json.loads((tmp_path / "a" / "alpha.json").read_text())["length"] == pytest.approx(s.length)
+    assert json.loads((tmp_path / "a" / "config.json").read_text())["length_factor"] == pytest.approx(s.length)
+    reconstruct_shape_guided(scan, parts, tmp_path / "b", iterations=15, checkpoint_every=15,
+                             schedule_iterations=30, **kw)
+    resumed = reconstruct_shape_guided(scan, parts, tmp_path / "b", iterations=30, resume=True, progress=False)
+    assert resumed.trainer.sets[0].length == s.length  # held, not trained
+    np.testing.assert_array_equal(full.volume, resumed.volume)
+
+
+def test_a_bone_of_the_models_proportions_gets_no_length_and_the_same_run(template, shape_model, tissue_atlas):
+    """At the model's proportions the search's best length lowers the L1 by less than the gain
+    asked: ``fit_length="auto"`` fits none, and the run is ``fit_length="off"``'s to the bit."""
+    from clgs.methods.shape_guided import reconstruct_shape_guided
+
+    scan = _scan_stretched(template, 1.0, 1.0)
+    parts = AnatomyParts(template, shape_model, tissue_atlas)
+    kw = _small(alpha_freeze=3)
+    auto = reconstruct_shape_guided(scan, parts, None, iterations=8, **kw)
+    off = reconstruct_shape_guided(scan, parts, None, iterations=8, fit_length="off", **kw)
+    assert not auto.trainer.sets[0].fits_length and auto.trainer.sets[0].fits_size
+    np.testing.assert_array_equal(auto.volume, off.volume)
+
+
+def test_a_given_length_is_held_and_a_length_needs_a_fitted_size(template, shape_model, tissue_atlas):
     from clgs.methods.shape_guided import reconstruct_shape_guided
 
     scan = _scan_stretched(template, 1.0, 1.12)
     parts = AnatomyParts(template, shape_model, tissue_atlas)
     kw = _small(alpha_freeze=3)
-    kw.pop("checkpoint_every")
-    full = reconstruct_shape_guided(scan, parts, tmp_path / "a", iterations=30, checkpoint_every=15,
-                                    fit_length="on", **kw)
-    s = full.trainer.sets[0]
-    assert s.fits_length and s.length == pytest.approx(1.12, abs=0.02)
-    assert json.loads((tmp_path / "a" / "alpha.json").read_text())["length"] == pytest.approx(s.length)
-    assert json.loads((tmp_path / "a" / "config.json").read_text())["length_factor"] == pytest.approx(s.length)
-    reconstruct_shape_guided(scan, parts, tmp_path / "b", iterations=15, checkpoint_every=15,
-                             schedule_iterations=30, fit_length="on", **kw)
-    resumed = reconstruct_shape_guided(scan, parts, tmp_path / "b", iterations=30, resume=True, progress=False)
-    assert resumed.trainer.sets[0].length == s.length  # held, not trained
-    np.testing.assert_array_equal(full.volume, resumed.volume)
-    # a length given is held as given, with no search
     given = reconstruct_shape_guided(scan, parts, None, iterations=2, length_factor=1.05, **kw)
     assert given.trainer.sets[0].length == pytest.approx(1.05)
     for bad in (dict(fit_length="on", fit_size="off"), dict(length_factor=1.05, fit_size="auto")):
         with pytest.raises(InputError, match="needs fit_size=on"):
             reconstruct_shape_guided(scan, parts, None, iterations=2, **{**kw, **bad})
+    # the default "auto" asks nothing of the size: with the paper's --fit-size off the run has no length
+    plain = reconstruct_shape_guided(scan, parts, None, iterations=2, **{**kw, "fit_size": "off"})
+    assert not plain.trainer.sets[0].fits_length
+
+
+def test_experiment_records_name_the_length_and_older_ones_count_as_without(tmp_path):
+    """A resumed experiment must not keep a record made before the length (one size) beside a run
+    that may fit one (``fit_length="auto"``, the default); without a fitted size no length is
+    fitted and the record says ``"off"``."""
+    from clgs.experiment import _check_same_run, _made_with
+
+    want = _made_with("shape", 1000, 0, {}, "same")
+    assert want["fit_length"] == "auto" and want["settings"] == {}
+    old = {"iterations": 1000, "seed": 0, "settings": {}, "fit_size": "on", "schedule": "fast", "lambda_shape": 0.0,
+           "register_tissue": "free", "residual": "off"}
+    with pytest.raises(InputError, match="fit_length 'off', this run asks for 'auto'"):
+        _check_same_run(tmp_path / "run.json", old, want)
+    _check_same_run(tmp_path / "run.json", old, _made_with("shape", 1000, 0, {"shape": {"fit_length": "off"}}, "same"))
+    assert _made_with("shape", 1000, 0, {"shape": {"fit_size": "off"}}, "same")["fit_length"] == "off"
+    assert "fit_length" not in _made_with("r2gs", 1000, 0, {}, "same")

@@ -85,9 +85,11 @@ from clgs.shape.priors import DensityPrior, random_subgrid, residual_prior_term,
 from clgs.shape.size import (
     AUTO_TOLERANCE,
     LEG_AXIS,
+    LENGTH_GAIN,
     search_size,
     search_size_and_length,
     size_centre,
+    stretched_bone,
     stretched_surroundings,
 )
 
@@ -152,9 +154,13 @@ class ShapeGuidedConfig(GaussianFitConfig):
                             "fit the bone's size with its shape: on, auto (only when the projections show a bone "
                             "more than 10% larger or smaller than the model's), off (the paper)")
     # a length of the bone's own along the leg, searched with the size (clgs.shape.size
-    # .search_size_and_length) and held through the fit: "on" needs fit_size "on"; "off" (the
-    # default) the one size (docs/methods.md, "The bone's length")
-    fit_length: str = "off"
+    # .search_size_and_length) and held through the fit: "auto" takes it where the size is fitted
+    # and the length lowers the search's L1 by more than LENGTH_GAIN (3 %), "on" (needs fit_size
+    # "on") wherever it lowers it at all, "off" the one size (docs/methods.md, "The bone's length")
+    fit_length: str = setting("auto", "--fit-length",
+                              "fit a length of the bone's own along the leg with its size: auto (only where the "
+                              "projections show a bone clearly longer or shorter for its girth than the model's), "
+                              "on, off (one size)")
     # the length factor of this run (set by the search with fit_length="on", or given: held fixed;
     # None: none)
     length_factor: float | None = None
@@ -212,7 +218,7 @@ class ShapeGuidedConfig(GaussianFitConfig):
     FAST_STOP_EVERY = 250
     CHOICES = {**GaussianFitConfig.CHOICES, "free_init": ("atlas", "fdk"), "register_tissue": ("auto", "free", "fdk"),
                "density_prior_field": ("all", "shape"),
-               "fit_size": ("auto", "on", "off"), "fit_length": ("on", "off"),
+               "fit_size": ("auto", "on", "off"), "fit_length": ("auto", "on", "off"),
                "residual": ("auto", "on", "off"), "uncertainty": ("on", "off"),
                "atlas_calibration": ("fit", "off")}
     POSITIVE = GaussianFitConfig.POSITIVE | {"tau", "density_s", "atlas_bone_factor", "atlas_rest_factor",
@@ -620,7 +626,11 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
         if bound:
             size = choose_size(scan, cfg, init, outside, centre)
         if size is not None:  # the bone's Gaussians at its size, the tissue along its length
-            init = dataclasses.replace(init, scales=init.scales * size)
+            if cfg.length_factor is None:
+                init = dataclasses.replace(init, scales=init.scales * size)
+            else:  # and its length: each Gaussian's covariance carried by the stretch
+                _, sc, q = stretched_bone(init.centres, init.scales, init.quats, centre, size, cfg.length_factor)
+                init = dataclasses.replace(init, scales=sc.astype(init.scales.dtype), quats=q)
             if outside is not None:
                 outside = dataclasses.replace(outside, centres=stretched_surroundings(outside.centres, centre, size,
                                                                                       cfg.length_factor or 1.0))
@@ -749,12 +759,15 @@ def choose_size(scan, cfg: ShapeGuidedConfig, init, tissue, centre_mm) -> float 
     if tissue is None:
         return 1.0
     assert cfg.value_scale is not None  # set by build_trainer before the search
-    if cfg.fit_length == "on" and cfg.length_factor is None:
+    if cfg.fit_length != "off" and cfg.fit_size == "on" and cfg.length_factor is None:
         with phase("searching the bone's size and length"):
-            best, length, alone = search_size_and_length(scan, Backend(cfg.backend, cfg.projector_mode),
-                                                         cfg.value_scale, init, tissue, centre_mm)
-        print(f"bone length: {length:.2f} x its size along the leg (size {best:.2f}; the size alone: {alone:.2f})",
-              file=sys.stderr)
+            best, length, alone, share = search_size_and_length(
+                scan, Backend(cfg.backend, cfg.projector_mode), cfg.value_scale, init, tissue, centre_mm,
+                gain=LENGTH_GAIN if cfg.fit_length == "auto" else 0.0)
+        if length != 1.0:
+            print(f"bone length: {length:.2f} x its size along the leg, size {best:.2f} (the size alone: {alone:.2f}; "
+                  f"the length lowers the projections' L1 by {100 * share:.1f} %; --fit-length off: one size)",
+                  file=sys.stderr)
         cfg.length_factor = None if length == 1.0 else length
         return best
     with phase("searching the bone's size"):

@@ -30,6 +30,10 @@ LEG_AXIS = 2
 #: far from the size alone's best the sizes searched with them reach
 LENGTHS = np.round(np.arange(0.90, 1.1501, 0.01), 4)
 LENGTH_SIZE_REACH = 0.081
+#: with ``fit_length="auto"`` a length is taken only where it lowers the search's L1 by more than
+#: this share against the size alone (the lengthened shaft: 11 %; twelve held-out and changed femurs
+#: at 2 and 5 views: under 1 %; docs/results.md)
+LENGTH_GAIN = 0.03
 
 
 def size_centre(template) -> np.ndarray:
@@ -49,6 +53,32 @@ def stretched_surroundings(centres_mm: np.ndarray, centre_mm: np.ndarray, size: 
     return out
 
 
+def stretched_bone(centres_mm: np.ndarray, scales_mm: np.ndarray, quats: np.ndarray, centre_mm: np.ndarray,
+                   size: float, length: float = 1.0) -> tuple:
+    """(centres, scales, quaternions) of Gaussians (mm; quaternions w, x, y, z) carried by
+    ``x -> c + A (x - c)``, ``A = diag(s, s, s k)`` for ``size`` s and ``length`` k along the leg.
+
+    Each covariance ``R S^2 R^T`` becomes ``A R S^2 R^T A`` exactly (the singular values and left
+    vectors of ``A R S``), so the Gaussians render the bone stretched with its density kept: with
+    the scales alone multiplied, a bone made longer would be fainter by 1/k. With k = 1 it is the
+    plain scaling (scales times s, rotations kept), to the last bit."""
+    from scipy.spatial.transform import Rotation
+
+    c = np.asarray(centre_mm, np.float64)
+    x = np.asarray(centres_mm, np.float64)
+    sc = np.asarray(scales_mm, np.float64)
+    if float(length) == 1.0:
+        return c + size * (x - c), sc * size, np.asarray(quats)
+    a = np.full(3, float(size))
+    a[LEG_AXIS] *= float(length)
+    q = np.asarray(quats, np.float64)
+    rot = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()  # (N, 3, 3), columns the Gaussian's axes
+    u, sv, _ = np.linalg.svd(a[None, :, None] * rot * sc[:, None, :])
+    u[np.linalg.det(u) < 0, :, 2] *= -1.0  # a rotation, not a reflection (the covariance is the same)
+    q_new = Rotation.from_matrix(u).as_quat()[:, [3, 0, 1, 2]]
+    return c + a * (x - c), sv, q_new.astype(np.asarray(quats).dtype)
+
+
 def search_size(scan, backend, value_scale: float, bone, tissue=None, centre_mm=None, sizes=SIZES,
                 length: float = 1.0) -> tuple:
     """(best size, L1 per size) of the bone ``bone`` (a ShapeInit: mm, atlas units) scaled about
@@ -56,28 +86,31 @@ def search_size(scan, backend, value_scale: float, bone, tissue=None, centre_mm=
     says, against every view of ``scan``; ``backend`` a :class:`clgs.fit.trainer.Backend`. With a
     ``length`` factor the bone is also that much longer along the leg at every size."""
     geo = scan.geometry
-    stretch = np.ones(3)
-    stretch[LEG_AXIS] = float(length)
     n = len(bone.centres)
     parts = [bone] if tissue is None else [bone, tissue]
     centres = np.concatenate([p.centres for p in parts]).astype(np.float64)
     scales = np.concatenate([p.scales for p in parts]).astype(np.float64)
-    quats = torch.as_tensor(np.concatenate([p.quats for p in parts]), dtype=torch.float32)
+    quats = np.concatenate([p.quats for p in parts]).astype(np.float32)
     dens = torch.as_tensor(np.concatenate([p.densities for p in parts]) * value_scale, dtype=torch.float32)
     target = torch.as_tensor(np.asarray(scan.projections, np.float32) * np.float32(geo.scale * value_scale))
     views = list(range(target.shape[0]))
     losses = []
+    if float(length) != 1.0:  # the stretch's rotations and scales at size 1 (a size scales them after)
+        _, long_scales, long_quats = stretched_bone(centres[:n], scales[:n], quats[:n], centre_mm, 1.0, length)
     for s in sizes:
-        c = centres.copy()
-        c[:n] = centre_mm + s * stretch * (centres[:n] - centre_mm)
+        c, sc, q = centres.copy(), scales.copy(), quats.copy()
+        if float(length) == 1.0:
+            c[:n], sc[:n], q[:n] = stretched_bone(centres[:n], scales[:n], quats[:n], centre_mm, s)
+        else:
+            k = np.full(3, float(s))
+            k[LEG_AXIS] *= float(length)
+            c[:n], sc[:n], q[:n] = centre_mm + k * (centres[:n] - centre_mm), long_scales * s, long_quats
         if tissue is not None:
             c[n:] = stretched_surroundings(centres[n:], centre_mm, s, length)
-        sc = scales.copy()
-        sc[:n] *= s
         with torch.no_grad():
             render = backend.project(torch.as_tensor(geo.world_to_scene(c), dtype=torch.float32),
-                                     torch.as_tensor(sc * geo.scale, dtype=torch.float32), quats, dens, geo,
-                                     views) * geo.scale
+                                     torch.as_tensor(sc * geo.scale, dtype=torch.float32), torch.as_tensor(q),
+                                     dens, geo, views) * geo.scale
         losses.append(float((render - target).abs().mean()))
     losses = np.asarray(losses)
     if not np.all(np.isfinite(losses)):
@@ -86,14 +119,16 @@ def search_size(scan, backend, value_scale: float, bone, tissue=None, centre_mm=
 
 
 def search_size_and_length(scan, backend, value_scale: float, bone, tissue=None, centre_mm=None, sizes=SIZES,
-                           lengths=LENGTHS) -> tuple:
-    """(best size, best length factor, the size alone's best) by L1 over every view: the size alone
-    first (:func:`search_size`), then each length factor with the sizes within
-    ``LENGTH_SIZE_REACH`` of that best (a femur longer for its girth comes out as a larger size
-    alone: the girth is then nearer the model's). Where no length beats the size alone, the length
-    is 1."""
+                           lengths=LENGTHS, gain: float = 0.0) -> tuple:
+    """(best size, best length factor, the size alone's best, the share by which that length
+    lowers the L1) by L1 over every view: the size alone first (:func:`search_size`), then each
+    length factor with the sizes within ``LENGTH_SIZE_REACH`` of that best (a femur longer for its
+    girth comes out as a larger size alone: the girth is then nearer the model's). Where no length
+    lowers the L1 by more than ``gain`` (a share) against the size alone, the length is 1 and the
+    size the size alone's."""
     alone, losses = search_size(scan, backend, value_scale, bone, tissue, centre_mm, sizes)
-    best = (float(np.min(losses)), alone, 1.0)
+    l0 = float(np.min(losses))
+    best = (l0, alone, 1.0)
     near = np.asarray([s for s in sizes if abs(s - alone) <= LENGTH_SIZE_REACH])
     for k in lengths:
         if k == 1.0:
@@ -101,4 +136,7 @@ def search_size_and_length(scan, backend, value_scale: float, bone, tissue=None,
         size, ls = search_size(scan, backend, value_scale, bone, tissue, centre_mm, near, length=float(k))
         if float(np.min(ls)) < best[0]:
             best = (float(np.min(ls)), size, float(k))
-    return best[1], best[2], alone
+    share = 1.0 - best[0] / l0 if l0 > 0 else 0.0
+    if share <= gain:
+        return alone, 1.0, alone, share
+    return best[1], best[2], alone, share
