@@ -91,23 +91,21 @@ def _run_one(method: str, scan, anatomy, iterations: int, seed: int, progress: b
 
 def _made_with(method: str, iterations: int, seed: int, settings: dict, simulation: str = "fine",
                angles=None) -> dict:
-    """What a run's result depends on besides the subject, as kept in its record: a resumed
-    experiment reuses a record only when these match (else its table would mix runs). Records
-    made before the simulation protocol was a choice used ``"same"`` and do not name it; the
-    shape-bound runs name whether a size was fitted (``fit_size``: records made before it was
-    fitted count as ``"off"``) and a length with it (``fit_length``, ``"off"`` without a fitted
-    size: records made before it existed count as ``"off"``), whether a residual deformation was (``residual``, ``"auto"``
+    """What a run's result depends on besides the subject, as kept in its record: a resumed experiment
+    reuses a record only when these match (else its table would mix runs). Records made before the
+    simulation protocol was a choice used ``"same"`` and do not name it; the shape-bound runs name
+    whether a size was fitted (``fit_size``: records made before it was fitted count as ``"off"``)
+    and a length with it (``fit_length``, ``"off"`` without a fitted size: records made before it
+    existed count as ``"off"``), whether a residual deformation was (``residual``, ``"auto"``
     resolved for the views at ``angles``: records made before it existed count as ``"off"``), the
     shape prior's weight (``lambda_shape``: records made before it was named used the paper's 1e-4)
-    and the tissue its registration held (``register_tissue``, ``"auto"`` resolved for the views
-    at ``angles``, radians: records made before it was named held the free set's start,
-    ``"free"``; with the FDK's, the registrations
-    in a row, ``register_passes``: records made before it was named made one, and the margin of a
-    later pass's hole, ``pass_hole_margin_mm``: records made before it had none) and whether the
-    atlas was scaled to the scan (``atlas_calibration``: records made before it existed count as
-    ``"off"``); every Gaussian run names its schedule
-    (``schedule``: records made before schedules existed ran the paper's, compressed to the
-    iterations)."""
+    and the tissue its registration held (``register_tissue``, ``"auto"`` resolved for the views at
+    ``angles``, radians: records made before it was named held the free set's start, ``"free"``;
+    with the FDK's, the registrations in a row, ``register_passes``: records made before it was
+    named made one, and the margin of a later pass's hole, ``pass_hole_margin_mm``: records made
+    before it had none) and whether the atlas was scaled to the scan (``atlas_calibration``: records
+    made before it existed count as ``"off"``); every Gaussian run names its schedule (``schedule``:
+    records made before schedules existed ran the paper's, compressed to the iterations)."""
     sim = {} if simulation == "same" else {"simulation": simulation}
     if method == "fdk":
         return {"iterations": 0, **sim}

@@ -268,7 +268,8 @@ def test_experiment_records_made_before_the_registrations_tissue_was_named_count
     from clgs.errors import InputError
     from clgs.experiment import _check_same_run, _made_with
 
-    old = {"iterations": 1000, "seed": 0, "settings": {}, "fit_size": "on", "fit_length": "auto", "schedule": "fast", "lambda_shape": 0.0}
+    old = {"iterations": 1000, "seed": 0, "settings": {}, "fit_size": "on", "fit_length": "auto", "schedule": "fast",
+           "lambda_shape": 0.0}
     want = _made_with("shape", 1000, 0, {"shape": {"register_tissue": "fdk"}}, "same")
     assert want["register_tissue"] == "fdk" and want["settings"] == {}
     with pytest.raises(InputError, match="register_tissue 'free', this run asks for 'fdk'"):
@@ -299,8 +300,8 @@ def test_experiment_records_name_the_fdk_registrations_passes_only_where_they_ru
 
     five = np.linspace(0, np.pi, 5, endpoint=False)
     # the residual as a 5-view run records it today (it has its own check)
-    one_pass = {"iterations": 1000, "seed": 0, "settings": {}, "fit_size": "on", "fit_length": "auto", "schedule": "fast",
-                "lambda_shape": 0.0, "register_tissue": "fdk", "residual": "on"}
+    one_pass = {"iterations": 1000, "seed": 0, "settings": {}, "fit_size": "on", "fit_length": "auto",
+                "schedule": "fast", "lambda_shape": 0.0, "register_tissue": "fdk", "residual": "on"}
     want = _made_with("shape", 1000, 0, {"shape": {"register_passes": 3}}, "same", five)
     assert want["register_passes"] == 3 and want["settings"] == {} and want["pass_hole_margin_mm"] == 3.0
     assert _made_with("shape", 1000, 0, {}, "same", five) == want  # three: the default
