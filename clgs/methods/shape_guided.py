@@ -796,8 +796,8 @@ def write_uncertainty(trainer, shape_set, template, moved, out_dir, volume_surfa
 
 
 def deformed_template_surface(template, shape_set) -> tuple | None:
-    """The template surface carried onto the subject by the fitted alpha (and size): (vertices mm,
-    faces)."""
+    """The template surface carried onto the subject by the fitted alpha (and size, and length):
+    (vertices mm, faces)."""
     if not isinstance(shape_set, ShapeGuidedSet):
         return None
     parts = surface_displacement_parts(template, shape_set)
@@ -806,8 +806,8 @@ def deformed_template_surface(template, shape_set) -> tuple | None:
 
 def surface_displacement_parts(template, shape_set) -> dict:
     """The template surface carried onto the subject, and its displacement split into the shape
-    model's part (alpha and the size: ``model_mm``, (V, 3)) and the residual's (``residual_mm``:
-    the fitted size times r at the vertex), each from the template's vertex; ``vertices`` = the
+    model's part (alpha, the size and a length: ``model_mm``, (V, 3)) and the residual's
+    (``residual_mm``: r at the vertex carried by the size and length), each from the template's vertex; ``vertices`` = the
     template's + both."""
     with torch.no_grad():
         m = shape_set.shape_model
