@@ -211,8 +211,8 @@ class ShapeGuidedConfig(GaussianFitConfig):
 
     CLI = ("iterations", "schedule", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every",
            "log_early", "checkpoint_every", "max_gaussians", "n_shape", "n_free", "tau", "shape_prior", "density_prior",
-           "density_prior_field", "free_init", "register_tissue", "alpha_init_iterations", "fit_size", "residual",
-           "residual_points", "uncertainty", "lambda_shape", "atlas_calibration")
+           "density_prior_field", "free_init", "register_tissue", "alpha_init_iterations", "fit_size", "fit_length",
+           "residual", "residual_points", "uncertainty", "lambda_shape", "atlas_calibration")
     KIND = "shape-guided"
     FAST_ITERATIONS = 4_000  # the fast schedule's run (clgs.fit.schedule; docs/schedules.md)
     FAST_STOP_EVERY = 250
@@ -807,8 +807,8 @@ def deformed_template_surface(template, shape_set) -> tuple | None:
 def surface_displacement_parts(template, shape_set) -> dict:
     """The template surface carried onto the subject, and its displacement split into the shape
     model's part (alpha, the size and a length: ``model_mm``, (V, 3)) and the residual's
-    (``residual_mm``: r at the vertex carried by the size and length), each from the template's vertex; ``vertices`` = the
-    template's + both."""
+    (``residual_mm``: r at the vertex carried by the size and length), each from the template's
+    vertex; ``vertices`` = the template's + both."""
     with torch.no_grad():
         m = shape_set.shape_model
         u = m.displacement(shape_set.alpha.detach())
