@@ -183,6 +183,22 @@ def test_a_bone_of_the_models_proportions_gets_no_length_and_the_same_run(templa
     np.testing.assert_array_equal(auto.volume, off.volume)
 
 
+def test_the_method_entry_reports_the_length(template, shape_model, tissue_atlas, tmp_path, capsys):
+    """What `clgs reconstruct --method shape` runs on a bone 0.9 times as long: the length in the
+    report's info and on stderr (the search's line and the size's)."""
+    from clgs.methods.shape_guided import run_method
+
+    scan = _scan_stretched(template, 1.0, 0.9)
+    out = run_method(scan, tmp_path / "r", 4, anatomy=AnatomyParts(template, shape_model, tissue_atlas),
+                     **_small(alpha_freeze=3))
+    assert out["info"]["length"] == pytest.approx(0.9, abs=0.015)
+    err = capsys.readouterr().err
+    assert "bone length: 0.9" in err and "x that along the leg" in err
+    off = run_method(scan, tmp_path / "o", 4, anatomy=AnatomyParts(template, shape_model, tissue_atlas),
+                     fit_length="off", **_small(alpha_freeze=3))
+    assert "length" not in off["info"]
+
+
 def test_a_given_length_is_held_and_a_length_needs_a_fitted_size(template, shape_model, tissue_atlas):
     from clgs.methods.shape_guided import reconstruct_shape_guided
 

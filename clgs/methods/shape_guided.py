@@ -995,6 +995,8 @@ def run_method(scan, out_dir=None, iterations: int | None = None, anatomy=None, 
               f"to the volume's bone surface {u['volume_mean_mm']:.3f}; {u['file']}, {u['vtk_file']})",
               file=sys.stderr)
     extra = {"uncertainty": result.uncertainty} if result.uncertainty is not None else {}
+    if isinstance(shape_set, ShapeGuidedSet) and shape_set.fits_length:  # along the leg, times the size
+        extra["length"] = shape_set.length
     config = result.trainer.config
     if config.get("atlas_bone_factor") is not None:  # the atlas scaled to the scan (calibrate_atlas)
         extra["atlas_factors"] = {"bone": config["atlas_bone_factor"], "rest": config["atlas_rest_factor"]}
