@@ -589,13 +589,13 @@ def test_every_step_before_and_after_the_iterations_reports_progress(template, s
         bars = {e["desc"] for e in events if e["event"] == "figures"}
         assert phases[:3] == [f"loading the ellipsoid {p}" for p in ("template", "shape model", "density atlas")]
         for want in ("FDK of 8 views on a 32x32x32 grid", "placing 1500 Gaussians on the template",
-                     "placing 500 Gaussians on the atlas's tissue", "searching the bone's size",
+                     "placing 500 Gaussians on the atlas's tissue", "searching the bone's size and length",
                      "preparing the registration of the shape model and size", "the volume"):
             assert want in phases, (want, phases)
         assert bars == {"registering the shape model and size to the projections", "train"}
         err = capsys.readouterr().err
         if shown:
-            assert "searching the bone's size ..." in err and "registering the shape model and size" in err
+            assert "searching the bone's size and length ..." in err and "registering the shape model and size" in err
         else:
             assert " ..." not in err and "train" not in err, err
 

@@ -994,7 +994,7 @@ def run_method(scan, out_dir=None, iterations: int | None = None, anatomy=None, 
               f"{u['posterior_mean_mm']:.3f} mm mean, beyond the model's modes {u['beyond_model_mean_mm']:.3f}, "
               f"to the volume's bone surface {u['volume_mean_mm']:.3f}; {u['file']}, {u['vtk_file']})",
               file=sys.stderr)
-    extra = {"uncertainty": result.uncertainty} if result.uncertainty is not None else {}
+    extra: dict = {"uncertainty": result.uncertainty} if result.uncertainty is not None else {}
     if isinstance(shape_set, ShapeGuidedSet) and shape_set.fits_length:  # along the leg, times the size
         extra["length"] = shape_set.length
     config = result.trainer.config

@@ -12,7 +12,12 @@ does not scale with its femur (the simulated limbs: at least 70 x 65 mm semi-axe
 around the bone), but the limb runs the whole length of the scan; so the tissue is stretched along
 the leg only, and only for a larger bone (a smaller one sits inside a grid that the template's
 tissue already fills; what the search gives on the femur: docs/methods.md). The fit then refines
-``s`` with everything else (:func:`clgs.methods.shape_guided.fit_initial_alpha`)."""
+``s`` with everything else (:func:`clgs.methods.shape_guided.fit_initial_alpha`).
+
+A femur longer or shorter for its girth than the model's takes a second factor ``k`` along the
+leg (:func:`search_size_and_length`): the bone's Gaussians carried whole by ``diag(s, s, s k)``
+(:func:`stretched_bone`), the tissue stretched along the leg for the bone's length as for its
+size; the fit holds ``k`` (docs/methods.md, "The bone's length")."""
 from __future__ import annotations
 
 import numpy as np
@@ -31,8 +36,8 @@ LEG_AXIS = 2
 LENGTHS = np.round(np.arange(0.90, 1.1501, 0.01), 4)
 LENGTH_SIZE_REACH = 0.081
 #: with ``fit_length="auto"`` a length is taken only where it lowers the search's L1 by more than
-#: this share against the size alone (the lengthened shaft: 11 %; twelve held-out and changed femurs
-#: at 2 and 5 views: under 1 %; docs/results.md)
+#: this share against the size alone (the lengthened shaft: 7.7 %; the held-out and the other
+#: changed femurs at 2 and 5 views: at most 0.5 %; docs/results.md)
 LENGTH_GAIN = 0.03
 
 
