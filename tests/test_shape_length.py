@@ -207,9 +207,16 @@ def test_a_given_length_is_held_and_a_length_needs_a_fitted_size(template, shape
     kw = _small(alpha_freeze=3)
     given = reconstruct_shape_guided(scan, parts, None, iterations=2, length_factor=1.05, **kw)
     assert given.trainer.sets[0].length == pytest.approx(1.05)
+    from clgs.methods.shape_guided import ShapeGuidedConfig
+
     for bad in (dict(fit_length="on", fit_size="off"), dict(length_factor=1.05, fit_size="auto")):
         with pytest.raises(InputError, match="needs fit_size=on"):
             reconstruct_shape_guided(scan, parts, None, iterations=2, **{**kw, **bad})
+        with pytest.raises(InputError, match="needs fit_size=on"):  # the settings alone, before any work
+            ShapeGuidedConfig(**bad)
+    for bad, words in ((0.0, "length_factor"), (float("nan"), "finite")):
+        with pytest.raises(InputError, match=words):
+            ShapeGuidedConfig(length_factor=bad)
     # the default "auto" asks nothing of the size: with the paper's --fit-size off the run has no length
     plain = reconstruct_shape_guided(scan, parts, None, iterations=2, **{**kw, "fit_size": "off"})
     assert not plain.trainer.sets[0].fits_length

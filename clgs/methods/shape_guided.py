@@ -225,6 +225,15 @@ class ShapeGuidedConfig(GaussianFitConfig):
                                              "length_factor"}
     AT_LEAST = {**GaussianFitConfig.AT_LEAST, "density_points": 2, "residual_points": 4, "register_passes": 1}
 
+    def __post_init__(self):
+        super().__post_init__()
+        # a length is a factor of a fitted size: refused here, before any work, where none is fitted
+        if self.fit_size != "on" and (self.fit_length == "on" or self.length_factor is not None):
+            what = "fit_length=on" if self.length_factor is None else "a length_factor"
+            raise InputError(f"{what} needs fit_size=on (the length is a factor of the size), got fit_size="
+                             f"{self.fit_size}; set fit_size=on, or fit_length=auto (the default) to fit a length "
+                             "only with a fitted size")
+
 
 # ---------------------------------------------------------------------- schedules
 def shape_schedules(cfg: ShapeGuidedConfig, iterations: int, *, free_means: bool) -> dict:
@@ -748,12 +757,6 @@ def choose_size(scan, cfg: ShapeGuidedConfig, init, tissue, centre_mm) -> float 
     model's size: then the run is the same as without the search). Without the atlas's tissue
     around the bone (``tissue`` None) the search would let the bone grow into the tissue it cannot
     see: ``"auto"`` then fits no size and ``"on"`` starts from the model's size."""
-    if cfg.length_factor is not None and cfg.fit_size != "on":
-        raise InputError(f"a length_factor needs fit_size=on (the length is a factor of the size), got fit_size="
-                         f"{cfg.fit_size}")
-    if cfg.fit_length == "on" and cfg.fit_size != "on":
-        raise InputError(f"fit_length=on needs fit_size=on (the length is a factor of the size), got fit_size="
-                         f"{cfg.fit_size}")
     if cfg.fit_size == "off" or (tissue is None and cfg.fit_size == "auto"):
         return None
     if tissue is None:
