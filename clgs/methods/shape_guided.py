@@ -161,8 +161,8 @@ class ShapeGuidedConfig(GaussianFitConfig):
                               "fit a length of the bone's own along the leg with its size: auto (only where the "
                               "projections show a bone clearly longer or shorter for its girth than the model's), "
                               "on, off (one size)")
-    # the length factor of this run (set by the search with fit_length="on", or given: held fixed;
-    # None: none)
+    # the length factor of this run (set by the search with fit_length "auto" or "on", or given:
+    # held fixed either way; None: none)
     length_factor: float | None = None
     # a smooth residual deformation beyond the model's span (clgs.shape.residual): "on" registers it
     # after alpha and trains it with everything else; "off" (the paper) keeps the bone in the span;
@@ -756,7 +756,10 @@ def choose_size(scan, cfg: ShapeGuidedConfig, init, tissue, centre_mm) -> float 
     is fitted (``fit_size="off"``, or ``"auto"`` and the bone within ``AUTO_TOLERANCE`` of the
     model's size: then the run is the same as without the search). Without the atlas's tissue
     around the bone (``tissue`` None) the search would let the bone grow into the tissue it cannot
-    see: ``"auto"`` then fits no size and ``"on"`` starts from the model's size."""
+    see: ``"auto"`` then fits no size and ``"on"`` starts from the model's size. With ``fit_size="on"``
+    and ``fit_length`` "auto" or "on" the search is :func:`search_size_and_length`, and the length
+    it takes goes to ``cfg.length_factor`` (a length given there is held and only the size
+    searched)."""
     if cfg.fit_size == "off" or (tissue is None and cfg.fit_size == "auto"):
         return None
     if tissue is None:
