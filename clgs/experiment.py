@@ -567,6 +567,17 @@ def summarise(rows, views, ablation_views, failed=None) -> dict:
     return out
 
 
+def _per_subject_range(rows, key: str) -> str:
+    """"subject min[-max], ..." of a figure the rows hold (None where none holds it), over each
+    subject's runs."""
+    per: dict = {}
+    for r in rows:
+        if r.get(key) is not None:
+            per.setdefault(r["subject"], []).append(float(r[key]))
+    return ", ".join(f"{s} {min(v):.3f}" + (f"-{max(v):.3f}" if max(v) > min(v) else "")
+                     for s, v in sorted(per.items()))
+
+
 def write_reports(out: Path, rows, summary, views, ablation_views) -> None:
     from clgs.io import atomic
 
@@ -631,21 +642,13 @@ def markdown_tables(rows, summary, views, ablation_views) -> str:
                         f"{fmt(pm.get('model_surface_mean_mm'))} / {fmt(pm.get('model_surface_p95_mm'))} / "
                         f"{fmt(pm.get('model_surface_hausdorff_mm'))} | {fmt(pm.get('jacobian_min'), 3)} | "
                         f"{fmt(pm.get('seconds'), 0)} |")
-    sized = {}
-    for r in rows:  # the bone's fitted size (clgs.shape.size), per subject over its view sets
-        if r.get("model_size") is not None:
-            sized.setdefault(r["subject"], []).append(float(r["model_size"]))
-    if sized:
-        text += ["", "Fitted bone size, times the shape model's (per subject, over its runs): " + ", ".join(
-            f"{s} {min(v):.3f}" + (f"-{max(v):.3f}" if max(v) > min(v) else "") for s, v in sorted(sized.items()))]
-        longer = {}
-        for r in rows:  # a length of its own along the leg (fit_length), where one was fitted
-            if r.get("model_length") is not None:
-                longer.setdefault(r["subject"], []).append(float(r["model_length"]))
-        if longer:
-            text += ["", "Fitted bone length along the leg, times its size (where one was fitted): " + ", ".join(
-                f"{s} {min(v):.3f}" + (f"-{max(v):.3f}" if max(v) > min(v) else "")
-                for s, v in sorted(longer.items()))]
+    # the bone's fitted size (clgs.shape.size) and, where one was fitted, its length along the leg
+    # (fit_length), per subject over its view sets
+    for key, title in (("model_size", "Fitted bone size, times the shape model's (per subject, over its runs)"),
+                       ("model_length", "Fitted bone length along the leg, times its size (where one was fitted)")):
+        ranges = _per_subject_range(rows, key)
+        if ranges:
+            text += ["", f"{title}: {ranges}"]
     if any(r.get("psnr3d_fov") is not None for r in rows):
         text += ["", "## Inside the detector's field of view (truncated scans)", "",
                  "3D PSNR / SSIM over the voxels every view measured whole (the rest of the bone was "

@@ -21,6 +21,7 @@ import torch.nn.functional as F
 from clgs.fit.fixed_points import FixedPointSampler
 from clgs.fit.gaussians import GaussianSet
 from clgs.shape.model import exp_velocity, squarings_for
+from clgs.shape.size import LEG_AXIS
 from clgs.shape.template import zyx_triple
 
 
@@ -118,12 +119,13 @@ class ShapeGuidedSet(GaussianSet):
         return float(torch.exp(self.params["log_length"].detach())[0]) if self.fits_length else 1.0
 
     def _stretch(self, like: torch.Tensor, detach: bool = False) -> torch.Tensor:
-        """(1, 1, k) for the length factor k along the leg (z), ones without one."""
-        one = torch.ones(1, dtype=like.dtype)
+        """Ones with the length factor k along the leg (LEG_AXIS: z), ones alone without one."""
         if not self.fits_length:
             return torch.ones(3, dtype=like.dtype)
         k = torch.exp(self.params["log_length"].detach() if detach else self.params["log_length"]).to(like.dtype)
-        return torch.cat([one, one, k])
+        parts = [torch.ones(1, dtype=like.dtype)] * 3
+        parts[LEG_AXIS] = k
+        return torch.cat(parts)
 
     def scaled(self, points_mm: torch.Tensor) -> torch.Tensor:
         """Points of the model's frame at the fitted size: ``c + s (x - c)``, times the length
