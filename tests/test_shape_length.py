@@ -271,3 +271,16 @@ def test_a_femur_made_longer_for_its_girth_gets_that_length_from_five_views(leng
         assert not s.fits_length and res.trainer.sets[0].fits_size
     else:
         assert s.fits_length and 1.04 <= s.length <= length + 0.01
+
+
+def test_the_experiments_table_lists_each_subjects_fitted_length():
+    """table.md's line of fitted lengths (and sizes): per subject, the range over its runs; none
+    where no run fitted one."""
+    from clgs.experiment import _per_subject_range
+
+    rows = [{"subject": "b", "model_size": 1.02, "model_length": None},
+            {"subject": "b", "model_size": 1.05, "model_length": 1.06},
+            {"subject": "a", "model_size": 0.98}]
+    assert _per_subject_range(rows, "model_size") == "a 0.980, b 1.020-1.050"
+    assert _per_subject_range(rows, "model_length") == "b 1.060"
+    assert _per_subject_range([rows[0], rows[2]], "model_length") == ""
