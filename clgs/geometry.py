@@ -452,6 +452,23 @@ class Geometry:
             return np.broadcast_to(vec[0:3], pix.shape).copy(), d
         return pix, np.broadcast_to(vec[0:3], pix.shape).copy()
 
+    def detector_pixels(self, points_xyz, view: int) -> tuple:
+        """Where world points (N, 3) mm land on one view's detector: (column, row) pixel indices as
+        floats (pixel centres at integers; off the detector below -0.5 or above n - 0.5)."""
+        pts = np.asarray(points_xyz, float).reshape(-1, 3)
+        vec = self.view_vectors(scene=False, views=[view])[0]
+        src, det, eu, ev = vec[0:3], vec[3:6], vec[6:9], vec[9:12]
+        if self.mode == "cone":
+            normal = np.cross(eu, ev)
+            d = pts - src
+            dn = d @ normal
+            t = ((det - src) @ normal) / np.where(np.abs(dn) > 1e-12, dn, 1e-12)
+            hit = src + t[:, None] * d - det
+        else:
+            hit = pts - det
+        nv, nu = self.nDetector
+        return hit @ eu / (eu @ eu) + (nu - 1) / 2.0, hit @ ev / (ev @ ev) + (nv - 1) / 2.0
+
     def field_of_view(self, margin_px: float = 0.5) -> np.ndarray:
         """(Z, Y, X) bool: the voxels whose centre every view projects onto its detector, at least
         ``margin_px`` pixels inside its edge: where a truncated scan measured every line through
@@ -459,17 +476,8 @@ class Geometry:
         pts = self.volume_grid(scene=False).points().reshape(-1, 3)
         nv, nu = self.nDetector
         inside = np.ones(len(pts), bool)
-        for vec in self.view_vectors(scene=False):
-            src, det, eu, ev = vec[0:3], vec[3:6], vec[6:9], vec[9:12]
-            normal = np.cross(eu, ev)
-            if self.mode == "cone":
-                d = pts - src
-                t = ((det - src) @ normal) / np.where(np.abs(d @ normal) > 1e-12, d @ normal, 1e-12)
-                hit = src + t[:, None] * d - det
-            else:
-                hit = pts - det
-            iu = hit @ eu / (eu @ eu) + (nu - 1) / 2.0
-            iv = hit @ ev / (ev @ ev) + (nv - 1) / 2.0
+        for view in range(self.n_views):
+            iu, iv = self.detector_pixels(pts, view)
             lo, hi_u, hi_v = margin_px - 0.5, nu - 0.5 - margin_px, nv - 0.5 - margin_px
             inside &= (iu >= lo) & (iu <= hi_u) & (iv >= lo) & (iv <= hi_v)
         return inside.reshape(tuple(self.nVoxel))

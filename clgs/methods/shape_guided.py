@@ -80,7 +80,7 @@ from clgs.methods.gaussian import RUN_OPTIONS, method_output
 from clgs.ops.field_sampler import default_sampler
 from clgs.progress import enabled, phase
 from clgs.shape.gaussian_set import ShapeGuidedSet
-from clgs.shape.initialise import initialise, initialise_surroundings, sample_surrounding_centres
+from clgs.shape.initialise import ShapeInit, initialise, initialise_surroundings, sample_surrounding_centres
 from clgs.shape.priors import DensityPrior, random_subgrid, residual_prior_term, shape_prior_term
 from clgs.shape.size import (
     AUTO_TOLERANCE,
@@ -172,6 +172,14 @@ class ShapeGuidedConfig(GaussianFitConfig):
                             "a smooth deformation beyond the shape model's span (a cubic B-spline on the template, "
                             "bending-regularised), fitted after the shape coefficients: on, off (the paper), or "
                             "auto: on where no two neighbouring views are more than 40 degrees apart, off otherwise")
+    # the limb's outline measured in the views (clgs.shape.limb): "auto" carries the atlas's tissue
+    # onto it (the free Gaussians' start and the density prior, which then holds the limb's edge
+    # there) where the outline is measured on at least half the scan's slices; "off" the atlas's
+    # own limb (the paper)
+    limb_outline: str = setting("auto", "--limb-outline",
+                                "measure the limb's outline per slice from the views' silhouettes and carry the "
+                                "atlas's tissue onto it: auto (where the outline is measured on at least half the "
+                                "slices), off (the atlas's own limb, the paper)")
     # the shape surface's per-vertex standard deviation (clgs.shape.uncertainty): written beside it
     uncertainty: str = setting("on", "--uncertainty",
                                "write shape_uncertainty.ply/.vtk: the shape surface's per-vertex standard deviation "
@@ -212,14 +220,14 @@ class ShapeGuidedConfig(GaussianFitConfig):
     CLI = ("iterations", "schedule", "seed", "backend", "projector_mode", "lambda_tv", "lambda_dssim", "log_every",
            "log_early", "checkpoint_every", "max_gaussians", "n_shape", "n_free", "tau", "shape_prior", "density_prior",
            "density_prior_field", "free_init", "register_tissue", "alpha_init_iterations", "fit_size", "fit_length",
-           "residual", "residual_points", "uncertainty", "lambda_shape", "atlas_calibration")
+           "residual", "residual_points", "limb_outline", "uncertainty", "lambda_shape", "atlas_calibration")
     KIND = "shape-guided"
     FAST_ITERATIONS = 4_000  # the fast schedule's run (clgs.fit.schedule; docs/schedules.md)
     FAST_STOP_EVERY = 250
     CHOICES = {**GaussianFitConfig.CHOICES, "free_init": ("atlas", "fdk"), "register_tissue": ("auto", "free", "fdk"),
                "density_prior_field": ("all", "shape"),
                "fit_size": ("auto", "on", "off"), "fit_length": ("auto", "on", "off"),
-               "residual": ("auto", "on", "off"), "uncertainty": ("on", "off"),
+               "residual": ("auto", "on", "off"), "uncertainty": ("on", "off"), "limb_outline": ("auto", "off"),
                "atlas_calibration": ("fit", "off")}
     POSITIVE = GaussianFitConfig.POSITIVE | {"tau", "density_s", "atlas_bone_factor", "atlas_rest_factor",
                                              "length_factor"}
@@ -622,6 +630,7 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
     bounds = scale_bounds_for(geo, cfg.scale_bounds, cfg.scale_floor)
     free_kw = dict(box=box, scale_bounds=bounds, schedules=fsched, name="free", densify=True)
     free, alpha0, theta0, size, centre = None, None, None, None, size_centre(template)
+    warp = limb_warp(scan, cfg, template, atlas)
     if state is None:
         with phase(f"placing {cfg.n_shape} Gaussians on the template"):
             init = initialise(template, atlas, geo, cfg.n_shape, tau=cfg.tau, boundary_weight=cfg.boundary_weight,
@@ -634,6 +643,7 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
                                                   backend=cfg.backend)
         if bound:
             size = choose_size(scan, cfg, init, outside, centre)
+        blend = warp.blend(outside.centres) if warp is not None and outside is not None else None
         if size is not None:  # the bone's Gaussians at its size, the tissue along its length
             if cfg.length_factor is None:
                 init = dataclasses.replace(init, scales=init.scales * size)
@@ -643,6 +653,8 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
             if outside is not None:
                 outside = dataclasses.replace(outside, centres=stretched_surroundings(outside.centres, centre, size,
                                                                                       cfg.length_factor or 1.0))
+        if blend is not None:  # the atlas's limb carried onto the scan's outline
+            outside = carried_tissue(warp, outside, blend, centre, size, cfg.length_factor)
         if outside is not None:
             free = GaussianSet(geo.world_to_scene(outside.centres).astype(np.float32),
                                (outside.scales * geo.scale).astype(np.float32), outside.quats.astype(np.float32),
@@ -706,12 +718,54 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
     if atlas is not None:
         with phase("the density prior's atlas on the scan's grid"):
             prior = DensityPrior(atlas, template, geo, cfg.value_scale, cfg.density_s, cfg.density_points,
-                                 field=prior_field, factors=atlas_factors(cfg))
+                                 field=prior_field, factors=atlas_factors(cfg), limb=warp)
         if state is None:
             calibrate_atlas(scan, cfg, prior, shape_set, free if outside is not None else None)
         if cfg.density_prior:
             losses.append(LossTerm("density", cfg.lambda_density, prior))
     return make_trainer(scan, cfg, sets, losses, out_dir, progress)
+
+
+def limb_warp(scan, cfg: ShapeGuidedConfig, template, atlas):
+    """The atlas's limb carried onto the scan's outline (:class:`clgs.shape.limb.LimbWarp`) with
+    ``limb_outline="auto"``, an atlas with tissue around the bone and the whole field held to it;
+    None otherwise, or where the outline is measured on fewer than half the scan's slices (said)."""
+    if cfg.limb_outline == "off" or atlas is None or not cfg.density_prior or cfg.density_prior_field != "all":
+        return None
+    from clgs.shape import limb as L
+
+    if not L.spread_ok(L.view_directions(scan.geometry)):
+        return None  # one direction (one view, or views a half-turn apart): no outline to fit
+    with phase("the limb's outline in the views"):
+        try:
+            level, variance = L.tissue_level(atlas, template)
+        except InputError:  # an atlas of the bone alone
+            return None
+        warp = L.LimbWarp(L.scan_outline(scan), L.atlas_outline(atlas, template, L.view_directions(scan.geometry)),
+                          template, variance)
+    if warp.measured < 0.5:
+        print(f"the limb's outline was measured on {100 * warp.measured:.0f} % of the slices (the limb cut by the "
+              "detector's side?): the atlas's own limb is used", file=sys.stderr)
+        return None
+    placed = warp.placed(size_centre(template))
+    print(f"the limb's outline measured on {100 * warp.measured:.0f} % of the slices; against the atlas's, "
+          f"x {1 / np.median(placed['ratio'][:, 0]):.3f} across x, x {1 / np.median(placed['ratio'][:, 1]):.3f} "
+          "across y (medians)", file=sys.stderr)
+    return warp
+
+
+def carried_tissue(warp, tissue: ShapeInit, blend: np.ndarray, centre_mm, size, length) -> ShapeInit:
+    """The free Gaussians' start (``tissue``, centres of the subject's frame) carried from the
+    atlas's limb onto the scan's outline by ``warp``, ``blend`` (from :meth:`LimbWarp.blend` at the
+    template's centres) near the bone; their extents across the leg scaled with it (they start
+    isotropic, unrotated). ``size`` and ``length`` place the atlas's outline as the start's
+    stretch (:func:`clgs.shape.size.stretched_surroundings`) did."""
+
+    along = max(float(size), 1.0) * max(float(length or 1.0), 1.0) if size is not None else 1.0
+    centres, factor = warp.from_atlas(warp.placed(centre_mm, 1.0, along), tissue.centres, blend)
+    scales = np.array(tissue.scales, np.float64, copy=True)
+    scales[:, [a for a in range(3) if a != LEG_AXIS]] *= factor
+    return dataclasses.replace(tissue, centres=centres, scales=scales)
 
 
 def atlas_factors(cfg: ShapeGuidedConfig) -> tuple[float, float]:

@@ -64,7 +64,7 @@ class DensityPrior:
     few views leave them undetermined (docs/methods.md)."""
 
     def __init__(self, atlas, template, geometry, value_scale: float, s: float, n_points: int,
-                 set_name: str = "shape", field: str = "shape", factors: tuple = (1.0, 1.0)):
+                 set_name: str = "shape", field: str = "shape", factors: tuple = (1.0, 1.0), limb=None):
         if field not in ("shape", "all"):
             raise InputError(f"density prior field must be 'shape' or 'all', got {field!r}")
         self.atlas, self.template, self.geometry = atlas, template, geometry
@@ -77,6 +77,10 @@ class DensityPrior:
         # first, outside it by the second
         self.factors = (float(factors[0]), float(factors[1]))
         self._split: tuple | None = None  # split_atlas's two parts, made on first use
+        # the atlas's tissue carried onto the scan's limb outline (clgs.shape.limb.LimbWarp; None:
+        # the atlas's own limb), placed for the set's size and length (cached by them)
+        self.limb = limb
+        self._placed: tuple = (None, None)
         lo, hi = template.bounds()
         self._lo, self._hi = torch.as_tensor(lo, dtype=torch.float32), torch.as_tensor(hi, dtype=torch.float32)
         self._label = torch.as_tensor(template.label.astype(np.float32))[None, None]
@@ -133,10 +137,33 @@ class DensityPrior:
             return self._sized_points(s, pts_mm, x_t)
         return x_t, None
 
+    def _limb_points(self, s, pts_mm: torch.Tensor):
+        """(points of the subject carried onto the atlas's limb, the weight of the carry (N,) or
+        None) by ``limb`` (:class:`clgs.shape.limb.LimbWarp`), placed for the set's size and length
+        (the tissue's scaling: the size and length where larger than 1, as :meth:`_sized_points`)."""
+        if self.limb is None or self.field != "all":
+            return pts_mm, None
+        fitted = isinstance(s, ShapeGuidedSet) and s.fits_size
+        key = (s.size, s.length, tuple(s.size_centre.tolist())) if fitted else None
+        if self._placed[0] != key or self._placed[1] is None:
+            across = max(s.size, 1.0) if fitted else 1.0
+            along = across * max(s.length, 1.0) if fitted else 1.0
+            centre = s.size_centre.numpy() if fitted else np.zeros(3)
+            self._placed = (key, self.limb.placed(centre, across, along))
+        with torch.no_grad():
+            x0 = s.to_template(pts_mm) if isinstance(s, ShapeGuidedSet) else pts_mm
+        blend = self.limb.blend(x0.detach().double().numpy())
+        moved, weight = self.limb.to_atlas(self._placed[1], pts_mm.detach().double().numpy(), blend)
+        return torch.as_tensor(moved, dtype=pts_mm.dtype), torch.as_tensor(weight, dtype=torch.float64)
+
     def _read(self, s, pts_mm: torch.Tensor):
         """(mean, var, the template points read, the mask of :meth:`_points`) of the atlas at
         points of the subject (mm), scaled by ``factors`` (one read of the atlas, or of its two
-        parts when they are scaled apart)."""
+        parts when they are scaled apart). With ``limb``, the points are carried onto the atlas's
+        limb first and, as far as they are carried, the atlas's variance there is at most its
+        variance inside the limb (the population's spread of limb edges is not this scan's
+        uncertainty once its edge is measured: clgs.shape.limb)."""
+        pts_mm, carried = self._limb_points(s, pts_mm)
         x_t, keep = self._points(s, pts_mm)
         if self.factors == (1.0, 1.0):
             mean, var = self._atlas_at(x_t.double())
@@ -144,6 +171,9 @@ class DensityPrior:
             (bm, bv), (rm, rv) = (a.mean_var_at(x_t.double()) for a in self.split_atlas())
             b, t = self.factors
             mean, var = b * bm + t * rm, b * b * bv + t * t * rv
+        if carried is not None:
+            cap = self.limb.variance * self.factors[1] ** 2
+            var = var * (1.0 - carried) + carried * torch.clamp(var, max=cap)
         return mean, var, x_t, keep
 
     def split_atlas(self) -> tuple:
@@ -174,7 +204,7 @@ class DensityPrior:
         inside, outside = self.split_atlas()
         with torch.no_grad():
             for i in range(0, len(pts_mm), chunk):
-                x_t, _ = self._points(shape_set, pts_mm[i:i + chunk])
+                x_t, _ = self._points(shape_set, self._limb_points(shape_set, pts_mm[i:i + chunk])[0])
                 bone[i:i + chunk] = inside.mean_at(x_t.double()).numpy()
                 rest[i:i + chunk] = outside.mean_at(x_t.double()).numpy()
         shape = tuple(grid.shape)
