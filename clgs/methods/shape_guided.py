@@ -641,9 +641,10 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
                 outside = initialise_surroundings(init, template, atlas, geo, cfg.n_free,
                                                   threshold=cfg.init_threshold, seed=cfg.seed + 1,
                                                   backend=cfg.backend)
-        if bound:
-            size = choose_size(scan, cfg, init, outside, centre)
         blend = warp.blend(outside.centres) if warp is not None and outside is not None else None
+        if bound:  # the size searched with the tissue in the scan's limb, where it was measured
+            size = choose_size(scan, cfg, init, outside if blend is None else
+                               carried_tissue(warp, outside, blend, centre, None, None), centre)
         if size is not None:  # the bone's Gaussians at its size, the tissue along its length
             if cfg.length_factor is None:
                 init = dataclasses.replace(init, scales=init.scales * size)
@@ -748,9 +749,15 @@ def limb_warp(scan, cfg: ShapeGuidedConfig, template, atlas):
               "detector's side?): the atlas's own limb is used", file=sys.stderr)
         return None
     placed = warp.placed(size_centre(template))
+    taken = placed["weight"] > 0.999
+    if not taken.any():
+        print(f"the limb's outline was measured on {100 * warp.measured:.0f} % of the slices but differs from the "
+              "atlas's by more than the factors taken (clgs.shape.limb.MAX_RATIO): the atlas's own limb is used",
+              file=sys.stderr)
+        return None
+    across = 1.0 / np.median(placed["ratio"][taken], axis=0)
     print(f"the limb's outline measured on {100 * warp.measured:.0f} % of the slices; against the atlas's, "
-          f"x {1 / np.median(placed['ratio'][:, 0]):.3f} across x, x {1 / np.median(placed['ratio'][:, 1]):.3f} "
-          "across y (medians)", file=sys.stderr)
+          f"x {across[0]:.3f} across x, x {across[1]:.3f} across y (medians)", file=sys.stderr)
     return warp
 
 

@@ -86,7 +86,8 @@ def fit_ellipses(mask: np.ndarray, grid, directions: np.ndarray, usable: np.ndar
     zs = grid.origin[2] + grid.spacing[2] * np.arange(nz)
     d = np.asarray(directions, float)
     d = d[np.linalg.norm(d, axis=1) > 0.5]
-    half_voxel = 0.5 * (np.abs(d[:, 0]) * grid.spacing[0] + np.abs(d[:, 1]) * grid.spacing[1])
+    # the outermost voxel centres lie about half a voxel inside the edge along the grid's axes
+    half_voxel = 0.5 * np.maximum(np.abs(d[:, 0]) * grid.spacing[0], np.abs(d[:, 1]) * grid.spacing[1])
     quad = np.stack([d[:, 0] ** 2, d[:, 1] ** 2], 1)
     centre = np.zeros((nz, 2))
     radii = np.ones((nz, 2))
