@@ -103,8 +103,10 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
     ``angles``, radians: records made before it was named held the free set's start, ``"free"``;
     with the FDK's, the registrations in a row, ``register_passes``: records made before it was
     named made one, and the margin of a later pass's hole, ``pass_hole_margin_mm``: records made
-    before it had none) and whether the atlas was scaled to the scan (``atlas_calibration``: records
-    made before it existed count as ``"off"``); every Gaussian run names its schedule (``schedule``:
+    before it had none), whether the atlas was scaled to the scan (``atlas_calibration``: records
+    made before it existed count as ``"off"``) and, with the density prior, whether its tissue was
+    carried onto the limb's outline (``limb_outline``: records made before it existed count as
+    ``"off"``); every Gaussian run names its schedule (``schedule``:
     records made before schedules existed ran the paper's, compressed to the iterations)."""
     sim = {} if simulation == "same" else {"simulation": simulation}
     if method == "fdk":
@@ -133,6 +135,9 @@ def _made_with(method: str, iterations: int, seed: int, settings: dict, simulati
         if size["fit_size"] != "on":  # a length is a factor of a fitted size: none without one
             size["fit_length"] = "off"
         size["atlas_calibration"] = str(chosen.pop("atlas_calibration", ShapeGuidedConfig.atlas_calibration))
+        limb = str(chosen.pop("limb_outline", ShapeGuidedConfig.limb_outline))
+        if method == "shape":  # the limb's outline is carried through the density prior only
+            size["limb_outline"] = limb
         passes = int(chosen.pop("register_passes", ShapeGuidedConfig.register_passes))
         margin = float(chosen.pop("pass_hole_margin_mm", ShapeGuidedConfig.pass_hole_margin_mm))
         if size["register_tissue"] == "fdk" and passes != 1:  # they repeat the FDK's tissue's registration only
@@ -166,6 +171,7 @@ _OPTION = {"iterations": "--iterations", "seed": "--seed", "settings": "settings
            "register_passes": "shape-guided setting register_passes",
            "pass_hole_margin_mm": "shape-guided setting pass_hole_margin_mm",
            "atlas_calibration": "shape-guided setting atlas_calibration",
+           "limb_outline": "shape-guided setting limb_outline",
            "schedule": "the Gaussian runs' schedule (--set schedule=...)", "tissue_seed": "--tissue-seed"}
 
 
@@ -195,7 +201,7 @@ def _check_same_run(path: Path, row: dict, made_with: dict) -> None:
                 "fit_size": "off", "fit_length": "off",
                 "residual": "off", "schedule": "paper", "lambda_shape": PAPER_LAMBDA_SHAPE,
                 "register_tissue": "free", "register_passes": 1, "pass_hole_margin_mm": 0.0,
-                "atlas_calibration": "off"}
+                "atlas_calibration": "off", "limb_outline": "off"}
     made_with = {"simulation": "same", **made_with}
     for key, want in made_with.items():
         had = row.get(key, defaults.get(key, want))

@@ -152,7 +152,8 @@ def test_experiment_records_made_before_the_calibration_count_as_off(tmp_path):
     record made without it beside a run with it (nor the reverse); R2-Gaussian mode has no atlas."""
     from clgs.experiment import _check_same_run, _made_with
 
-    old = {"iterations": 1000, "seed": 0, "settings": {}, "fit_size": "on", "fit_length": "auto", "schedule": "fast",
+    old = {"iterations": 1000, "seed": 0, "settings": {},
+               "limb_outline": "auto", "fit_size": "on", "fit_length": "auto", "schedule": "fast",
            "lambda_shape": 0.0}
     ap_lat = np.radians([0.0, 90.0])
     fit = _made_with("shape", 1000, 0, {"shape": {"atlas_calibration": "fit"}}, "same", ap_lat)

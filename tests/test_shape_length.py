@@ -230,7 +230,8 @@ def test_experiment_records_name_the_length_and_older_ones_count_as_without(tmp_
 
     want = _made_with("shape", 1000, 0, {}, "same")
     assert want["fit_length"] == "auto" and want["settings"] == {}
-    old = {"iterations": 1000, "seed": 0, "settings": {}, "fit_size": "on", "schedule": "fast", "lambda_shape": 0.0,
+    old = {"iterations": 1000, "seed": 0, "settings": {},
+               "limb_outline": "auto", "fit_size": "on", "schedule": "fast", "lambda_shape": 0.0,
            "register_tissue": "free", "residual": "off"}
     with pytest.raises(InputError, match="fit_length 'off', this run asks for 'auto'"):
         _check_same_run(tmp_path / "run.json", old, want)

@@ -116,7 +116,7 @@ def test_the_warp_carries_the_scans_outline_onto_the_atlases_and_back():
     # the atlas's outline placed for a larger limb: twice across about the centre
     twice = warp.placed(np.array([0.0, 0.0, 100.0]), 2.0, 1.0)
     np.testing.assert_allclose(twice["ratio"][5], [1.0, 1.0], atol=1e-12)  # 110/50 > MAX_RATIO: not taken
-    assert 110.0 / 50.0 > MAX_RATIO
+    assert MAX_RATIO < 110.0 / 50.0
 
 
 # ---------------------------------------------------------------------------------------- the run
@@ -233,3 +233,21 @@ def test_a_truncated_scan_keeps_the_atlases_limb(template, shape_model, wide_atl
                                    **_small(alpha_freeze=3, alpha_init_iterations=0, fit_size="off"))
     assert _prior(res).limb is None
     assert "the limb's outline was measured on 0 % of the slices" in capsys.readouterr().err
+
+
+def test_experiment_records_name_the_limb_outline_and_older_ones_count_as_without(tmp_path):
+    """A resumed experiment must not keep a shape-guided record made before the limb's outline
+    beside runs with it: older records count as ``limb_outline="off"``; the runs without the
+    density prior (which carries the outline) do not name it."""
+    from clgs.errors import InputError
+    from clgs.experiment import _check_same_run, _made_with
+
+    want = _made_with("shape", 1000, 0, {}, "same")
+    assert want["limb_outline"] == "auto"
+    old = {"iterations": 1000, "seed": 0, "settings": {}, "fit_size": "on", "fit_length": "auto", "schedule": "fast",
+           "lambda_shape": 0.0}
+    with pytest.raises(InputError, match="limb_outline 'off', this run asks for 'auto'"):
+        _check_same_run(tmp_path / "run.json", old, want)
+    _check_same_run(tmp_path / "run.json", old, _made_with("shape", 1000, 0, {"shape": {"limb_outline": "off"}},
+                                                           "same"))
+    assert "limb_outline" not in _made_with("init+shape", 1000, 0, {}, "same")

@@ -228,7 +228,7 @@ def test_experiment_records_made_before_the_size_count_as_made_without_one(tmp_p
 
     # the record below is from before schedules and the shape prior's weight were named too: it ran
     # the paper's
-    paper = {"schedule": "paper", "lambda_shape": 1e-4}
+    paper = {"schedule": "paper", "lambda_shape": 1e-4, "limb_outline": "off"}
     want = _made_with("shape", 1000, 0, {"shape": paper}, "same")
     assert want["fit_size"] == "on" and want["settings"] == {} and want["schedule"] == "paper"
     assert want["lambda_shape"] == 1e-4
@@ -252,7 +252,8 @@ def test_experiment_records_made_before_the_shape_prior_weight_was_named_count_a
     from clgs.errors import InputError
     from clgs.experiment import _check_same_run, _made_with
 
-    old = {"iterations": 1000, "seed": 0, "settings": {}, "fit_size": "on", "fit_length": "auto", "schedule": "fast"}
+    old = {"iterations": 1000, "seed": 0, "settings": {},
+               "limb_outline": "auto", "fit_size": "on", "fit_length": "auto", "schedule": "fast"}
     want = _made_with("shape", 1000, 0, {}, "same")
     assert want["lambda_shape"] == 0.0 and want["settings"] == {}
     with pytest.raises(InputError, match="lambda_shape 0.0001, this run asks for 0.0"):
@@ -268,7 +269,8 @@ def test_experiment_records_made_before_the_registrations_tissue_was_named_count
     from clgs.errors import InputError
     from clgs.experiment import _check_same_run, _made_with
 
-    old = {"iterations": 1000, "seed": 0, "settings": {}, "fit_size": "on", "fit_length": "auto", "schedule": "fast",
+    old = {"iterations": 1000, "seed": 0, "settings": {},
+               "limb_outline": "auto", "fit_size": "on", "fit_length": "auto", "schedule": "fast",
            "lambda_shape": 0.0}
     want = _made_with("shape", 1000, 0, {"shape": {"register_tissue": "fdk"}}, "same")
     assert want["register_tissue"] == "fdk" and want["settings"] == {}
@@ -300,7 +302,8 @@ def test_experiment_records_name_the_fdk_registrations_passes_only_where_they_ru
 
     five = np.linspace(0, np.pi, 5, endpoint=False)
     # the residual as a 5-view run records it today (it has its own check)
-    one_pass = {"iterations": 1000, "seed": 0, "settings": {}, "fit_size": "on", "fit_length": "auto",
+    one_pass = {"iterations": 1000, "seed": 0, "settings": {},
+               "limb_outline": "auto", "fit_size": "on", "fit_length": "auto",
                 "schedule": "fast", "lambda_shape": 0.0, "register_tissue": "fdk", "residual": "on"}
     want = _made_with("shape", 1000, 0, {"shape": {"register_passes": 3}}, "same", five)
     assert want["register_passes"] == 3 and want["settings"] == {} and want["pass_hole_margin_mm"] == 3.0
