@@ -223,6 +223,13 @@ def atlas_outline(atlas, template, directions) -> Ellipses:
     return fit_ellipses(atlas.mean > 0.5 * level, atlas.grid(), directions)
 
 
+def blend_of_distance(d):
+    """The carry's blend at signed distances ``d`` (mm) from the template's bone: 0 within
+    :data:`BLEND_MM`[0], 1 beyond [1], smoothstep between (NumPy or torch)."""
+    t = ((d - BLEND_MM[0]) / (BLEND_MM[1] - BLEND_MM[0])).clip(0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
 def _smooth(values: np.ndarray, sigma: float) -> np.ndarray:
     from scipy.ndimage import gaussian_filter1d
 
@@ -274,9 +281,7 @@ class LimbWarp:
     def blend(self, template_points) -> np.ndarray:
         """0 within :data:`BLEND_MM`[0] of the template's bone, 1 beyond [1], smooth between (at
         points of the template's frame)."""
-        d = self.template.sdf_at(np.asarray(template_points, float))
-        t = np.clip((d - BLEND_MM[0]) / (BLEND_MM[1] - BLEND_MM[0]), 0.0, 1.0)
-        return t * t * (3.0 - 2.0 * t)
+        return blend_of_distance(self.template.sdf_at(np.asarray(template_points, float)))
 
     @staticmethod
     def _at(placed: dict, z) -> tuple:

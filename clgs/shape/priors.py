@@ -81,6 +81,7 @@ class DensityPrior:
         # the atlas's own limb), placed for the set's size and length (cached by them)
         self.limb = limb
         self._placed: tuple = (None, None)
+        self._sdf: torch.Tensor | None = None  # the template's signed distance, for the carry's blend
         lo, hi = template.bounds()
         self._lo, self._hi = torch.as_tensor(lo, dtype=torch.float32), torch.as_tensor(hi, dtype=torch.float32)
         self._label = torch.as_tensor(template.label.astype(np.float32))[None, None]
@@ -137,24 +138,36 @@ class DensityPrior:
             return self._sized_points(s, pts_mm, x_t)
         return x_t, None
 
-    def _limb_points(self, s, pts_mm: torch.Tensor):
-        """(points of the subject carried onto the atlas's limb, the weight of the carry (N,) or
-        None) by ``limb`` (:class:`clgs.shape.limb.LimbWarp`), placed for the set's size and length
-        (the tissue's scaling: the size and length where larger than 1, as :meth:`_sized_points`)."""
-        if self.limb is None or self.field != "all":
-            return pts_mm, None
+    def _carried(self, s, pts_mm: torch.Tensor, x_t: torch.Tensor):
+        """(the template points read once points of the subject are carried onto the atlas's limb,
+        the weight of the carry (N,) float64) by ``limb`` (:class:`clgs.shape.limb.LimbWarp`), from
+        the plain read ``x_t`` of :meth:`_points`: the carry's blend from the template bone's
+        distance at ``x_t``, and the read moved by the carry over the tissue's size across the leg
+        (the size where larger than 1, as :meth:`_sized_points` reads the tissue; the map to the
+        template is taken as that scaling where the carry acts, 5 mm and more from the bone). The
+        atlas's outline is placed for the set's size and length (cached by them)."""
+        from clgs.shape.limb import LEG_AXIS, blend_of_distance
+
         fitted = isinstance(s, ShapeGuidedSet) and s.fits_size
         key = (s.size, s.length, tuple(s.size_centre.tolist())) if fitted else None
+        across = max(s.size, 1.0) if fitted else 1.0
         if self._placed[0] != key or self._placed[1] is None:
-            across = max(s.size, 1.0) if fitted else 1.0
             along = across * max(s.length, 1.0) if fitted else 1.0
             centre = s.size_centre.numpy() if fitted else np.zeros(3)
             self._placed = (key, self.limb.placed(centre, across, along))
-        with torch.no_grad():
-            x0 = s.to_template(pts_mm) if isinstance(s, ShapeGuidedSet) else pts_mm
-        blend = self.limb.blend(x0.detach().double().numpy())
-        moved, weight = self.limb.to_atlas(self._placed[1], pts_mm.detach().double().numpy(), blend)
-        return torch.as_tensor(moved, dtype=pts_mm.dtype), torch.as_tensor(weight, dtype=torch.float64)
+        if self._sdf is None:
+            self._sdf = torch.as_tensor(self.template.sdf.astype(np.float32))[None, None]
+        g = ((x_t.float() - self._lo) / (self._hi - self._lo) * 2 - 1).reshape(1, 1, 1, -1, 3)
+        d = F.grid_sample(self._sdf, g, mode="bilinear", padding_mode="border", align_corners=True).reshape(-1)
+        # beyond the template's grid: its border's distance plus the way out to the point (as sdf_at)
+        out = torch.clamp(torch.maximum(self._lo - x_t.float(), x_t.float() - self._hi), min=0.0)
+        d = d + torch.linalg.norm(out, dim=1)
+        blend = blend_of_distance(d.double().numpy())
+        p = pts_mm.detach().double().numpy()
+        moved, weight = self.limb.to_atlas(self._placed[1], p, blend)
+        shift = torch.as_tensor((moved - p) / across, dtype=x_t.dtype)
+        shift[:, LEG_AXIS] = 0.0
+        return x_t + shift, torch.as_tensor(weight, dtype=torch.float64)
 
     def _read(self, s, pts_mm: torch.Tensor):
         """(mean, var, the template points read, the mask of :meth:`_points`) of the atlas at
@@ -163,8 +176,10 @@ class DensityPrior:
         limb first and, as far as they are carried, the atlas's variance there is at most its
         variance inside the limb (the population's spread of limb edges is not this scan's
         uncertainty once its edge is measured: clgs.shape.limb)."""
-        pts_mm, carried = self._limb_points(s, pts_mm)
         x_t, keep = self._points(s, pts_mm)
+        carried = None
+        if self.limb is not None and self.field == "all":
+            x_t, carried = self._carried(s, pts_mm, x_t)
         if self.factors == (1.0, 1.0):
             mean, var = self._atlas_at(x_t.double())
         else:
@@ -204,7 +219,9 @@ class DensityPrior:
         inside, outside = self.split_atlas()
         with torch.no_grad():
             for i in range(0, len(pts_mm), chunk):
-                x_t, _ = self._points(shape_set, self._limb_points(shape_set, pts_mm[i:i + chunk])[0])
+                x_t, _ = self._points(shape_set, pts_mm[i:i + chunk])
+                if self.limb is not None and self.field == "all":
+                    x_t = self._carried(shape_set, pts_mm[i:i + chunk], x_t)[0]
                 bone[i:i + chunk] = inside.mean_at(x_t.double()).numpy()
                 rest[i:i + chunk] = outside.mean_at(x_t.double()).numpy()
         shape = tuple(grid.shape)
