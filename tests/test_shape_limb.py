@@ -251,3 +251,26 @@ def test_experiment_records_name_the_limb_outline_and_older_ones_count_as_withou
     _check_same_run(tmp_path / "run.json", old, _made_with("shape", 1000, 0, {"shape": {"limb_outline": "off"}},
                                                            "same"))
     assert "limb_outline" not in _made_with("init+shape", 1000, 0, {}, "same")
+
+
+def test_the_priors_blend_is_the_warps_inside_and_beyond_the_templates_grid(template, wide_atlas):
+    """The density prior reads the carry's blend from the template's distance in torch (bilinear,
+    the grid's border plus the way out beyond it); the start's, :meth:`LimbWarp.blend`, from
+    ``Template.sdf_at``: the same within 0.05 on points near the bone, across the blend's ramp and
+    beyond the template's grid. With equal outlines the carry moves nothing."""
+    import torch
+
+    from clgs.shape.limb import Ellipses, LimbWarp
+    from clgs.shape.priors import DensityPrior
+
+    z = np.arange(-40.0, 41.0, 2.0)
+    same = Ellipses(z, np.zeros((len(z), 2)), np.tile([30.0, 26.0], (len(z), 1)), np.ones(len(z), bool))
+    warp = LimbWarp(same, same, template, 1e-6)
+    prior = DensityPrior(wide_atlas, template, _limb_geometry(AP_LAT), 1.0, 0.05, 8, field="all", limb=warp)
+    rng = np.random.default_rng(5)
+    pts = np.concatenate([rng.uniform(-45, 45, (400, 3)) * [1, 1, 0.6], [[16.0, 0, 0], [24.0, 0, 0], [40.0, 0, 0]]])
+    x = torch.as_tensor(pts, dtype=torch.float64)
+    moved, weight = prior._carried(object(), x, x)
+    np.testing.assert_allclose(weight.numpy(), warp.blend(pts), atol=0.05)
+    np.testing.assert_allclose(moved.numpy(), pts, atol=1e-9)
+    assert weight[-3] < 0.2 and weight[-1] == 1.0
