@@ -662,7 +662,7 @@ def build_trainer(scan, anatomy_parts, cfg: ShapeGuidedConfig, out_dir=None, *, 
         # search and the registrations hold the atlas's own, as without: carried there, a short
         # femur, held-out subject 24, was fitted larger, 0.951 -> 0.972, 1.38 -> 1.69 mm from AP +
         # lateral; docs/results.md)
-        if blend is not None:
+        if blend is not None and outside is not None:
             free = free_set(geo, carried_tissue(warp, outside, blend, centre, size, cfg.length_factor), cfg, free_kw)
         registering = bound and (cfg.alpha_init_iterations > 0
                                  or (cfg.residual == "on" and cfg.residual_init_iterations > 0))
