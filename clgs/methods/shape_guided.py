@@ -743,15 +743,15 @@ def limb_warp(scan, cfg: ShapeGuidedConfig, template, atlas):
         return None
     from clgs.shape import limb as L
 
-    if not L.spread_ok(L.view_directions(scan.geometry)):
+    directions = L.view_directions(scan.geometry)
+    if not L.spread_ok(directions):
         return None  # one direction (one view, or views a half-turn apart): no outline to fit
     with phase("the limb's outline in the views"):
         try:
             level, variance = L.tissue_level(atlas, template)
         except InputError:  # an atlas of the bone alone
             return None
-        warp = L.LimbWarp(L.scan_outline(scan), L.atlas_outline(atlas, template, L.view_directions(scan.geometry)),
-                          template, variance)
+        warp = L.LimbWarp(L.scan_outline(scan), L.atlas_outline(atlas, level, directions), template, variance)
     if warp.measured < 0.5:
         print(f"the limb's outline was measured on {100 * warp.measured:.0f} % of the slices (the limb cut by the "
               "detector's side?): the atlas's own limb is used", file=sys.stderr)
@@ -775,7 +775,6 @@ def carried_tissue(warp, tissue: ShapeInit, blend: np.ndarray, centre_mm, size, 
     template's centres) near the bone; their extents across the leg scaled with it (they start
     isotropic, unrotated). ``size`` and ``length`` place the atlas's outline as the start's
     stretch (:func:`clgs.shape.size.stretched_surroundings`) did."""
-
     along = max(float(size), 1.0) * max(float(length or 1.0), 1.0) if size is not None else 1.0
     centres, factor = warp.from_atlas(warp.placed(centre_mm, 1.0, along), tissue.centres, blend)
     scales = np.array(tissue.scales, np.float64, copy=True)

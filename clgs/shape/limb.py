@@ -4,10 +4,10 @@ From few views the free Gaussians cannot tell where the limb's edge runs between
 graze it: two views leave a box where the limb is round, and the atlas's tissue, the prior there,
 is the population's limb (its own girth, its edge blurred by every limb's; its variance so large
 at the edge that the prior lets go there). But each view's silhouette does say where the limb's
-edge is along that view's detector: the visual hull of the silhouettes, cut per slice along the
-leg, gives the outline's extent along each view's detector direction, and an ellipse (axes along
-x and y, as the atlas's limb) fitted to those extents is the limb's outline where the views
-cannot see it. The same fit on the atlas's tissue gives the atlas's outline; a per-slice
+edge is: per slice along the leg, the lines from the source through the silhouette's two edges
+graze the limb, and the ellipse (axes along x and y, as the atlas's limb) tangent to every
+view's lines is the limb's outline where the views cannot see it. The same fit on the atlas's
+tissue (its extents along the views' detector directions) gives the atlas's outline; a per-slice
 similarity (a shift and a scale along x and along y) carries the one onto the other.
 
 :class:`LimbWarp` holds both outlines and gives the map, for the density prior (the atlas read
@@ -91,15 +91,13 @@ def fit_ellipses(mask: np.ndarray, grid, directions: np.ndarray, usable: np.ndar
     quad = np.stack([d[:, 0] ** 2, d[:, 1] ** 2], 1)
     centre = np.zeros((nz, 2))
     radii = np.ones((nz, 2))
-    valid = np.zeros(nz, bool) if usable is None else np.array(usable, bool)
+    valid = np.zeros(nz, bool)
+    usable = np.ones(nz, bool) if usable is None else np.asarray(usable, bool)
     if len(d) < 2:
-        return Ellipses(zs, centre, radii, np.zeros(nz, bool))
+        return Ellipses(zs, centre, radii, valid)
     for k in range(nz):
         sl = mask[k]
-        if not valid[k] and usable is not None:
-            continue
-        if not sl.any() or sl[0].any() or sl[-1].any() or sl[:, 0].any() or sl[:, -1].any():
-            valid[k] = False
+        if not usable[k] or not sl.any() or sl[0].any() or sl[-1].any() or sl[:, 0].any() or sl[:, -1].any():
             continue
         j, i = np.nonzero(sl)
         along = xs[i][None, :] * d[:, 0:1] + ys[j][None, :] * d[:, 1:2]  # (V, N)
@@ -216,10 +214,9 @@ def tissue_level(atlas, template, away_mm: float = 15.0) -> tuple[float, float]:
     return float(np.median(mean[inside])), float(np.median(var[inside]))
 
 
-def atlas_outline(atlas, template, directions) -> Ellipses:
+def atlas_outline(atlas, level: float, directions) -> Ellipses:
     """The atlas's limb outline in the template's frame (module doc): the atlas's mean above half
-    its tissue level (:func:`tissue_level`), fitted along the scan's view ``directions``."""
-    level, _ = tissue_level(atlas, template)
+    its tissue ``level`` (:func:`tissue_level`), fitted along the scan's view ``directions``."""
     return fit_ellipses(atlas.mean > 0.5 * level, atlas.grid(), directions)
 
 

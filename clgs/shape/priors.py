@@ -138,6 +138,11 @@ class DensityPrior:
             return self._sized_points(s, pts_mm, x_t)
         return x_t, None
 
+    @property
+    def _carries(self) -> bool:
+        """Whether reads are carried onto the scan's limb (a warp, and the whole field held)."""
+        return self.limb is not None and self.field == "all"
+
     def _carried(self, s, pts_mm: torch.Tensor, x_t: torch.Tensor):
         """(the template points read once points of the subject are carried onto the atlas's limb,
         the weight of the carry (N,) float64) by ``limb`` (:class:`clgs.shape.limb.LimbWarp`), from
@@ -178,7 +183,7 @@ class DensityPrior:
         uncertainty once its edge is measured: clgs.shape.limb)."""
         x_t, keep = self._points(s, pts_mm)
         carried = None
-        if self.limb is not None and self.field == "all":
+        if self._carries:
             x_t, carried = self._carried(s, pts_mm, x_t)
         if self.factors == (1.0, 1.0):
             mean, var = self._atlas_at(x_t.double())
@@ -220,7 +225,7 @@ class DensityPrior:
         with torch.no_grad():
             for i in range(0, len(pts_mm), chunk):
                 x_t, _ = self._points(shape_set, pts_mm[i:i + chunk])
-                if self.limb is not None and self.field == "all":
+                if self._carries:
                     x_t = self._carried(shape_set, pts_mm[i:i + chunk], x_t)[0]
                 bone[i:i + chunk] = inside.mean_at(x_t.double()).numpy()
                 rest[i:i + chunk] = outside.mean_at(x_t.double()).numpy()
