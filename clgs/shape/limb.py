@@ -27,7 +27,8 @@ from clgs.errors import InputError
 from clgs.shape.size import LEG_AXIS
 
 #: a detector pixel is inside the limb's silhouette where its line integral is above this share of
-#: the view's 99th percentile (tissue grazed over ~0.1 mm of chord at the atlas's densities)
+#: the view's 99th percentile (on the femur's scans about 0.1: a chord of some 5 mm of tissue, which
+#: lies within about 0.05 mm of the edge of a limb 120 mm across)
 EDGE_FRACTION = 0.03
 #: the scan's outline against the atlas's, per axis, at most this factor either way (beyond it the
 #: slice is taken as unmeasured: a silhouette cut by something else than the limb)
@@ -289,26 +290,26 @@ class LimbWarp:
         w = np.interp(zz, placed["z"], placed["weight"])
         return cs, ct, r, w
 
+    def _carry(self, placed: dict, points_mm, blend, inverse: bool) -> tuple:
+        """(the points carried, the per-axis factor across the leg (N, 2), the slices' measured
+        weight (N,)): the scan's outline onto the atlas's, or back with ``inverse``; blended."""
+        p = np.asarray(points_mm, float)
+        cs, ct, r, w = self._at(placed, p[:, LEG_AXIS])
+        axes = [a for a in range(3) if a != LEG_AXIS]
+        moved = cs + (p[:, axes] - ct) / r if inverse else ct + (p[:, axes] - cs) * r
+        b = np.asarray(blend, float)[:, None]
+        out = p.copy()
+        out[:, axes] = p[:, axes] + b * (moved - p[:, axes])
+        return out, 1.0 + b * ((1.0 / r if inverse else r) - 1.0), w
+
     def to_atlas(self, placed: dict, points_mm: np.ndarray, blend: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(points of the scan carried onto the atlas's limb, the weight of the carry: ``blend``
         times the slice's measured weight), points (N, 3) mm of the subject frame."""
-        p = np.asarray(points_mm, float)
-        cs, ct, r, w = self._at(placed, p[:, LEG_AXIS])
-        out = p.copy()
-        axes = [a for a in range(3) if a != LEG_AXIS]
-        moved = ct + (p[:, axes] - cs) * r
-        b = np.asarray(blend, float)[:, None]
-        out[:, axes] = p[:, axes] + b * (moved - p[:, axes])
+        out, _, w = self._carry(placed, points_mm, blend, inverse=False)
         return out, np.asarray(blend, float) * w
 
     def from_atlas(self, placed: dict, points_mm: np.ndarray, blend: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(points of the atlas's limb carried onto the scan's, the per-axis factor across the leg
         (N, 2) their extents take), the inverse of :meth:`to_atlas` at ``blend`` 1; blended as it."""
-        p = np.asarray(points_mm, float)
-        cs, ct, r, _ = self._at(placed, p[:, LEG_AXIS])
-        out = p.copy()
-        axes = [a for a in range(3) if a != LEG_AXIS]
-        moved = cs + (p[:, axes] - ct) / r
-        b = np.asarray(blend, float)[:, None]
-        out[:, axes] = p[:, axes] + b * (moved - p[:, axes])
-        return out, 1.0 + b * (1.0 / r - 1.0)
+        out, factor, _ = self._carry(placed, points_mm, blend, inverse=True)
+        return out, factor
